@@ -1,0 +1,206 @@
+//! Two-dimensional real FFTs, planned once per size and shared.
+//!
+//! # Conventions
+//! - Input planes are row-major `height × width` real arrays (see [`crate::image`]).
+//! - Spectra hold the non-redundant half: `width / 2 + 1` frequencies along x, all `height`
+//!   along y, stored **column-major**: bin `(kx, ky)` is `spec[kx * height + ky]`. Only
+//!   pointwise products of spectra of the same plan are meaningful, so the layout never leaks.
+//! - [`Fft2::forward`] is unnormalised; [`Fft2::inverse`] divides by `width * height`, so
+//!   `inverse(forward(x)) == x`.
+//! - Plans come from a process-wide cache ([`Fft2::plan`]); sizes are best chosen with
+//!   [`good_size`] (even, of the form 2^a·3^b).
+
+use realfft::{ComplexToReal, RealFftPlanner, RealToComplex};
+use rustfft::num_complex::Complex32;
+use rustfft::{Fft, FftPlanner};
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex, OnceLock};
+
+/// A planned 2-D real FFT of one size.
+pub struct Fft2 {
+    pub width: usize,
+    pub height: usize,
+    /// `width / 2 + 1`
+    pub half_width: usize,
+    r2c: Arc<dyn RealToComplex<f32>>,
+    c2r: Arc<dyn ComplexToReal<f32>>,
+    col_fwd: Arc<dyn Fft<f32>>,
+    col_inv: Arc<dyn Fft<f32>>,
+}
+
+impl std::fmt::Debug for Fft2 {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "Fft2({}x{})", self.width, self.height)
+    }
+}
+
+type PlanCache = Mutex<HashMap<(usize, usize), Arc<Fft2>>>;
+
+fn cache() -> &'static PlanCache {
+    static CACHE: OnceLock<PlanCache> = OnceLock::new();
+    CACHE.get_or_init(|| Mutex::new(HashMap::new()))
+}
+
+impl Fft2 {
+    /// The shared plan for `width × height` (created on first use).
+    pub fn plan(width: usize, height: usize) -> Arc<Fft2> {
+        let mut c = cache().lock().unwrap_or_else(|e| e.into_inner());
+        c.entry((width, height)).or_insert_with(|| Arc::new(Fft2::new(width, height))).clone()
+    }
+
+    fn new(width: usize, height: usize) -> Self {
+        assert!(width > 0 && height > 0, "empty FFT");
+        let mut rp = RealFftPlanner::<f32>::new();
+        let mut cp = FftPlanner::<f32>::new();
+        Self {
+            width,
+            height,
+            half_width: width / 2 + 1,
+            r2c: rp.plan_fft_forward(width),
+            c2r: rp.plan_fft_inverse(width),
+            col_fwd: cp.plan_fft_forward(height),
+            col_inv: cp.plan_fft_inverse(height),
+        }
+    }
+
+    /// Number of complex bins in a spectrum of this plan.
+    pub fn spectrum_len(&self) -> usize {
+        self.half_width * self.height
+    }
+
+    /// Forward transform of a row-major real array of `width * height` values.
+    pub fn forward(&self, input: &[f32]) -> Vec<Complex32> {
+        let mut spec = vec![Complex32::new(0.0, 0.0); self.spectrum_len()];
+        self.forward_into(input, &mut spec);
+        spec
+    }
+
+    /// Forward transform into a caller-owned spectrum buffer.
+    pub fn forward_into(&self, input: &[f32], spec: &mut [Complex32]) {
+        assert_eq!(input.len(), self.width * self.height, "FFT input size");
+        assert_eq!(spec.len(), self.spectrum_len(), "FFT spectrum size");
+        let (w, h, hw) = (self.width, self.height, self.half_width);
+        let mut row = self.r2c.make_input_vec();
+        let mut out = self.r2c.make_output_vec();
+        let mut scratch = self.r2c.make_scratch_vec();
+        for y in 0..h {
+            row.copy_from_slice(&input[y * w..(y + 1) * w]);
+            // Lengths are right by construction; realfft only errs on wrong lengths.
+            let _ = self.r2c.process_with_scratch(&mut row, &mut out, &mut scratch);
+            for kx in 0..hw {
+                spec[kx * h + y] = out[kx];
+            }
+        }
+        let mut cs = vec![Complex32::new(0.0, 0.0); self.col_fwd.get_inplace_scratch_len()];
+        self.col_fwd.process_with_scratch(spec, &mut cs);
+    }
+
+    /// Inverse transform (normalised by `1 / (width * height)`); consumes the spectrum.
+    pub fn inverse(&self, mut spec: Vec<Complex32>) -> Vec<f32> {
+        let mut out = vec![0.0; self.width * self.height];
+        self.inverse_into(&mut spec, &mut out);
+        out
+    }
+
+    /// Inverse transform into `out`; `spec` is used as scratch and left modified.
+    pub fn inverse_into(&self, spec: &mut [Complex32], out: &mut [f32]) {
+        assert_eq!(out.len(), self.width * self.height, "FFT output size");
+        assert_eq!(spec.len(), self.spectrum_len(), "FFT spectrum size");
+        let (w, h, hw) = (self.width, self.height, self.half_width);
+        let mut cs = vec![Complex32::new(0.0, 0.0); self.col_inv.get_inplace_scratch_len()];
+        self.col_inv.process_with_scratch(spec, &mut cs);
+        let mut row = self.c2r.make_input_vec();
+        let mut res = self.c2r.make_output_vec();
+        let mut scratch = self.c2r.make_scratch_vec();
+        let norm = 1.0 / (w * h) as f32;
+        for y in 0..h {
+            for kx in 0..hw {
+                row[kx] = spec[kx * h + y];
+            }
+            // DC and (for even widths) Nyquist bins of a real signal's row transform are real.
+            row[0].im = 0.0;
+            if w % 2 == 0 {
+                row[hw - 1].im = 0.0;
+            }
+            let _ = self.c2r.process_with_scratch(&mut row, &mut res, &mut scratch);
+            for (o, r) in out[y * w..(y + 1) * w].iter_mut().zip(&res) {
+                *o = r * norm;
+            }
+        }
+    }
+
+    /// Spatial frequencies (cycles per pixel) of bin `i` of a spectrum: `(fx, fy)`.
+    pub fn frequency(&self, i: usize) -> (f32, f32) {
+        let kx = i / self.height;
+        let ky = i % self.height;
+        let fy = if ky <= self.height / 2 { ky as f32 } else { ky as f32 - self.height as f32 };
+        (kx as f32 / self.width as f32, fy / self.height as f32)
+    }
+}
+
+/// The smallest even `m >= n` of the form 2^a·3^b (fast for rustfft and realfft).
+pub fn good_size(n: usize) -> usize {
+    let n = n.max(2);
+    let mut best = usize::MAX;
+    let mut p2 = 2usize;
+    while p2 < 2 * n + 2 {
+        let mut v = p2;
+        while v < n {
+            v *= 3;
+        }
+        best = best.min(v);
+        p2 *= 2;
+    }
+    best
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn good_sizes() {
+        assert_eq!(good_size(1), 2);
+        assert_eq!(good_size(100), 108);
+        assert_eq!(good_size(256), 256);
+        assert_eq!(good_size(257), 288);
+        assert_eq!(good_size(318), 324);
+        for n in 2..600 {
+            let g = good_size(n);
+            assert!(g >= n && g % 2 == 0);
+            let mut m = g;
+            while m % 2 == 0 {
+                m /= 2;
+            }
+            while m % 3 == 0 {
+                m /= 3;
+            }
+            assert_eq!(m, 1);
+        }
+    }
+
+    #[test]
+    fn round_trip_and_dft_oracle() {
+        let (w, h) = (6, 5);
+        let x: Vec<f32> = (0..w * h).map(|i| ((i * 37 % 11) as f32) - 3.0).collect();
+        let f = Fft2::plan(w, h);
+        let spec = f.forward(&x);
+        // compare against a direct DFT
+        for i in 0..spec.len() {
+            let kx = i / h;
+            let ky = i % h;
+            let mut acc = Complex32::new(0.0, 0.0);
+            for y in 0..h {
+                for xx in 0..w {
+                    let ph = -2.0 * std::f32::consts::PI * (kx as f32 * xx as f32 / w as f32 + ky as f32 * y as f32 / h as f32);
+                    acc += Complex32::new(ph.cos(), ph.sin()) * x[y * w + xx];
+                }
+            }
+            assert!((acc - spec[i]).norm() < 1e-3, "bin {kx},{ky}: {acc} vs {}", spec[i]);
+        }
+        let back = f.inverse(spec);
+        for (a, b) in x.iter().zip(&back) {
+            assert!((a - b).abs() < 1e-4);
+        }
+    }
+}

@@ -1,0 +1,5 @@
+//! Optics: PSF grids, the forward model (sharp → predicted capture) and the physical lens
+//! simulator used as the rig's digital twin.
+
+pub mod forward;
+pub mod psf_grid;

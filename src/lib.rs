@@ -26,6 +26,7 @@ pub mod image;
 pub mod optics;
 pub mod solve;
 pub mod profile;
+pub mod rng;
 
 /// The current time as an RFC 3339 UTC string (seconds precision), without a date crate.
 pub fn timestamp_utc() -> String {

@@ -2,4 +2,5 @@
 //! simulator used as the rig's digital twin.
 
 pub mod forward;
+pub mod lens;
 pub mod psf_grid;

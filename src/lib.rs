@@ -27,6 +27,7 @@ pub mod optics;
 pub mod solve;
 pub mod profile;
 pub mod rng;
+pub mod target;
 
 /// The current time as an RFC 3339 UTC string (seconds precision), without a date crate.
 pub fn timestamp_utc() -> String {

@@ -1,6 +1,7 @@
 //! Optics: PSF grids, the forward model (sharp → predicted capture) and the physical lens
 //! simulator used as the rig's digital twin.
 
+pub mod capture;
 pub mod forward;
 pub mod lens;
 pub mod psf_grid;

@@ -21,6 +21,9 @@
 //! - **Field positions**: pixel coordinates of the full image; the optical centre is the image
 //!   centre `((w−1)/2, (h−1)/2)` unless a profile says otherwise.
 
+// Index loops over several parallel arrays are the clearest form of the numerics here.
+#![allow(clippy::needless_range_loop)]
+
 pub mod estimate;
 pub mod fsutil;
 pub mod image;

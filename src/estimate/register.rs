@@ -155,7 +155,7 @@ pub fn register(open: &Plane, pinhole: &Plane, model: RegistrationModel) -> Regi
     sorted.sort_by(|a, b| a.total_cmp(b));
     let med = sorted.get(sorted.len() / 2).copied().unwrap_or(0.0);
     let keep: Vec<[f64; 4]> = samples.iter().zip(&rs).filter(|(_, &r)| r <= 3.0 * med.max(0.05)).map(|(q, _)| *q).collect();
-    if keep.len() >= 1 && keep.len() < samples.len() {
+    if !keep.is_empty() && keep.len() < samples.len() {
         p = fit(&keep);
         rs = keep.iter().map(|q| resid(&p, q)).collect();
     }

@@ -1,0 +1,220 @@
+//! The command line: arguments → a resolved plan → one function per command.
+//!
+//! Every command returns `anyhow::Result`; `main` prints the one-line cause on stderr and
+//! exits with status 2 on error, 0 on success.
+
+pub mod demo;
+
+use anyhow::{bail, Context, Result};
+use clap::{Args, Parser, Subcommand};
+use lensrig::estimate::register::RegistrationModel;
+use lensrig::estimate::{estimate, EstimateOptions};
+use lensrig::fsutil::Overwrite;
+use lensrig::image::io::{read_image, read_pair, write_png16};
+use lensrig::image::{Image, Transfer};
+use lensrig::optics::forward::blur_channel;
+use lensrig::profile::Profile;
+use lensrig::target::TargetSpec;
+use std::path::{Path, PathBuf};
+
+#[derive(Parser, Debug)]
+#[command(name = "lensrig", version, about = "Measure a simple lens on a calibration rig, write its profile, restore and diagnose images")]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+pub enum Command {
+    /// Write a printable random-noise calibration target (PNG + TOML description).
+    Target(TargetArgs),
+    /// Estimate a lens profile (per-tile, per-channel PSFs) from a wide-open / pinhole pair.
+    Estimate(EstimateArgs),
+    /// Predict the wide-open capture from a sharp (pinhole) image through a profile.
+    Simulate(SimulateArgs),
+    /// Render a calibration pair with the lens simulator, estimate its profile and compare
+    /// with the truth (no hardware needed).
+    Demo(demo::DemoArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct TargetArgs {
+    /// Output path without extension: writes OUT.png and OUT.toml.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Paper size: A3, A4, A5 or Letter (landscape).
+    #[arg(long, default_value = "A4")]
+    pub paper: String,
+    #[arg(long, default_value_t = 300)]
+    pub dpi: u32,
+    /// Printer dots per noise cell.
+    #[arg(long, default_value_t = 4)]
+    pub cell: u32,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Replace existing files.
+    #[arg(long)]
+    pub force: bool,
+}
+
+#[derive(Args, Debug)]
+pub struct EstimateArgs {
+    /// Wide-open capture (PNG/TIFF).
+    #[arg(long)]
+    pub open: PathBuf,
+    /// Pinhole-aperture capture of the same target.
+    #[arg(long)]
+    pub pinhole: PathBuf,
+    /// Profile directory to write.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Kernel size (odd, pixels); default: measured from the data.
+    #[arg(long)]
+    pub kernel: Option<usize>,
+    /// Tile side in pixels; default: about four kernels.
+    #[arg(long)]
+    pub tile: Option<usize>,
+    /// How the files encode light: linear (raw, machine vision) or srgb (webcams).
+    #[arg(long, default_value = "linear")]
+    pub transfer: Transfer,
+    /// Black level to subtract (full-scale units, e.g. 0.0625 for 4096/65535).
+    #[arg(long)]
+    pub black_level: Option<f32>,
+    /// Global motion between the captures: none, translation, similarity.
+    #[arg(long, default_value = "translation")]
+    pub register: RegistrationModel,
+    /// Multiplier of the automatic TV weight.
+    #[arg(long, default_value_t = 1.0)]
+    pub lambda_scale: f64,
+    #[arg(long, default_value_t = 400)]
+    pub max_iterations: usize,
+    /// Hide the progress bar.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+#[derive(Args, Debug)]
+pub struct SimulateArgs {
+    #[arg(long)]
+    pub profile: PathBuf,
+    /// Sharp (pinhole) image, same size and encoding as the profile's source images.
+    #[arg(long)]
+    pub sharp: PathBuf,
+    /// Predicted wide-open image (16-bit PNG).
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+/// Runs a parsed command line.
+pub fn run(cli: Cli) -> Result<()> {
+    match cli.command {
+        Command::Target(a) => run_target(&a),
+        Command::Estimate(a) => run_estimate(&a),
+        Command::Simulate(a) => run_simulate(&a),
+        Command::Demo(a) => demo::run(&a),
+    }
+}
+
+fn run_target(a: &TargetArgs) -> Result<()> {
+    let spec = TargetSpec::new(&a.paper, a.dpi, a.cell, a.seed)?;
+    let dir = a.out.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let name = a.out.file_name().context("--out needs a file name")?.to_string_lossy().to_string();
+    spec.write(dir, &name, if a.force { Overwrite::Replace } else { Overwrite::Never })?;
+    let (w, h) = spec.pixels();
+    let (cw, ch) = spec.cells();
+    println!("wrote {}.png ({w}x{h} px at {} DPI, {cw}x{ch} noise cells) and {}.toml", a.out.display(), a.dpi, a.out.display());
+    Ok(())
+}
+
+/// Reads a pair, tags the transfer function the user declared, and estimates.
+pub fn estimate_files(open: &Path, pinhole: &Path, opts: &EstimateOptions, transfer: Transfer) -> Result<lensrig::estimate::Estimate> {
+    let (mut o, mut p) = read_pair(open, pinhole)?;
+    o.transfer = transfer;
+    p.transfer = transfer;
+    let mut est = estimate(&o, &p, opts)?;
+    est.profile.meta.source.open = Some(open.display().to_string());
+    est.profile.meta.source.pinhole = Some(pinhole.display().to_string());
+    Ok(est)
+}
+
+fn run_estimate(a: &EstimateArgs) -> Result<()> {
+    let opts = EstimateOptions {
+        kernel_size: a.kernel,
+        tile: a.tile,
+        lambda_scale: a.lambda_scale,
+        max_iterations: a.max_iterations,
+        registration: a.register,
+        black_level: a.black_level.map(|b| vec![b]).unwrap_or_default(),
+        progress: !a.quiet,
+        ..Default::default()
+    };
+    if let Some(k) = a.kernel {
+        if k % 2 == 0 {
+            bail!("--kernel must be odd, got {k}");
+        }
+    }
+    let est = estimate_files(&a.open, &a.pinhole, &opts, a.transfer)?;
+    est.profile.save(&a.out)?;
+    let m = &est.profile.meta;
+    println!(
+        "wrote {}: {} channel(s), {}x{} tiles, {}px kernels, exposure ratio {:?}, {:.1} s",
+        a.out.display(),
+        m.source.channels.len(),
+        m.psf.columns,
+        m.psf.rows,
+        m.psf.kernel_size,
+        m.exposure_ratio.iter().map(|v| format!("{v:.4}")).collect::<Vec<_>>(),
+        m.estimation.seconds
+    );
+    Ok(())
+}
+
+/// The wide-open image a profile predicts from a sharp image, in the profile's encoding.
+///
+/// # Errors
+/// When the image's size or channel count differs from the profile's source.
+pub fn predict(profile: &Profile, sharp: &Image, sharp_path: &Path) -> Result<Image> {
+    let src = &profile.meta.source;
+    if sharp.width() != src.width || sharp.height() != src.height {
+        bail!(
+            "{}: image is {}x{} but the profile was estimated from {}x{} images",
+            sharp_path.display(),
+            sharp.width(),
+            sharp.height(),
+            src.width,
+            src.height
+        );
+    }
+    if sharp.channel_count() != profile.grid.channels.len() {
+        bail!("{}: image has {} channel(s), the profile {}", sharp_path.display(), sharp.channel_count(), profile.grid.channels.len());
+    }
+    let black = &src.black_level;
+    let planes: Vec<_> = sharp
+        .planes
+        .iter()
+        .enumerate()
+        .map(|(c, p)| {
+            let b = black.get(c).or(black.first()).copied().unwrap_or(0.0);
+            let lin = p.map(|v| src.transfer.decode(v) - b);
+            let mut out = blur_channel(&lin, &profile.grid, c);
+            let s = profile.meta.exposure_ratio[c] as f32;
+            out.data.iter_mut().for_each(|v| *v = src.transfer.encode(*v * s + b));
+            out
+        })
+        .collect();
+    let mut img = Image::new(planes);
+    img.channels = profile.grid.channels.clone();
+    img.transfer = src.transfer;
+    img.format = src.sample_format;
+    Ok(img)
+}
+
+fn run_simulate(a: &SimulateArgs) -> Result<()> {
+    let profile = Profile::load(&a.profile)?;
+    let mut sharp = read_image(&a.sharp)?;
+    sharp.transfer = profile.meta.source.transfer;
+    let out = predict(&profile, &sharp, &a.sharp)?;
+    write_png16(&a.out, &out, Overwrite::Replace)?;
+    println!("wrote {} ({}x{}, {} channel(s), 16-bit)", a.out.display(), out.width(), out.height(), out.channel_count());
+    Ok(())
+}

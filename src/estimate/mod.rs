@@ -69,8 +69,8 @@ impl Default for EstimateOptions {
             tile: None,
             lambda_scale: 1.0,
             mu_relative: 1.0,
-            max_iterations: 400,
-            tolerance: 2e-4,
+            max_iterations: 300,
+            tolerance: 0.1,
             sigma: 300.0,
             registration: RegistrationModel::Translation,
             saturation: 0.995,
@@ -211,12 +211,10 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
         })
         .collect();
 
-    let noise: Vec<f64> = open_lin.iter().map(noise_sigma).collect();
-
     // kernel size
     let k = match opts.kernel_size {
         Some(k) => k,
-        None => choose_kernel_size(&open_lin, &pin_reg, &noise, opts)?,
+        None => choose_kernel_size(&open_lin, &pin_reg, opts)?,
     };
     let tile = opts.tile.unwrap_or_else(|| default_tile(k, w, h));
     if tile < k {
@@ -263,12 +261,10 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
             let (x0, x1) = (tc * w / cols, (tc + 1) * w / cols);
             let (y0, y1) = (tr * h / rows, (tr + 1) * h / rows);
             let data = tile_data(&open_lin[c], &pin_reg[c], &valid_masks[c], ratio[c] as f32, (x0, x1, y0, y1), k);
-            let sd = std_dev(&data.sharp);
-            let npx = data.mask.iter().filter(|&&b| b).count().max(1);
-            let lambda = (opts.lambda_scale * noise[c].max(1e-6) * sd * (npx as f64).sqrt()) as f32;
             let settings = TileSettings {
                 kernel_size: k,
-                lambda,
+                lambda: None,
+                lambda_scale: opts.lambda_scale as f32,
                 mu_relative: opts.mu_relative as f32,
                 max_iterations: opts.max_iterations,
                 tolerance: opts.tolerance,
@@ -276,7 +272,7 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
             };
             let res = solve_tile(&data, &settings, |_, _| !cancelled.load(Ordering::Relaxed));
             bar.inc(1);
-            (c, t, res, lambda)
+            (c, t, res)
         })
         .collect();
     bar.finish_and_clear();
@@ -285,7 +281,7 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
     let mut info = EstimationInfo {
         lambda: 0.0,
         mu: opts.mu_relative,
-        noise_sigma: noise.clone(),
+        noise_sigma: vec![],
         iterations: vec![vec![0; cols * rows]; nch],
         relative_gap: vec![vec![0.0; cols * rows]; nch],
         residual_rms: vec![vec![0.0; cols * rows]; nch],
@@ -293,7 +289,10 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
         seconds: 0.0,
     };
     let mut lam_sum = 0.0;
-    for (c, t, res, lambda) in results {
+    let mut tile_noise = vec![Vec::new(); nch];
+    for (c, t, res) in results {
+        tile_noise[c].push(res.noise_sigma);
+        let lambda = res.lambda;
         kernels[c][t] = res.kernel;
         info.iterations[c][t] = res.stats.iterations;
         info.relative_gap[c][t] = res.stats.criterion;
@@ -301,6 +300,15 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
         lam_sum += lambda as f64;
     }
     info.lambda = lam_sum / jobs.len() as f64;
+    // the noise level per channel: median over tiles of the least-squares residual level
+    let noise: Vec<f64> = tile_noise
+        .into_iter()
+        .map(|mut v| {
+            v.sort_by(|a, b| a.total_cmp(b));
+            v[v.len() / 2]
+        })
+        .collect();
+    info.noise_sigma = noise.clone();
     info.seconds = t0.elapsed().as_secs_f64();
     let grid = PsfGrid { kernel_size: k, columns: cols, rows, centers: centers.clone(), channels: open.channels.clone(), kernels };
     let source = SourceInfo {
@@ -318,12 +326,6 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
     meta.registration = reg.info;
     meta.estimation = info;
     Ok(Estimate { profile: Profile { meta, grid }, noise_sigma: noise, valid_masks, pinhole_registered: pin_reg, open_linear: open_lin })
-}
-
-fn std_dev(v: &[f32]) -> f64 {
-    let n = v.len().max(1) as f64;
-    let m = v.iter().map(|&x| x as f64).sum::<f64>() / n;
-    (v.iter().map(|&x| (x as f64 - m).powi(2)).sum::<f64>() / n).sqrt()
 }
 
 /// Builds the working domain of one tile: the tile plus the kernel radius on every side,
@@ -353,7 +355,7 @@ pub fn tile_data(open: &Plane, pin: &Plane, valid: &[bool], s: f32, tile: (usize
 
 /// Picks a kernel size from a probe estimate: a generous kernel on the centre and corner
 /// tiles of the middle channel, then the radius holding 99% of the energy, with margin.
-fn choose_kernel_size(open: &[Plane], pin: &[Plane], noise: &[f64], opts: &EstimateOptions) -> Result<usize, EstimateError> {
+fn choose_kernel_size(open: &[Plane], pin: &[Plane], opts: &EstimateOptions) -> Result<usize, EstimateError> {
     let (w, h) = (open[0].width, open[0].height);
     let c = open.len() / 2;
     let probe_k = ((w.min(h) / 6) | 1).clamp(9, 127);
@@ -364,9 +366,7 @@ fn choose_kernel_size(open: &[Plane], pin: &[Plane], noise: &[f64], opts: &Estim
     let mut radius: f64 = 1.0;
     for &(x0, y0) in &spots {
         let data = tile_data(&open[c], &pin[c], &all, s, (x0, x0 + tsz, y0, y0 + tsz), probe_k);
-        let npx = data.mask.iter().filter(|&&b| b).count().max(1);
-        let lambda = (opts.lambda_scale * noise[c].max(1e-6) * std_dev(&data.sharp) * (npx as f64).sqrt()) as f32;
-        let st = TileSettings { kernel_size: probe_k, lambda, mu_relative: 1.0, max_iterations: 150, tolerance: 1e-3, sigma: opts.sigma };
+        let st = TileSettings { kernel_size: probe_k, lambda: None, lambda_scale: opts.lambda_scale as f32, mu_relative: 1.0, max_iterations: 150, tolerance: 1e-3, sigma: opts.sigma };
         let res = solve_tile(&data, &st, |_, _| true);
         radius = radius.max(energy_radius(&res.kernel, 0.99));
     }

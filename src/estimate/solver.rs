@@ -47,7 +47,10 @@ pub struct TileData {
 #[derive(Clone, Debug)]
 pub struct TileSettings {
     pub kernel_size: usize,
-    pub lambda: f32,
+    /// TV weight; `None`: `lambda_scale · σ̂ · std(s·I) · √N_data` with `σ̂` the noise level
+    /// measured from the least-squares warm start's residual.
+    pub lambda: Option<f32>,
+    pub lambda_scale: f32,
     /// Weight of the sum-to-one penalty, relative to the data term's DC curvature.
     pub mu_relative: f32,
     pub max_iterations: usize,
@@ -62,6 +65,10 @@ pub struct TileResult {
     /// RMS of `M ⊙ (I ⊛ b − j)` over the mask.
     pub residual_rms: f64,
     pub data_pixels: usize,
+    /// Noise level measured from the least-squares warm start (full scale).
+    pub noise_sigma: f64,
+    /// The TV weight used.
+    pub lambda: f32,
 }
 
 struct PsfProblem {
@@ -257,11 +264,13 @@ pub fn solve_tile(data: &TileData, s: &TileSettings, on_check: impl FnMut(usize,
         blurred: data.blurred.clone(),
         mask: data.mask.clone(),
         support,
-        lambda: s.lambda,
+        lambda: 0.0,
         mu_n,
         x_spec: vec![Complex32::new(0.0, 0.0); fft.spectrum_len()],
     };
-    // initial fill: the masked mean where no data is
+    // Warm start: ridge least squares with a few unknown-boundary refills, projected on C.
+    // Its residual on the mask measures the noise level (corrected for the k² fitted degrees of
+    // freedom), which sets λ.
     let mean_j = {
         let (mut a, mut c) = (0.0f64, 0usize);
         for i in 0..n {
@@ -274,31 +283,90 @@ pub fn solve_tile(data: &TileData, s: &TileSettings, on_check: impl FnMut(usize,
     };
     let z0: Vec<f32> = (0..n).map(|i| if data.mask[i] { data.blurred[i] } else { mean_j as f32 }).collect();
     p.z_hat = fft.forward(&z0);
-    let mut x = vec![0.0f32; n];
-    x[0] = 1.0;
+    let ridge = 1e-3 * p.a_abs2.iter().map(|&v| v as f64).sum::<f64>() as f32 / p.a_abs2.len() as f32;
+    for _ in 0..6 {
+        for i in 0..p.x_spec.len() {
+            let mut v = p.a_hat[i].conj() * p.z_hat[i] / (p.a_abs2[i] + ridge);
+            if i == 0 {
+                v = (p.a_hat[i].conj() * p.z_hat[i] + Complex32::new(mu_n, 0.0)) / (p.a_abs2[i] + mu_n);
+            }
+            p.x_spec[i] = v;
+        }
+        p.refresh_fill();
+    }
+    // project the raw fit onto {b ≥ 0, Σb = 1, supp b ⊂ S}: soft-thresholds the fitted noise
+    let raw = fft.inverse(p.x_spec.clone());
+    let mut x = project_simplex_on(&raw, &p.support);
+    p.x_spec = fft.forward(&x);
+    p.refresh_fill();
+    let data_pixels = data.mask.iter().filter(|&&b| b).count();
+    let dof = (data_pixels as f64 - (k * k) as f64).max(data_pixels as f64 * 0.25);
+    let dof_factor = (data_pixels as f64 / dof).sqrt();
+    let sd = (data.sharp.iter().map(|&v| (v as f64 - mean_sharp).powi(2)).sum::<f64>() / n as f64).sqrt();
+    let weight = |sigma: f64| (s.lambda_scale as f64 * sigma.max(1e-7) * sd * (data_pixels.max(1) as f64).sqrt()) as f32;
     let mut y = vec![0.0f32; 3 * n];
     let l = power_iteration(&p, 20);
-    let opts = Options { max_iterations: s.max_iterations, min_iterations: 20, tolerance: s.tolerance, check_every: 10, sigma: s.sigma, theta: 1.0 };
-    let stats = chambolle_pock(&mut p, &mut x, &mut y, &opts, Some(l), on_check);
+    // Phase 1 (λ unknown): a short run at the warm start's residual level; its residual then
+    // measures the noise level σ̂, which fixes λ for phase 2 (continued from the same iterates).
+    let warm_rms = masked_residual_rms(&fft, &p.a_hat, &x, &data.blurred, &data.mask);
+    let mut stats_total = 0usize;
+    let noise_sigma = match s.lambda {
+        Some(_) => warm_rms * dof_factor,
+        None => {
+            p.lambda = weight(warm_rms * dof_factor * 0.5);
+            let o1 = Options { max_iterations: 60.min(s.max_iterations), min_iterations: 60, tolerance: 0.0, check_every: 60, sigma: s.sigma, theta: 1.0 };
+            let st1 = chambolle_pock(&mut p, &mut x, &mut y, &o1, Some(l), |_, _| true);
+            stats_total += st1.iterations;
+            let b = p.project_c(&x);
+            masked_residual_rms(&fft, &p.a_hat, &b, &data.blurred, &data.mask) * dof_factor
+        }
+    };
+    let lambda = s.lambda.unwrap_or_else(|| weight(noise_sigma));
+    p.lambda = lambda;
+    let opts = Options { max_iterations: s.max_iterations.saturating_sub(stats_total).max(1), min_iterations: 20, tolerance: s.tolerance, check_every: 10, sigma: s.sigma, theta: 1.0 };
+    let mut stats = chambolle_pock(&mut p, &mut x, &mut y, &opts, Some(l), on_check);
+    stats.iterations += stats_total;
     let b = p.project_c(&x);
     let mut kernel = crate::solve::conv::kernel_from_origin(&b, pw, ph, k, k);
     let sum = kernel.sum() as f32;
     if sum > 0.0 {
         kernel.scale(1.0 / sum);
     }
-    // residual of the final (normalised) kernel on the mask
     let kb = crate::solve::conv::kernel_to_origin(&kernel, pw, ph);
-    let mut spec = fft.forward(&kb);
-    for (v, a) in spec.iter_mut().zip(&p.a_hat) {
+    let residual_rms = masked_residual_rms(&fft, &p.a_hat, &kb, &data.blurred, &data.mask);
+    TileResult { kernel, stats, residual_rms, data_pixels, noise_sigma, lambda }
+}
+
+/// RMS over the mask of `I ⊛ b − j` (circular on the domain; exact on the mask).
+fn masked_residual_rms(fft: &Fft2, a_hat: &[Complex32], b: &[f32], blurred: &[f32], mask: &[bool]) -> f64 {
+    let mut spec = fft.forward(b);
+    for (v, a) in spec.iter_mut().zip(a_hat) {
         *v *= a;
     }
     let pred = fft.inverse(spec);
     let (mut ss, mut cnt) = (0.0f64, 0usize);
-    for i in 0..n {
-        if data.mask[i] {
-            ss += ((pred[i] - data.blurred[i]) as f64).powi(2);
+    for i in 0..pred.len() {
+        if mask[i] {
+            ss += ((pred[i] - blurred[i]) as f64).powi(2);
             cnt += 1;
         }
     }
-    TileResult { kernel, stats, residual_rms: if cnt > 0 { (ss / cnt as f64).sqrt() } else { 0.0 }, data_pixels: cnt }
+    if cnt > 0 { (ss / cnt as f64).sqrt() } else { 0.0 }
+}
+
+/// Euclidean projection onto `{b ≥ 0, Σ b = 1, b = 0 off the support}` (sort-based simplex
+/// projection of the support's values).
+pub fn project_simplex_on(v: &[f32], support: &[bool]) -> Vec<f32> {
+    let mut vals: Vec<f32> = v.iter().zip(support).filter(|(_, &s)| s).map(|(&x, _)| x).collect();
+    vals.sort_by(|a, b| b.total_cmp(a));
+    let mut cum = 0.0f64;
+    let mut theta = 0.0f64;
+    for (i, &u) in vals.iter().enumerate() {
+        cum += u as f64;
+        let t = (cum - 1.0) / (i + 1) as f64;
+        if (u as f64) - t > 0.0 {
+            theta = t;
+        }
+    }
+    v.iter().zip(support).map(|(&x, &s)| if s { (x as f64 - theta).max(0.0) as f32 } else { 0.0 }).collect()
 }

@@ -23,4 +23,5 @@
 
 pub mod fsutil;
 pub mod image;
+pub mod rig;
 pub mod solve;

@@ -1,0 +1,2 @@
+//! Motion controller.
+pub mod protocol;

@@ -1,2 +1,3 @@
 //! Motion controller.
 pub mod protocol;
+pub mod sim;

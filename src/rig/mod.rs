@@ -9,4 +9,6 @@
 //!   are named for what they talk to (`GrblController`, `V4lCamera`).
 //! - Errors are typed per device and carry the port/device path.
 
+pub mod camera;
+pub mod config;
 pub mod controller;

@@ -1,0 +1,1 @@
+//! Camera (placeholder while decode lands).

@@ -300,7 +300,7 @@ impl RigConfig {
             return bad("camera.frames_to_average", "must be at least 1".into());
         }
         let k = &self.controller;
-        if k.kind == ControllerKind::Serial && k.port.as_deref().is_none_or(str::is_empty) {
+        if k.kind == ControllerKind::Serial && k.port.as_deref().map_or(true, str::is_empty) {
             return bad("controller.port", "a serial controller needs `port = \"/dev/ttyUSB0\"` (or a /dev/serial/by-id path)".into());
         }
         if k.baud == 0 {

@@ -337,11 +337,7 @@ impl Firmware {
 
     fn realtime(&mut self, b: u8) {
         match b {
-            b'?' => {
-                if self.state != MachineState::Home {
-                    self.status_requested = true;
-                }
-            }
+            b'?' if self.state != MachineState::Home => self.status_requested = true,
             b'!' => match self.state {
                 MachineState::Run => {
                     self.hold = true;
@@ -356,11 +352,7 @@ impl Firmware {
                     self.state = if self.active.is_some() || !self.queue.is_empty() { MachineState::Run } else { MachineState::Idle };
                 }
             }
-            0x85 => {
-                if self.state == MachineState::Jog {
-                    self.jog_cancel = true;
-                }
-            }
+            0x85 if self.state == MachineState::Jog => self.jog_cancel = true,
             0x18 => self.soft_reset(),
             _ => {}
         }

@@ -28,6 +28,7 @@ pub mod estimate;
 pub mod fsutil;
 pub mod image;
 pub mod optics;
+pub mod rig;
 pub mod solve;
 pub mod profile;
 pub mod rng;

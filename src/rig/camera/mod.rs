@@ -1,0 +1,262 @@
+//! Cameras: the [`Camera`] trait, the frames it returns, and pixel-format decoding.
+//!
+//! - [`decode`]: pure raw-buffer → [`Image`] decoders for the V4L2 formats a rig meets.
+//! - `v4l` (cargo feature `v4l2`): [`V4lCamera`] on Linux V4L2 devices.
+//! - The mock camera (rendering the target through the simulated lens) lives with the lens
+//!   simulator.
+//!
+//! # Conventions
+//! - A [`Frame`] holds the image **as recorded**: values on the full-scale axis, gamma-encoded
+//!   when the device sends encoded data ([`FrameMeta::transfer`] says which). Averages over
+//!   several frames are taken on *linear* values and re-encoded with the same transfer, so
+//!   averaging never bends the tone curve.
+//! - [`Camera::format`] is what the driver actually applied, not what was asked.
+//! - Frames that follow a control change (exposure, gain) or a scene change
+//!   ([`Camera::invalidate`]) are dropped before the next capture.
+
+pub mod decode;
+#[cfg(feature = "v4l2")]
+pub mod v4l;
+
+use std::fmt;
+use std::path::PathBuf;
+use std::time::{Duration, SystemTime};
+
+use crate::image::{Image, Plane, Transfer};
+
+#[cfg(feature = "v4l2")]
+pub use self::v4l::V4lCamera;
+
+/// A V4L2 pixel format code (`*b"YUYV"`, `*b"Y16 "`).
+#[derive(Clone, Copy, PartialEq, Eq, Hash)]
+pub struct FourCc(pub [u8; 4]);
+
+impl FourCc {
+    /// From 1–4 characters, space padded (`"Y16"` → `"Y16 "`).
+    pub fn from_str_padded(s: &str) -> FourCc {
+        let mut f = [b' '; 4];
+        for (d, b) in f.iter_mut().zip(s.bytes()) {
+            *d = b;
+        }
+        FourCc(f)
+    }
+}
+
+impl fmt::Display for FourCc {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let s: String = self.0.iter().map(|&b| if b.is_ascii_graphic() || b == b' ' { b as char } else { '?' }).collect();
+        write!(f, "'{s}'")
+    }
+}
+
+impl fmt::Debug for FourCc {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        fmt::Display::fmt(self, f)
+    }
+}
+
+/// The format the device delivers, as negotiated.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct FrameFormat {
+    pub width: u32,
+    pub height: u32,
+    pub fourcc: FourCc,
+    pub transfer: Transfer,
+}
+
+/// What was true when a frame was recorded.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FrameMeta {
+    /// Wall-clock time of the first averaged frame.
+    pub time: SystemTime,
+    /// Exposure actually applied (µs; V4L2 rounds to 100 µs).
+    pub exposure_us: u32,
+    pub gain: f64,
+    pub frames_averaged: usize,
+    /// Frames dropped before this capture (after control or scene changes).
+    pub frames_discarded: usize,
+    pub transfer: Transfer,
+    pub fourcc: FourCc,
+    /// Driver sequence number of the first averaged frame, when the device gives one.
+    pub sequence: Option<u32>,
+}
+
+/// One capture: an image and its metadata.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Frame {
+    pub image: Image,
+    pub meta: FrameMeta,
+}
+
+/// A camera, as the capture code sees it.
+pub trait Camera {
+    /// The negotiated format.
+    fn format(&self) -> FrameFormat;
+
+    /// Sets the exposure (manual mode); returns the value the device applied.
+    ///
+    /// # Errors
+    /// The control is missing, out of range or rejected.
+    fn set_exposure(&mut self, us: u32) -> Result<u32, CameraError>;
+
+    /// Sets the analogue gain (manual mode); returns the value the device applied.
+    ///
+    /// # Errors
+    /// As [`Camera::set_exposure`].
+    fn set_gain(&mut self, gain: f64) -> Result<f64, CameraError>;
+
+    /// Records `frames` frames (≥ 1) and returns their average, after dropping the frames
+    /// owed since the last control or scene change.
+    ///
+    /// # Errors
+    /// A timeout, a lost device, an undecodable buffer.
+    fn capture(&mut self, frames: usize) -> Result<Frame, CameraError>;
+
+    /// The scene changed (an axis moved): frames already queued are stale and will be dropped
+    /// before the next capture.
+    fn invalidate(&mut self);
+
+    /// One line naming the device, driver and format, for logs and session metadata.
+    fn describe(&self) -> String;
+}
+
+/// Everything that can go wrong with a camera. Each variant names the device.
+#[derive(Debug, thiserror::Error)]
+pub enum CameraError {
+    #[error("cannot open camera {device}{hint}")]
+    Open {
+        device: PathBuf,
+        hint: String,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("camera {device}: pixel format {wanted} is not supported (device offers: {}; lensrig decodes: {})",
+        list(.offered), list(&decode::SUPPORTED))]
+    UnsupportedFormat { device: PathBuf, wanted: FourCc, offered: Vec<FourCc> },
+    #[error("camera {device}: control {control}: {detail}")]
+    Control {
+        device: PathBuf,
+        control: String,
+        detail: String,
+        #[source]
+        source: Option<std::io::Error>,
+    },
+    #[error("camera {device}: no frame within {after:?}")]
+    Timeout { device: PathBuf, after: Duration },
+    #[error("camera {device}: frame does not decode")]
+    Decode {
+        device: PathBuf,
+        #[source]
+        source: decode::DecodeError,
+    },
+    #[error("camera {device}: {what}")]
+    InvalidArgument { device: PathBuf, what: String },
+    #[error("camera {device}: I/O error")]
+    Io {
+        device: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+}
+
+fn list(f: &[FourCc]) -> String {
+    if f.is_empty() {
+        return "none".into();
+    }
+    f.iter().map(ToString::to_string).collect::<Vec<_>>().join(", ")
+}
+
+/// Averages frames on linear values and re-encodes the mean with the frames' transfer.
+#[derive(Debug, Default)]
+pub struct Averager {
+    sum: Vec<Vec<f64>>,
+    template: Option<Image>,
+    count: usize,
+}
+
+impl Averager {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Adds one frame.
+    ///
+    /// # Errors
+    /// A frame whose size, channel count or transfer differs from the first (the message says
+    /// how).
+    pub fn add(&mut self, img: &Image) -> Result<(), String> {
+        if let Some(t) = &self.template {
+            if t.width() != img.width() || t.height() != img.height() || t.channel_count() != img.channel_count() || t.transfer != img.transfer {
+                return Err(format!(
+                    "frame {}x{}x{} ({}) differs from the first {}x{}x{} ({})",
+                    img.width(),
+                    img.height(),
+                    img.channel_count(),
+                    img.transfer.name(),
+                    t.width(),
+                    t.height(),
+                    t.channel_count(),
+                    t.transfer.name()
+                ));
+            }
+        } else {
+            self.sum = img.planes.iter().map(|p| vec![0.0; p.len()]).collect();
+            self.template = Some(img.clone());
+        }
+        for (acc, p) in self.sum.iter_mut().zip(&img.planes) {
+            for (a, &v) in acc.iter_mut().zip(&p.data) {
+                *a += img.transfer.decode(v) as f64;
+            }
+        }
+        self.count += 1;
+        Ok(())
+    }
+
+    /// Frames added so far.
+    pub fn count(&self) -> usize {
+        self.count
+    }
+
+    /// The mean, encoded like the inputs; `None` before the first frame.
+    pub fn finish(self) -> Option<Image> {
+        let mut img = self.template?;
+        let n = self.count as f64;
+        for (p, acc) in img.planes.iter_mut().zip(&self.sum) {
+            *p = Plane { width: p.width, height: p.height, data: acc.iter().map(|&s| img.transfer.encode((s / n) as f32)).collect() };
+        }
+        Some(img)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn fourcc_display_and_padding() {
+        assert_eq!(FourCc::from_str_padded("Y16"), FourCc(*b"Y16 "));
+        assert_eq!(FourCc(*b"YUYV").to_string(), "'YUYV'");
+        let e = CameraError::UnsupportedFormat { device: "/dev/video3".into(), wanted: FourCc(*b"Y16 "), offered: vec![FourCc(*b"H264"), FourCc(*b"NV12")] };
+        let m = e.to_string();
+        assert!(m.contains("/dev/video3") && m.contains("'Y16 '") && m.contains("'H264', 'NV12'") && m.contains("'YUYV'"), "{m}");
+    }
+
+    #[test]
+    fn averager_is_linear_and_keeps_encoding() {
+        let mut a = Averager::new();
+        let mut img = Image::new(vec![Plane::filled(2, 1, 0.0)]);
+        img.transfer = Transfer::Srgb;
+        a.add(&img).unwrap();
+        img.planes[0] = Plane::filled(2, 1, 1.0);
+        a.add(&img).unwrap();
+        assert_eq!(a.count(), 2);
+        let mut wrong = Image::new(vec![Plane::filled(3, 1, 0.0)]);
+        wrong.transfer = Transfer::Srgb;
+        assert!(a.add(&wrong).unwrap_err().contains("differs"));
+        let out = a.finish().unwrap();
+        assert_eq!(out.transfer, Transfer::Srgb);
+        // Mean of linear 0 and 1 is 0.5 linear = 0.7354 encoded, not 0.5.
+        assert!((out.planes[0].data[0] - 0.735_356_6).abs() < 1e-5);
+        assert!(Averager::new().finish().is_none());
+    }
+}

@@ -7,11 +7,15 @@
 //! all lensrig grids do.
 //!
 //! # Interpolation
-//! The PSF at a point is the bilinear blend of the four surrounding tile PSFs with *hat*
-//! weights `w_t(x, y) = h_i(x) · h_j(y)` (piecewise linear, 1 at the tile's own centre, 0 at its
-//! neighbours', constant beyond the outer centres). The weights sum to one everywhere, so the
-//! blended kernel sums to one. The forward model ([`super::forward`]) applies exactly this
-//! blend, point by point.
+//! The PSF at a point is the separable **Catmull–Rom** blend of the 4 × 4 surrounding tile PSFs,
+//! `w_t(x, y) = c_i(x) · c_j(y)`: along each axis, between centres `x_i` and `x_{i+1}` with
+//! `t = (x − x_i)/(x_{i+1} − x_i)`, the weights of centres `i−1, i, i+1, i+2` are
+//! `(−t³+2t²−t)/2, (3t³−5t²+2)/2, (−3t³+4t²+t)/2, (t³−t²)/2` (at the grid's edge the missing
+//! centre is the linear extrapolation of the last two; constant beyond the outer centres). The blend passes through every tile's kernel at its
+//! centre, is continuous with a continuous first derivative across the field, reproduces
+//! quadratic variation exactly on a regular grid, and its weights sum to one, so the blended
+//! kernel sums to one (it may carry small negative lobes where the PSF changes fast). The
+//! forward model ([`super::forward`]) applies exactly this blend, point by point.
 
 use crate::image::Plane;
 
@@ -37,18 +41,36 @@ pub struct Weight {
     pub weight: f32,
 }
 
-/// Hat-function weights along one axis: up to two `(index, weight)` pairs.
-pub fn hat_weights_1d(centers: &[f64], x: f64) -> [(usize, f32); 2] {
+/// Catmull–Rom weights along one axis: four `(index, weight)` pairs (indices may repeat at the
+/// edges, with zero weight).
+pub fn hat_weights_1d(centers: &[f64], x: f64) -> [(usize, f32); 4] {
     let n = centers.len();
     if n == 1 || x <= centers[0] {
-        return [(0, 1.0), (0, 0.0)];
+        return [(0, 1.0), (0, 0.0), (0, 0.0), (0, 0.0)];
     }
     if x >= centers[n - 1] {
-        return [(n - 1, 1.0), (n - 1, 0.0)];
+        return [(n - 1, 1.0), (n - 1, 0.0), (n - 1, 0.0), (n - 1, 0.0)];
     }
     let i = centers.partition_point(|&c| c <= x).saturating_sub(1).min(n - 2);
     let t = ((x - centers[i]) / (centers[i + 1] - centers[i])) as f32;
-    [(i, 1.0 - t), (i + 1, t)]
+    let (t2, t3) = (t * t, t * t * t);
+    let w = [(-t3 + 2.0 * t2 - t) / 2.0, (3.0 * t3 - 5.0 * t2 + 2.0) / 2.0, (-3.0 * t3 + 4.0 * t2 + t) / 2.0, (t3 - t2) / 2.0];
+    // Beyond the grid the phantom centre is the linear extrapolation of the last two
+    // (v₋₁ = 2v₀ − v₁), so linear variation is reproduced up to the edge.
+    let mut out = [(i, w[1]), (i + 1, w[2]), (i, 0.0), (i + 1, 0.0)];
+    if i >= 1 {
+        out[2] = (i - 1, w[0]);
+    } else {
+        out[0].1 += 2.0 * w[0];
+        out[1].1 -= w[0];
+    }
+    if i + 2 < n {
+        out[3] = (i + 2, w[3]);
+    } else {
+        out[1].1 += 2.0 * w[3];
+        out[0].1 -= w[3];
+    }
+    out
 }
 
 impl PsfGrid {
@@ -66,19 +88,24 @@ impl PsfGrid {
         self.columns * self.rows
     }
 
-    /// The (up to four) tiles blended at `(x, y)` and their weights.
+    /// The (up to sixteen) tiles blended at `(x, y)` and their weights (non-zero only).
     pub fn weights_at(&self, x: f64, y: f64) -> Vec<Weight> {
         let wx = hat_weights_1d(&self.column_xs(), x);
         let wy = hat_weights_1d(&self.row_ys(), y);
-        let mut out = Vec::with_capacity(4);
+        let mut out: Vec<Weight> = Vec::with_capacity(16);
         for &(j, a) in &wy {
             for &(i, b) in &wx {
                 let w = a * b;
-                if w > 0.0 {
-                    out.push(Weight { tile: j * self.columns + i, weight: w });
+                if w != 0.0 {
+                    let tile = j * self.columns + i;
+                    match out.iter_mut().find(|q| q.tile == tile) {
+                        Some(q) => q.weight += w,
+                        None => out.push(Weight { tile, weight: w }),
+                    }
                 }
             }
         }
+        out.retain(|q| q.weight != 0.0);
         out
     }
 
@@ -94,15 +121,17 @@ impl PsfGrid {
         out
     }
 
-    /// The pixel box `[x0, x1) × [y0, y1)` inside a `width × height` image where tile `t` has a
-    /// non-zero weight.
+    /// The pixel box `[x0, x1) × [y0, y1)` inside a `width × height` image where tile `t` may
+    /// have a non-zero weight.
     pub fn support(&self, t: usize, width: usize, height: usize) -> (usize, usize, usize, usize) {
         let (c, r) = (t % self.columns, t / self.columns);
         let xs = self.column_xs();
         let ys = self.row_ys();
+        // a centre influences the two intervals on either side of it (Catmull–Rom), and the
+        // outer centres everything beyond them
         let span = |cs: &[f64], i: usize, n: usize| -> (usize, usize) {
-            let lo = if i == 0 { 0.0 } else { cs[i - 1].floor() };
-            let hi = if i + 1 == cs.len() { n as f64 } else { cs[i + 1].ceil() + 1.0 };
+            let lo = if i <= 1 { 0.0 } else { cs[i - 2].floor() };
+            let hi = if i + 2 >= cs.len() { n as f64 } else { cs[i + 2].ceil() + 1.0 };
             (lo.max(0.0) as usize, (hi.min(n as f64)) as usize)
         };
         let (x0, x1) = span(&xs, c, width);
@@ -158,6 +187,16 @@ mod tests {
         let (a, b) = (g.centers[0], g.centers[1]);
         let k = g.kernel_at(0, (a[0] + b[0]) / 2.0, a[1]);
         assert!((k.get(0, 0) - 0.5).abs() < 1e-6);
+    }
+
+    #[test]
+    fn quadratic_variation_is_reproduced_inside_the_grid() {
+        let xs: Vec<f64> = (0..6).map(|i| 10.0 + 20.0 * i as f64).collect();
+        for k in 0..100 {
+            let x = 30.0 + 60.0 * k as f64 / 99.0; // between the 2nd and 5th centres
+            let v: f64 = hat_weights_1d(&xs, x).iter().map(|&(i, w)| w as f64 * xs[i] * xs[i]).sum();
+            assert!((v - x * x).abs() < 1e-3 * x * x, "{x}: {v}");
+        }
     }
 
     #[test]

@@ -3,6 +3,7 @@
 //! Every command returns `anyhow::Result`; `main` prints the one-line cause on stderr and
 //! exits with status 2 on error, 0 on success.
 
+pub mod bench;
 pub mod demo;
 
 use anyhow::{bail, Context, Result};
@@ -35,6 +36,8 @@ pub enum Command {
     /// Render a calibration pair with the lens simulator, estimate its profile and compare
     /// with the truth (no hardware needed).
     Demo(demo::DemoArgs),
+    /// Time PSF estimation on the benchmark sizes and print a table.
+    Bench(bench::BenchArgs),
 }
 
 #[derive(Args, Debug)]
@@ -112,6 +115,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Estimate(a) => run_estimate(&a),
         Command::Simulate(a) => run_simulate(&a),
         Command::Demo(a) => demo::run(&a),
+        Command::Bench(a) => bench::run(&a),
     }
 }
 

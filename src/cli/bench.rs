@@ -19,7 +19,7 @@ pub struct BenchArgs {
     /// Also run the 12-megapixel case (several minutes).
     #[arg(long)]
     pub large: bool,
-    #[arg(long, default_value_t = 300)]
+    #[arg(long, default_value_t = 150)]
     pub max_iterations: usize,
 }
 

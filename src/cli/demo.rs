@@ -44,7 +44,7 @@ pub struct DemoArgs {
     /// Tile side; default: chosen by `estimate`.
     #[arg(long)]
     pub tile: Option<usize>,
-    #[arg(long, default_value_t = 300)]
+    #[arg(long, default_value_t = 150)]
     pub max_iterations: usize,
     #[arg(long)]
     pub quiet: bool,

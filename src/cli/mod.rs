@@ -89,7 +89,7 @@ pub struct EstimateArgs {
     /// Multiplier of the automatic TV weight.
     #[arg(long, default_value_t = 1.0)]
     pub lambda_scale: f64,
-    #[arg(long, default_value_t = 300)]
+    #[arg(long, default_value_t = 150)]
     pub max_iterations: usize,
     /// Hide the progress bar.
     #[arg(long)]

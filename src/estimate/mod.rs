@@ -69,7 +69,7 @@ impl Default for EstimateOptions {
             tile: None,
             lambda_scale: 1.0,
             mu_relative: 1.0,
-            max_iterations: 300,
+            max_iterations: 150,
             tolerance: 0.1,
             sigma: 300.0,
             registration: RegistrationModel::Translation,

@@ -21,6 +21,7 @@
 //! - **Field positions**: pixel coordinates of the full image; the optical centre is the image
 //!   centre `((w−1)/2, (h−1)/2)` unless a profile says otherwise.
 
+pub mod deconv;
 pub mod fsutil;
 pub mod image;
 pub mod optics;

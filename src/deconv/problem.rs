@@ -92,6 +92,8 @@ pub struct ChannelProblem<'a> {
     scratch: RefCell<Vec<f32>>,
     spec: Vec<Complex32>,
     pub counters: ProxCounters,
+    /// CG cap per prox (warm started from the previous prox, so a few iterations track the
+    /// slowly moving solution; the prox is inexact early on, as in inexact-prox Chambolle–Pock).
     pub cg_max_iterations: usize,
     pub cg_tolerance: f64,
 }
@@ -147,7 +149,7 @@ impl<'a> ChannelProblem<'a> {
             scratch: RefCell::new(vec![0.0; n]),
             spec,
             counters: ProxCounters::default(),
-            cg_max_iterations: 12,
+            cg_max_iterations: 4,
             cg_tolerance: 1e-3,
         }
     }

@@ -151,3 +151,77 @@ pub fn run(args: &DeblurArgs) -> anyhow::Result<()> {
     }
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::deconv::synth::SyntheticLens;
+    use crate::image::{Image, Plane, SampleFormat};
+    use crate::profile::{PsfTable, SourceInfo};
+    use std::collections::BTreeMap;
+    use std::path::Path;
+
+    fn profile(dir: &Path, w: usize, h: usize, transfer: Transfer) {
+        let grid = SyntheticLens::new(9, 3).grid(w, h, 3, 2, 2);
+        let source = SourceInfo {
+            width: w,
+            height: h,
+            channels: grid.channels.clone(),
+            sample_format: SampleFormat::U16,
+            transfer,
+            open: None,
+            pinhole: None,
+            black_level: vec![],
+        };
+        let table = PsfTable { kernel_size: 9, columns: 2, rows: 2, centers: grid.centers.clone(), tile_size: None, files: BTreeMap::new() };
+        Profile { meta: Profile::new_meta(source, vec![1.0; 3], table), grid }.save(dir).unwrap();
+    }
+
+    fn args(dir: &Path, input: &str) -> DeblurArgs {
+        DeblurArgs {
+            profile: dir.join("profile"),
+            input: dir.join(input),
+            out: dir.join("out.png"),
+            transfer: None,
+            lambda: None,
+            cross_weight: 3.0,
+            dark_weight: 0.0,
+            residual_steps: 1,
+            iterations: 30,
+            saturation: 0.99,
+            tile: None,
+            quiet: true,
+        }
+    }
+
+    fn write(dir: &Path, name: &str, planes: Vec<Plane>) {
+        write_png16(&dir.join(name), &Image::new(planes), Overwrite::Replace).unwrap();
+    }
+
+    #[test]
+    fn mismatched_inputs_are_rejected_naming_the_file() {
+        let d = tempfile::tempdir().unwrap();
+        profile(&d.path().join("profile"), 48, 40, Transfer::Linear);
+        write(d.path(), "small.png", vec![Plane::filled(40, 40, 0.5); 3]);
+        let e = run(&args(d.path(), "small.png")).unwrap_err().to_string();
+        assert!(e.contains("small.png") && e.contains("40x40") && e.contains("48x40"), "{e}");
+        write(d.path(), "gray.png", vec![Plane::filled(48, 40, 0.5)]);
+        let e = run(&args(d.path(), "gray.png")).unwrap_err().to_string();
+        assert!(e.contains("gray.png") && e.contains("1 channel") && e.contains("R,G,B"), "{e}");
+        assert!(!d.path().join("out.png").exists());
+    }
+
+    #[test]
+    fn srgb_capture_round_trips_in_size_and_encoding() {
+        let d = tempfile::tempdir().unwrap();
+        profile(&d.path().join("profile"), 48, 40, Transfer::Srgb);
+        // a flat grey capture must come back as the same grey (decode, restore, re-encode)
+        write(d.path(), "in.png", vec![Plane::filled(48, 40, 0.6); 3]);
+        run(&args(d.path(), "in.png")).unwrap();
+        let out = read_image(&d.path().join("out.png")).unwrap();
+        assert_eq!((out.width(), out.height(), out.channel_count()), (48, 40, 3));
+        for p in &out.planes {
+            assert!(p.data.iter().all(|v| (v - 0.6).abs() < 2e-3), "{} .. {}", p.min(), p.max());
+        }
+    }
+}

@@ -24,6 +24,7 @@
 // Index loops over several parallel arrays are the clearest form of the numerics here.
 #![allow(clippy::needless_range_loop)]
 
+pub mod deconv;
 pub mod estimate;
 pub mod fsutil;
 pub mod image;

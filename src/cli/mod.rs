@@ -38,6 +38,8 @@ pub enum Command {
     Demo(demo::DemoArgs),
     /// Time PSF estimation on the benchmark sizes and print a table.
     Bench(bench::BenchArgs),
+    /// Restore an image taken through the profiled lens (cross-channel deconvolution).
+    Deblur(lensrig::deconv::cli::DeblurArgs),
 }
 
 #[derive(Args, Debug)]
@@ -116,6 +118,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Simulate(a) => run_simulate(&a),
         Command::Demo(a) => demo::run(&a),
         Command::Bench(a) => bench::run(&a),
+        Command::Deblur(a) => lensrig::deconv::cli::run(&a),
     }
 }
 

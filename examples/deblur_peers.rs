@@ -1,0 +1,163 @@
+//! Benchmark runner for `lensrig deblur` against scikit-image peers (driven by
+//! `scripts/bench-deblur.sh`).
+//!
+//! `prepare OUT [SCENE.png ...]`: for every scene (8-bit sRGB PNG), decode to linear, blur with
+//! the synthetic chromatic field-varying lens ([`lensrig::deconv::synth::SyntheticLens`], 4×4 PSF
+//! grid, 21×21 kernels), add Gaussian noise (σ = 0.005 linear), clip, re-encode sRGB and write
+//! `OUT/<scene>/blurred.png` (16-bit), the lens profile `OUT/<scene>/profile/`, the true PSFs as
+//! `psfs.json` for the peers, then run `lensrig deblur` (the CLI code path, in process) and
+//! record its wall time.
+//!
+//! `report OUT [SCENE.png ...]`: PSNR (dB, sRGB-encoded values in [0, 1], whole image) of every
+//! method's output (`<method>.png`, or `<method>.tiff` from the peers) against the sharp scene, and the recorded seconds, as a table.
+
+use lensrig::deconv::cli::{run, DeblurArgs};
+use lensrig::deconv::synth::{GaussianNoise, SyntheticLens};
+use lensrig::fsutil::Overwrite;
+use lensrig::image::io::{read_image, write_png16, write_tiff_f32};
+use lensrig::image::{Image, Transfer};
+use lensrig::optics::forward::blur_channel;
+use lensrig::profile::{Profile, PsfTable, SourceInfo};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+const NOISE: f32 = 0.005;
+const KERNEL: usize = 21;
+const GRID: usize = 4;
+const METHODS: [&str; 4] = ["blurred", "lensrig", "richardson_lucy", "wiener"];
+
+fn scene_name(p: &Path) -> String {
+    p.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default()
+}
+
+fn prepare(out: &Path, scene: &Path) -> anyhow::Result<()> {
+    let dir = out.join(scene_name(scene));
+    std::fs::create_dir_all(&dir)?;
+    let mut img = read_image(scene)?;
+    img.transfer = Transfer::Srgb;
+    let lin = img.to_linear();
+    let (w, h) = (lin.width(), lin.height());
+    let lens = SyntheticLens::new(KERNEL, 3);
+    let grid = lens.grid(w, h, 3, GRID, GRID);
+    let mut noise = GaussianNoise::new(2013);
+    let blurred: Vec<_> = lin
+        .planes
+        .iter()
+        .enumerate()
+        .map(|(c, p)| {
+            let mut b = blur_channel(p, &grid, c);
+            noise.add_to(&mut b, NOISE);
+            b.map(|v| v.clamp(0.0, 1.0))
+        })
+        .collect();
+    let mut bimg = Image::new(blurred);
+    bimg.transfer = Transfer::Linear;
+    let enc = bimg.encoded(Transfer::Srgb);
+    write_png16(&dir.join("blurred.png"), &enc, Overwrite::Replace)?;
+    // the same values as float TIFF for the Python peers (Pillow reads 16-bit RGB PNGs as 8-bit)
+    let mut ftiff = enc.clone();
+    ftiff.format = lensrig::image::SampleFormat::F32;
+    write_tiff_f32(&dir.join("blurred.tiff"), &ftiff, Overwrite::Replace)?;
+    let source = SourceInfo {
+        width: w,
+        height: h,
+        channels: grid.channels.clone(),
+        sample_format: lensrig::image::SampleFormat::U16,
+        transfer: Transfer::Srgb,
+        open: None,
+        pinhole: None,
+        black_level: vec![],
+    };
+    let table = PsfTable { kernel_size: KERNEL, columns: GRID, rows: GRID, centers: grid.centers.clone(), tile_size: None, files: BTreeMap::new() };
+    let profile = Profile { meta: Profile::new_meta(source, vec![1.0; 3], table), grid: grid.clone() };
+    profile.save(&dir.join("profile"))?;
+    let psfs = serde_json::json!({
+        "kernel_size": KERNEL,
+        "columns": GRID,
+        "rows": GRID,
+        "centers": grid.centers,
+        "kernels": grid.kernels.iter().map(|ch| ch.iter().map(|k| k.data.clone()).collect::<Vec<_>>()).collect::<Vec<_>>(),
+        "noise_sigma_linear": NOISE,
+    });
+    std::fs::write(dir.join("psfs.json"), serde_json::to_string(&psfs)?)?;
+    // LR_DARK / LR_TILE / LR_ITERS override the defaults (for profiling runs only)
+    let env = |k: &str| std::env::var(k).ok().and_then(|v| v.parse::<f32>().ok());
+    let d = lensrig::deconv::DeconvOptions::default();
+    let args = DeblurArgs {
+        profile: dir.join("profile"),
+        input: dir.join("blurred.png"),
+        out: dir.join("lensrig.png"),
+        transfer: None,
+        lambda: env("LR_LAMBDA").map(|v| vec![v]),
+        cross_weight: d.cross_weight,
+        dark_weight: env("LR_DARK").unwrap_or(d.dark_weight),
+        residual_steps: d.residual_steps,
+        iterations: env("LR_ITERS").map_or(d.max_iterations, |v| v as usize),
+        saturation: 0.99,
+        tile: env("LR_TILE").map(|v| v as usize),
+        quiet: true,
+    };
+    let t = Instant::now();
+    run(&args)?;
+    let secs = t.elapsed().as_secs_f64();
+    std::fs::write(dir.join("lensrig.time"), format!("{secs:.2}\n"))?;
+    std::fs::write(dir.join("blurred.time"), "0\n")?;
+    eprintln!("{}: {w}x{h}, lensrig {secs:.2} s", scene_name(scene));
+    Ok(())
+}
+
+fn psnr(a: &Image, b: &Image) -> f64 {
+    let mut se = 0.0f64;
+    let mut n = 0usize;
+    for (p, q) in a.planes.iter().zip(&b.planes) {
+        for (x, y) in p.data.iter().zip(&q.data) {
+            se += ((x.clamp(0.0, 1.0) - y.clamp(0.0, 1.0)) as f64).powi(2);
+            n += 1;
+        }
+    }
+    10.0 * (1.0 / (se / n.max(1) as f64).max(1e-20)).log10()
+}
+
+fn report(out: &Path, scenes: &[PathBuf]) -> anyhow::Result<()> {
+    println!("| scene | size | method | PSNR (dB) | seconds |");
+    println!("| --- | --- | --- | ---: | ---: |");
+    for scene in scenes {
+        let sharp = read_image(scene)?;
+        let dir = out.join(scene_name(scene));
+        let size = format!("{}x{}", sharp.width(), sharp.height());
+        for m in METHODS {
+            let tiff = dir.join(format!("{m}.tiff"));
+            let file = if tiff.exists() && m != "blurred" { tiff } else { dir.join(format!("{m}.png")) };
+            let time = std::fs::read_to_string(dir.join(format!("{m}.time"))).map(|s| s.trim().to_string()).unwrap_or_else(|_| "-".into());
+            match read_image(&file) {
+                Ok(img) => println!("| {} | {size} | {m} | {:.2} | {time} |", scene_name(scene), psnr(&img, &sharp)),
+                Err(_) => {
+                    let why = std::fs::read_to_string(dir.join(format!("{m}.error"))).unwrap_or_else(|_| "no output".into());
+                    println!("| {} | {size} | {m} | n/a ({}) | - |", scene_name(scene), why.trim());
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+fn main() -> anyhow::Result<()> {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let usage = "usage: deblur_peers prepare|report OUT_DIR SCENE.png...";
+    let (cmd, out) = match (args.first(), args.get(1)) {
+        (Some(c), Some(o)) => (c.as_str(), PathBuf::from(o)),
+        _ => anyhow::bail!(usage),
+    };
+    let scenes: Vec<PathBuf> = args[2..].iter().map(PathBuf::from).collect();
+    match cmd {
+        "prepare" => {
+            for s in &scenes {
+                prepare(&out, s)?;
+            }
+            Ok(())
+        }
+        "report" => report(&out, &scenes),
+        _ => anyhow::bail!(usage),
+    }
+}

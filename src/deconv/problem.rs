@@ -1,0 +1,365 @@
+//! One channel's deconvolution problem on one tile, in the form [`PrimalDual`] needs
+//! (METHOD.md §3–§5).
+//!
+//! The unknown `x` is the *increment* of a residual step (§5): the tile's current estimate `I_k`
+//! is fixed, the data are the residual `ΔJ = J − B I_k`, and
+//!
+//! ```text
+//! min_x ‖M (B x − ΔJ)‖₂² + λ Σ_{a=1..5} ‖H_a x‖₁ + Σ_l β_l Σ_{a=1,2} ‖(D_{i_l} H_a − D_{H_a i_l}) x‖₁
+//!       + λ_b Σ_l Σ_{a=1,2} ‖D_w (H_a x − H_a (i_l − I_k))‖₂²
+//! ```
+//!
+//! - `K` stacks the ℓ1 operators with their weights inside, `F = ‖·‖₁` (dual prox: clamp to
+//!   `[−1, 1]`).
+//! - `G` is the data term plus the dark-region term. Without saturated pixels and without dark
+//!   regions its prox is the closed-form Fourier division of METHOD.md §3. With a 0/1 saturation
+//!   mask `M` or a dark-region weight `w` it is the linear system of §4,
+//!   `(2τ BᵀMB + I + 2τ λ_b Σ H_aᵀ D_w² H_a) u = 2τ BᵀM ΔJ + ũ + 2τ λ_b Σ H_aᵀ D_w² H_a (i_l − I_k)`,
+//!   solved by conjugate gradients preconditioned with the unmasked Fourier inverse and warm
+//!   started from the previous prox.
+//! - The dark term matches the gradients of the *total* `I_k + x` to those of `i_l`.
+//!
+//! All arrays live on the tile's periodic FFT domain (`width × height`, row-major); `B` is the
+//! circular convolution with the tile's kernel, whose wrap-around only touches the cropped
+//! margin.
+
+use super::filters::{self, Derivative, ALL, FIRST};
+use crate::solve::cg::conjugate_gradient;
+use crate::solve::fft::Fft2;
+use crate::solve::primal_dual::PrimalDual;
+use rustfft::num_complex::Complex32;
+use std::cell::RefCell;
+
+/// A restored other channel the cross-channel term compares against.
+pub struct CrossChannel<'a> {
+    pub beta: f32,
+    /// `i_l` on the tile domain.
+    pub image: &'a [f32],
+    /// `H_1 i_l`, `H_2 i_l`.
+    pub grad: [Vec<f32>; 2],
+}
+
+/// The dark-region term's fixed parts.
+pub struct DarkTerm {
+    pub lambda_b: f32,
+    /// `w²` per pixel.
+    pub w2: Vec<f32>,
+    /// Number of other channels `l` (each contributes the same operator).
+    pub others: usize,
+    /// `Σ_l Σ_a H_aᵀ D_w² H_a (i_l − I_k)`.
+    pub target: Vec<f32>,
+}
+
+/// Spectral data of one kernel on the tile domain.
+pub struct KernelSpectrum {
+    /// `F(B)`.
+    pub b: Vec<Complex32>,
+    /// `|F(B)|²`.
+    pub b2: Vec<f32>,
+}
+
+impl KernelSpectrum {
+    pub fn new(fft: &Fft2, kernel_at_origin: &[f32]) -> Self {
+        let b = fft.forward(kernel_at_origin);
+        let b2 = b.iter().map(|c| c.norm_sqr()).collect();
+        Self { b, b2 }
+    }
+}
+
+/// Counters a tile reports.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct ProxCounters {
+    pub prox_calls: usize,
+    pub cg_iterations: usize,
+}
+
+/// The problem for one channel, one tile, one residual step.
+pub struct ChannelProblem<'a> {
+    w: usize,
+    h: usize,
+    fft: &'a Fft2,
+    kernel: &'a KernelSpectrum,
+    /// `conj(F B) · F(ΔJ)` (Fourier prox, no mask).
+    bj: Vec<Complex32>,
+    /// `Bᵀ M ΔJ` (CG prox).
+    btmj: Vec<f32>,
+    mask: Option<&'a [f32]>,
+    lambda: f32,
+    cross: &'a [CrossChannel<'a>],
+    dark: Option<DarkTerm>,
+    /// Previous CG solution (warm start).
+    u_prev: Vec<f32>,
+    scratch: RefCell<Vec<f32>>,
+    spec: Vec<Complex32>,
+    pub counters: ProxCounters,
+    /// CG cap per prox (warm started from the previous prox, so a few iterations track the
+    /// slowly moving solution; the prox is inexact early on, as in inexact-prox Chambolle–Pock).
+    pub cg_max_iterations: usize,
+    pub cg_tolerance: f64,
+}
+
+impl<'a> ChannelProblem<'a> {
+    /// Sets up the problem; `residual` is `ΔJ`, `mask` the 0/1 data weight (`None`: all 1).
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        fft: &'a Fft2,
+        kernel: &'a KernelSpectrum,
+        residual: &[f32],
+        mask: Option<&'a [f32]>,
+        lambda: f32,
+        cross: &'a [CrossChannel<'a>],
+        dark: Option<DarkTerm>,
+    ) -> Self {
+        let (w, h) = (fft.width, fft.height);
+        let n = w * h;
+        assert_eq!(residual.len(), n);
+        let mut spec = vec![Complex32::new(0.0, 0.0); fft.spectrum_len()];
+        let needs_cg = mask.is_some() || dark.is_some();
+        let (bj, btmj) = if needs_cg {
+            let masked: Vec<f32> = match mask {
+                Some(m) => residual.iter().zip(m).map(|(r, m)| r * m).collect(),
+                None => residual.to_vec(),
+            };
+            fft.forward_into(&masked, &mut spec);
+            for (s, b) in spec.iter_mut().zip(&kernel.b) {
+                *s *= b.conj();
+            }
+            let mut out = vec![0.0; n];
+            fft.inverse_into(&mut spec, &mut out);
+            (Vec::new(), out)
+        } else {
+            let mut bj = fft.forward(residual);
+            for (s, b) in bj.iter_mut().zip(&kernel.b) {
+                *s *= b.conj();
+            }
+            (bj, Vec::new())
+        };
+        Self {
+            w,
+            h,
+            fft,
+            kernel,
+            bj,
+            btmj,
+            mask,
+            lambda,
+            cross,
+            dark,
+            u_prev: Vec::new(),
+            scratch: RefCell::new(vec![0.0; n]),
+            spec,
+            counters: ProxCounters::default(),
+            cg_max_iterations: 4,
+            cg_tolerance: 1e-3,
+        }
+    }
+
+    fn n(&self) -> usize {
+        self.w * self.h
+    }
+
+    /// `out = Bᵀ M B u + c_dark · Σ_a H_aᵀ D_w² H_a u` scaled as the CG system needs:
+    /// `out = u + 2τ (BᵀMBu + λ_b·others·Σ H_aᵀW²H_a u)`.
+    fn apply_system(&self, tau: f32, u: &[f32], out: &mut [f32], spec: &mut [Complex32]) {
+        let n = self.n();
+        self.fft.forward_into(u, spec);
+        for (s, b) in spec.iter_mut().zip(&self.kernel.b) {
+            *s *= b;
+        }
+        let mut bu = vec![0.0; n];
+        self.fft.inverse_into(spec, &mut bu);
+        if let Some(m) = self.mask {
+            bu.iter_mut().zip(m).for_each(|(v, m)| *v *= m);
+        }
+        self.fft.forward_into(&bu, spec);
+        for (s, b) in spec.iter_mut().zip(&self.kernel.b) {
+            *s *= b.conj();
+        }
+        self.fft.inverse_into(spec, out);
+        for (o, ui) in out.iter_mut().zip(u) {
+            *o = ui + 2.0 * tau * *o;
+        }
+        if let Some(d) = &self.dark {
+            let c = 2.0 * tau * d.lambda_b * d.others as f32;
+            for a in FIRST {
+                filters::apply(a, u, self.w, self.h, &mut bu);
+                bu.iter_mut().zip(&d.w2).for_each(|(v, w2)| *v *= w2);
+                filters::add_adjoint(a, &bu, self.w, self.h, c, out);
+            }
+        }
+    }
+}
+
+impl PrimalDual for ChannelProblem<'_> {
+    fn primal_len(&self) -> usize {
+        self.n()
+    }
+
+    fn dual_len(&self) -> usize {
+        self.n() * (ALL.len() + 2 * self.cross.len())
+    }
+
+    fn apply_k(&self, x: &[f32], out: &mut [f32]) {
+        let n = self.n();
+        let (w, h) = (self.w, self.h);
+        for (a, d) in ALL.iter().enumerate() {
+            filters::apply(*d, x, w, h, &mut out[a * n..(a + 1) * n]);
+        }
+        let (grads, rest) = out.split_at_mut(ALL.len() * n);
+        for (l, cc) in self.cross.iter().enumerate() {
+            for a in 0..2 {
+                let hx = &grads[a * n..(a + 1) * n];
+                let o = &mut rest[(2 * l + a) * n..(2 * l + a + 1) * n];
+                let g = &cc.grad[a];
+                for i in 0..n {
+                    o[i] = cc.beta * (cc.image[i] * hx[i] - g[i] * x[i]);
+                }
+            }
+        }
+        grads.iter_mut().for_each(|v| *v *= self.lambda);
+    }
+
+    fn apply_kt(&self, y: &[f32], out: &mut [f32]) {
+        let n = self.n();
+        let (w, h) = (self.w, self.h);
+        out.iter_mut().for_each(|v| *v = 0.0);
+        for (a, d) in ALL.iter().enumerate() {
+            filters::add_adjoint(*d, &y[a * n..(a + 1) * n], w, h, self.lambda, out);
+        }
+        let mut tmp = self.scratch.borrow_mut();
+        for (l, cc) in self.cross.iter().enumerate() {
+            for (a, d) in FIRST.iter().enumerate() {
+                let yy = &y[(ALL.len() + 2 * l + a) * n..(ALL.len() + 2 * l + a + 1) * n];
+                for i in 0..n {
+                    tmp[i] = cc.image[i] * yy[i];
+                    out[i] -= cc.beta * cc.grad[a][i] * yy[i];
+                }
+                filters::add_adjoint(*d, &tmp, w, h, cc.beta, out);
+            }
+        }
+    }
+
+    fn prox_f_conj(&mut self, _sigma: f32, y: &mut [f32]) {
+        for v in y.iter_mut() {
+            *v = v.clamp(-1.0, 1.0);
+        }
+    }
+
+    fn prox_g(&mut self, tau: f32, x: &mut [f32]) {
+        self.counters.prox_calls += 1;
+        let mut spec = std::mem::take(&mut self.spec);
+        if self.mask.is_none() && self.dark.is_none() {
+            self.fft.forward_into(x, &mut spec);
+            let t2 = 2.0 * tau;
+            for ((s, bj), b2) in spec.iter_mut().zip(&self.bj).zip(&self.kernel.b2) {
+                *s = (*s + bj * t2) / (t2 * b2 + 1.0);
+            }
+            self.fft.inverse_into(&mut spec, x);
+        } else {
+            let t2 = 2.0 * tau;
+            let mut rhs: Vec<f32> = x.iter().zip(&self.btmj).map(|(u, b)| u + t2 * b).collect();
+            if let Some(d) = &self.dark {
+                let c = t2 * d.lambda_b;
+                rhs.iter_mut().zip(&d.target).for_each(|(r, t)| *r += c * t);
+            }
+            let mut u = if self.u_prev.len() == x.len() { std::mem::take(&mut self.u_prev) } else { x.to_vec() };
+            let mut spec2 = spec.clone();
+            let this = &*self;
+            let st = conjugate_gradient(
+                |v, out| this.apply_system(tau, v, out, &mut spec),
+                |r, out| {
+                    this.fft.forward_into(r, &mut spec2);
+                    for (s, b2) in spec2.iter_mut().zip(&this.kernel.b2) {
+                        *s /= t2 * b2 + 1.0;
+                    }
+                    this.fft.inverse_into(&mut spec2, out);
+                },
+                &rhs,
+                &mut u,
+                self.cg_max_iterations,
+                self.cg_tolerance,
+            );
+            self.counters.cg_iterations += st.iterations;
+            x.copy_from_slice(&u);
+            self.u_prev = u;
+        }
+        self.spec = spec;
+    }
+}
+
+/// `Σ_a H_aᵀ D_w² H_a v` accumulated into `out` (for the dark term's right-hand side).
+pub fn add_weighted_gradient_normal(v: &[f32], w2: &[f32], width: usize, height: usize, out: &mut [f32]) {
+    let mut g = vec![0.0; v.len()];
+    for a in FIRST {
+        filters::apply(a, v, width, height, &mut g);
+        g.iter_mut().zip(w2).for_each(|(x, w)| *x *= w);
+        filters::add_adjoint(a, &g, width, height, 1.0, out);
+    }
+}
+
+/// The first-order gradients `[H_1 v, H_2 v]`.
+pub fn gradients(v: &[f32], width: usize, height: usize) -> [Vec<f32>; 2] {
+    let mut gx = vec![0.0; v.len()];
+    let mut gy = vec![0.0; v.len()];
+    filters::apply(Derivative::Dx, v, width, height, &mut gx);
+    filters::apply(Derivative::Dy, v, width, height, &mut gy);
+    [gx, gy]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::solve::conv::kernel_to_origin;
+    use crate::image::Plane;
+
+    fn field(n: usize, seed: u32) -> Vec<f32> {
+        (0..n).map(|i| (((i as u32).wrapping_mul(2654435761).wrapping_add(seed) >> 9) % 1000) as f32 / 1000.0).collect()
+    }
+
+    /// <K x, y> = <x, Kᵀ y> with cross-channel blocks present.
+    #[test]
+    fn k_and_kt_are_adjoint() {
+        let (w, h) = (12, 10);
+        let n = w * h;
+        let fft = Fft2::plan(w, h);
+        let k = Plane::filled(3, 3, 1.0 / 9.0);
+        let ks = KernelSpectrum::new(&fft, &kernel_to_origin(&k, w, h));
+        let other = field(n, 5);
+        let cross = vec![CrossChannel { beta: 0.7, grad: gradients(&other, w, h), image: &other }];
+        let p = ChannelProblem::new(&fft, &ks, &field(n, 1), None, 0.3, &cross, None);
+        let x = field(n, 11);
+        let y: Vec<f32> = field(p.dual_len(), 17).iter().map(|v| v - 0.5).collect();
+        let mut kx = vec![0.0; p.dual_len()];
+        p.apply_k(&x, &mut kx);
+        let mut kty = vec![0.0; n];
+        p.apply_kt(&y, &mut kty);
+        let a: f64 = kx.iter().zip(&y).map(|(p, q)| *p as f64 * *q as f64).sum();
+        let b: f64 = x.iter().zip(&kty).map(|(p, q)| *p as f64 * *q as f64).sum();
+        assert!((a - b).abs() < 1e-3 * a.abs().max(1.0), "{a} vs {b}");
+    }
+
+    /// With an all-ones mask, the CG prox equals the closed-form Fourier prox.
+    #[test]
+    fn cg_prox_matches_fourier_prox_for_full_mask() {
+        let (w, h) = (16, 12);
+        let n = w * h;
+        let fft = Fft2::plan(w, h);
+        let k = Plane::from_fn(5, 5, |x, y| 1.0 / (1.0 + (x as f32 - 2.0).powi(2) + (y as f32 - 2.0).powi(2)));
+        let s = k.sum() as f32;
+        let k = k.map(|v| v / s);
+        let ks = KernelSpectrum::new(&fft, &kernel_to_origin(&k, w, h));
+        let j = field(n, 3);
+        let ones = vec![1.0; n];
+        let mut a = ChannelProblem::new(&fft, &ks, &j, None, 0.1, &[], None);
+        let mut b = ChannelProblem::new(&fft, &ks, &j, Some(&ones), 0.1, &[], None);
+        b.cg_max_iterations = 200;
+        b.cg_tolerance = 1e-6;
+        let mut xa = field(n, 9);
+        let mut xb = xa.clone();
+        a.prox_g(0.8, &mut xa);
+        b.prox_g(0.8, &mut xb);
+        for (p, q) in xa.iter().zip(&xb) {
+            assert!((p - q).abs() < 1e-4, "{p} vs {q}");
+        }
+    }
+}

@@ -1,0 +1,106 @@
+//! Restoration tiles and their seamless blending.
+//!
+//! The image is cut into a regular grid of *cores*; tile `i` along an axis keeps the pixels of
+//! its core widened by `overlap / 2` on each inner side and solves on a window of FFT-friendly
+//! size that adds a margin beyond that (pixels outside the image are mirrored — reflective
+//! pad-and-crop). The kept pixels are blended with a separable **partition of unity**: the weight
+//! is 1 inside the core and ramps linearly across each `overlap`-wide band centred on a core
+//! boundary, where the neighbour's weight ramps the other way, so the weights sum to exactly 1
+//! everywhere and no tile border is visible.
+
+/// One tile along one axis.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Span {
+    /// Core `[core0, core1)`.
+    pub core0: usize,
+    pub core1: usize,
+    /// Kept (weighted) pixels `[keep0, keep1)`.
+    pub keep0: usize,
+    pub keep1: usize,
+    /// First pixel of the solve window (negative: mirrored beyond the image).
+    pub window0: isize,
+    first: bool,
+    last: bool,
+    overlap: usize,
+}
+
+impl Span {
+    /// The blend weight of pixel `x` (0 outside the kept range).
+    pub fn weight(&self, x: usize) -> f32 {
+        if x < self.keep0 || x >= self.keep1 {
+            return 0.0;
+        }
+        if self.overlap == 0 {
+            return 1.0;
+        }
+        let o = self.overlap as f32;
+        let p = x as f32 + 0.5;
+        let up = if self.first { 1.0 } else { ((p - (self.core0 as f32 - o / 2.0)) / o).clamp(0.0, 1.0) };
+        let down = if self.last { 1.0 } else { (((self.core1 as f32 + o / 2.0) - p) / o).clamp(0.0, 1.0) };
+        up * down
+    }
+}
+
+/// Tiles along one axis of length `n` with cores of at most `max_core` pixels, a blending band
+/// of `overlap` pixels and a solve window of `window` pixels (which must be at least the largest
+/// kept range plus twice the margin the caller wants).
+pub fn spans(n: usize, max_core: usize, overlap: usize) -> Vec<Span> {
+    let count = n.div_ceil(max_core.max(1)).max(1);
+    let overlap = if count == 1 { 0 } else { overlap.min(n / count) & !1 };
+    (0..count)
+        .map(|i| {
+            let core0 = i * n / count;
+            let core1 = (i + 1) * n / count;
+            let first = i == 0;
+            let last = i + 1 == count;
+            let keep0 = if first { 0 } else { core0 - overlap / 2 };
+            let keep1 = if last { n } else { core1 + overlap / 2 };
+            Span { core0, core1, keep0, keep1, window0: 0, first, last, overlap }
+        })
+        .collect()
+}
+
+/// Sets every span's window start so the kept range sits in the middle of a `window`-pixel
+/// solve window.
+pub fn place_windows(spans: &mut [Span], window: usize) {
+    for s in spans {
+        let keep = s.keep1 - s.keep0;
+        s.window0 = s.keep0 as isize - ((window - keep) / 2) as isize;
+    }
+}
+
+/// The largest kept range.
+pub fn max_keep(spans: &[Span]) -> usize {
+    spans.iter().map(|s| s.keep1 - s.keep0).max().unwrap_or(0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn weights_are_a_partition_of_unity() {
+        for &(n, core, o) in &[(100usize, 30usize, 8usize), (257, 64, 32), (50, 64, 16), (1000, 356, 32)] {
+            let sp = spans(n, core, o);
+            for x in 0..n {
+                let s: f32 = sp.iter().map(|s| s.weight(x)).sum();
+                assert!((s - 1.0).abs() < 1e-5, "n={n} x={x} sum={s}");
+            }
+            // cores tile the axis
+            assert_eq!(sp[0].core0, 0);
+            assert_eq!(sp.last().unwrap().core1, n);
+            for w in sp.windows(2) {
+                assert_eq!(w[0].core1, w[1].core0);
+            }
+        }
+    }
+
+    #[test]
+    fn windows_centre_the_kept_range() {
+        let mut sp = spans(200, 80, 16);
+        place_windows(&mut sp, 128);
+        for s in &sp {
+            assert!(s.window0 <= s.keep0 as isize && s.window0 + 128 >= s.keep1 as isize);
+        }
+    }
+}

@@ -3,6 +3,8 @@
 //! Every command returns `anyhow::Result`; `main` prints the one-line cause on stderr and
 //! exits with status 2 on error, 0 on success.
 
+pub mod calibrate;
+pub mod capture;
 pub mod demo;
 
 use anyhow::{bail, Context, Result};
@@ -35,6 +37,12 @@ pub enum Command {
     /// Render a calibration pair with the lens simulator, estimate its profile and compare
     /// with the truth (no hardware needed).
     Demo(demo::DemoArgs),
+    /// Run a capture session on the rig (moves, exposures, frames on disk).
+    Capture(capture::CaptureArgs),
+    /// Load and validate a rig config; errors name the file, line and key.
+    CheckConfig(capture::CheckConfigArgs),
+    /// Capture with the rig, estimate a profile per stage position, write an HTML report.
+    Calibrate(calibrate::CalibrateArgs),
 }
 
 #[derive(Args, Debug)]
@@ -60,11 +68,14 @@ pub struct TargetArgs {
 #[derive(Args, Debug)]
 pub struct EstimateArgs {
     /// Wide-open capture (PNG/TIFF).
-    #[arg(long)]
-    pub open: PathBuf,
+    #[arg(long, required_unless_present = "session", conflicts_with = "session")]
+    pub open: Option<PathBuf>,
     /// Pinhole-aperture capture of the same target.
+    #[arg(long, required_unless_present = "session", conflicts_with = "session")]
+    pub pinhole: Option<PathBuf>,
+    /// A capture session (from `capture`): one profile per stage position in OUT/<pair key>/.
     #[arg(long)]
-    pub pinhole: PathBuf,
+    pub session: Option<PathBuf>,
     /// Profile directory to write.
     #[arg(long)]
     pub out: PathBuf,
@@ -112,6 +123,9 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Estimate(a) => run_estimate(&a),
         Command::Simulate(a) => run_simulate(&a),
         Command::Demo(a) => demo::run(&a),
+        Command::Capture(a) => capture::run_capture(&a),
+        Command::CheckConfig(a) => capture::run_check_config(&a),
+        Command::Calibrate(a) => calibrate::run(&a),
     }
 }
 
@@ -153,7 +167,18 @@ fn run_estimate(a: &EstimateArgs) -> Result<()> {
             bail!("--kernel must be odd, got {k}");
         }
     }
-    let est = estimate_files(&a.open, &a.pinhole, &opts, a.transfer)?;
+    let (open, pinhole) = match (&a.open, &a.pinhole, &a.session) {
+        (_, _, Some(s)) => {
+            let done = capture::estimate_session(s, &a.out, &opts, !a.quiet)?;
+            for (p, e) in &done {
+                println!("wrote {}: {} tiles, {}px kernels", a.out.join(&p.key).display(), e.profile.grid.tile_count(), e.profile.grid.kernel_size);
+            }
+            return Ok(());
+        }
+        (Some(o), Some(p), None) => (o, p),
+        _ => bail!("give --open and --pinhole, or --session"),
+    };
+    let est = estimate_files(open, pinhole, &opts, a.transfer)?;
     est.profile.save(&a.out)?;
     let m = &est.profile.meta;
     println!(

@@ -508,7 +508,7 @@ mod tests {
         assert!(e.contains("axes.stage.positions") && e.contains("5 mm"), "{e}");
         let e = err(&REAL.replacen("port = ", "# port = ", 1));
         assert!(e.contains("controller.port"), "{e}");
-        let e = err(&MOCK.replacen("pinhole_exposure_scale = 64.0", "pinhole_exposure_scale = 0.0", 1));
+        let e = err(&MOCK.replacen("pinhole_exposure_scale = 16.0", "pinhole_exposure_scale = 0.0", 1));
         assert!(e.contains("plan.pinhole_exposure_scale"), "{e}");
     }
 

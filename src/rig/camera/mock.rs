@@ -18,7 +18,8 @@
 //! `brightness` (300, full-scale per second at f/1), `full_well_e` (20000), `read_noise_e` (6),
 //! `bands` (`"rgb"` or `"mono"`, default `"mono"`), `seed` (1), and the fault
 //! `timeout_after_captures` (a capture after that many returns [`CameraError::Timeout`],
-//! for resume tests). `focal_length_mm`, `pixel_pitch_um` are accepted and informational.
+//! for resume tests; the environment variable `LENSRIG_MOCK_TIMEOUT_AFTER_CAPTURES` does the
+//! same without changing the config). `focal_length_mm`, `pixel_pitch_um` are accepted and informational.
 //!
 //! Clean images are cached per (f-number, stage position), so repeated frames only redraw noise.
 
@@ -200,6 +201,10 @@ impl MockCamera {
         let faults = Arc::new(CameraFaults::default());
         if let Some(v) = cfg.lens.as_ref().and_then(|t| t.get("timeout_after_captures")).and_then(toml::Value::as_integer) {
             faults.timeout_after_captures.store(v.max(0) as usize, Ordering::SeqCst);
+        }
+        // Test hook (the config must stay identical for --resume): same as the key above.
+        if let Some(v) = std::env::var("LENSRIG_MOCK_TIMEOUT_AFTER_CAPTURES").ok().and_then(|v| v.parse().ok()) {
+            faults.timeout_after_captures.store(v, Ordering::SeqCst);
         }
         let format = FrameFormat { width: cfg.camera.width, height: cfg.camera.height, fourcc: FourCc(*b"Y16 "), transfer: Transfer::Linear };
         Ok(Self {

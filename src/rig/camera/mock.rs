@@ -399,6 +399,7 @@ mod tests {
     #[test]
     fn aperture_position_maps_to_f_number_and_light() {
         let (mut c, pos) = cam();
+        c.optics.f_number_pinhole = Some(22.0);
         let o = c.optics().clone();
         assert!((o.f_number_at(o.aperture_open).unwrap() - o.f_number_open).abs() < 1e-9);
         assert!((o.f_number_at(o.aperture_pinhole).unwrap() - 22.0).abs() < 1e-9);

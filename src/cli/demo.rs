@@ -67,7 +67,7 @@ fn render_pair(lens: &LensModel, a: &DemoArgs, k: usize, seed: u64) -> Result<(R
 }
 
 /// Normalises each kernel of a mosaic to its own peak, for viewing.
-fn psf_mosaic(grid: &PsfGrid, c: usize) -> Image {
+pub fn psf_mosaic(grid: &PsfGrid, c: usize) -> Image {
     let k = grid.kernel_size;
     let mut m = Plane::new(grid.columns * (k + 2), grid.rows * (k + 2));
     for t in 0..grid.tile_count() {

@@ -4,6 +4,8 @@
 //! exits with status 2 on error, 0 on success.
 
 pub mod bench;
+pub mod calibrate;
+pub mod capture;
 pub mod demo;
 
 use anyhow::{bail, Context, Result};
@@ -40,6 +42,12 @@ pub enum Command {
     Bench(bench::BenchArgs),
     /// Restore an image taken through the profiled lens (cross-channel deconvolution).
     Deblur(lensrig::deconv::cli::DeblurArgs),
+    /// Run a capture session on the rig (moves, exposures, frames on disk).
+    Capture(capture::CaptureArgs),
+    /// Load and validate a rig config; errors name the file, line and key.
+    CheckConfig(capture::CheckConfigArgs),
+    /// Capture with the rig, estimate a profile per stage position, write an HTML report.
+    Calibrate(calibrate::CalibrateArgs),
 }
 
 #[derive(Args, Debug)]
@@ -65,11 +73,14 @@ pub struct TargetArgs {
 #[derive(Args, Debug)]
 pub struct EstimateArgs {
     /// Wide-open capture (PNG/TIFF).
-    #[arg(long)]
-    pub open: PathBuf,
+    #[arg(long, required_unless_present = "session", conflicts_with = "session")]
+    pub open: Option<PathBuf>,
     /// Pinhole-aperture capture of the same target.
+    #[arg(long, required_unless_present = "session", conflicts_with = "session")]
+    pub pinhole: Option<PathBuf>,
+    /// A capture session (from `capture`): one profile per stage position in OUT/<pair key>/.
     #[arg(long)]
-    pub pinhole: PathBuf,
+    pub session: Option<PathBuf>,
     /// Profile directory to write.
     #[arg(long)]
     pub out: PathBuf,
@@ -119,6 +130,9 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Demo(a) => demo::run(&a),
         Command::Bench(a) => bench::run(&a),
         Command::Deblur(a) => lensrig::deconv::cli::run(&a),
+        Command::Capture(a) => capture::run_capture(&a),
+        Command::CheckConfig(a) => capture::run_check_config(&a),
+        Command::Calibrate(a) => calibrate::run(&a),
     }
 }
 
@@ -160,7 +174,18 @@ fn run_estimate(a: &EstimateArgs) -> Result<()> {
             bail!("--kernel must be odd, got {k}");
         }
     }
-    let est = estimate_files(&a.open, &a.pinhole, &opts, a.transfer)?;
+    let (open, pinhole) = match (&a.open, &a.pinhole, &a.session) {
+        (_, _, Some(s)) => {
+            let done = capture::estimate_session(s, &a.out, &opts, !a.quiet)?;
+            for (p, e) in &done {
+                println!("wrote {}: {} tiles, {}px kernels", a.out.join(&p.key).display(), e.profile.grid.tile_count(), e.profile.grid.kernel_size);
+            }
+            return Ok(());
+        }
+        (Some(o), Some(p), None) => (o, p),
+        _ => bail!("give --open and --pinhole, or --session"),
+    };
+    let est = estimate_files(open, pinhole, &opts, a.transfer)?;
     est.profile.save(&a.out)?;
     let m = &est.profile.meta;
     println!(

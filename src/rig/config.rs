@@ -502,7 +502,7 @@ mod tests {
         assert_eq!(e, format!("rigs/bench.toml:{line}: axes.aperture.pinhole: -80 mm is outside [-10, 0]"));
         let e = err(&MOCK.replacen("axis = \"X\"", "axis = \"Z\"", 1));
         assert!(e.contains("axes.stage.axis") && e.contains("both use axis Z"), "{e}");
-        let e = err(&MOCK.replacen("frames_to_average = 4", "frames_to_average = 0", 1));
+        let e = err(&MOCK.replacen("frames_to_average = 16", "frames_to_average = 0", 1));
         assert!(e.contains("camera.frames_to_average"), "{e}");
         let e = err(&MOCK.replacen("positions = [", "positions = [5.0, ", 1));
         assert!(e.contains("axes.stage.positions") && e.contains("5 mm"), "{e}");

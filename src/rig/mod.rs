@@ -12,3 +12,4 @@
 pub mod camera;
 pub mod config;
 pub mod controller;
+pub mod session;

@@ -2,8 +2,8 @@
 //!
 //! - [`decode`]: pure raw-buffer → [`Image`] decoders for the V4L2 formats a rig meets.
 //! - `v4l` (cargo feature `v4l2`): [`V4lCamera`] on Linux V4L2 devices.
-//! - The mock camera (rendering the target through the simulated lens) lives with the lens
-//!   simulator.
+//! - [`mock`]: [`MockCamera`], rendering the target through the simulated lens at the
+//!   aperture and stage position the controller reports.
 //!
 //! # Conventions
 //! - A [`Frame`] holds the image **as recorded**: values on the full-scale axis, gamma-encoded
@@ -15,6 +15,7 @@
 //!   ([`Camera::invalidate`]) are dropped before the next capture.
 
 pub mod decode;
+pub mod mock;
 #[cfg(feature = "v4l2")]
 pub mod v4l;
 
@@ -24,6 +25,7 @@ use std::time::{Duration, SystemTime};
 
 use crate::image::{Image, Plane, Transfer};
 
+pub use self::mock::MockCamera;
 #[cfg(feature = "v4l2")]
 pub use self::v4l::V4lCamera;
 

@@ -566,6 +566,8 @@ mod tests {
             let st = h.state();
             (st.received_lines.len(), st.realtime_received.len())
         };
+        // let any status poll still in flight from the handshake land before the baseline
+        std::thread::sleep(Duration::from_millis(150));
         let before = counts();
         for bad in [(Axis::Z, -25.0), (Axis::X, 0.5), (Axis::Y, f64::NAN)] {
             let e = c.move_to(&[bad]).unwrap_err();

@@ -1,0 +1,444 @@
+//! [`MockCamera`]: a camera that renders the noise target through the simulated lens.
+//!
+//! The camera knows nothing about the capture plan. It reads the machine position from a
+//! shared [`PositionSource`] that the capture loop updates from the controller's **status
+//! reports** after every move, and maps it:
+//!
+//! - aperture axis position → f-number: log-linear between the config's `axes.aperture.open`
+//!   (→ `lens.f_number_open`) and `axes.aperture.pinhole` (→ `lens.f_number_pinhole`), clamped;
+//!   `lens.pinhole = "ideal"` makes the pinhole position a perfectly sharp reference.
+//! - stage axis position → field offset: the target slides by `lens.cells_per_mm` noise cells
+//!   per mm along x, so each stage position sees different noise.
+//! - exposure (µs) and gain (dB) → linear exposure: white =
+//!   `brightness · t[s] · 10^(gain/20) / N²` on the full-scale axis; Poisson–Gaussian noise
+//!   (full well, read noise, both scaled by gain), clipping at full scale, 16-bit quantisation.
+//!
+//! `[lens]` keys (all optional): `f_number_open` (2.8), `f_number_pinhole` (22),
+//! `pinhole` (`"f-number"` or `"ideal"`), `pixels_per_cell` (1.6), `cells_per_mm` (1.0),
+//! `brightness` (300, full-scale per second at f/1), `full_well_e` (20000), `read_noise_e` (6),
+//! `bands` (`"rgb"` or `"mono"`, default `"mono"`), `seed` (1), and the fault
+//! `timeout_after_captures` (a capture after that many returns [`CameraError::Timeout`],
+//! for resume tests; the environment variable `LENSRIG_MOCK_TIMEOUT_AFTER_CAPTURES` does the
+//! same without changing the config). `focal_length_mm`, `pixel_pitch_um` are accepted and informational.
+//!
+//! Clean images are cached per (f-number, stage position), so repeated frames only redraw noise.
+
+use std::collections::HashMap;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, SystemTime};
+
+use super::{Camera, CameraError, FourCc, Frame, FrameFormat, FrameMeta};
+use crate::image::{Image, Plane, SampleFormat, Transfer};
+use crate::optics::capture::{render, Sensor, Shot};
+use crate::optics::lens::{mono_band, LensModel};
+use crate::rig::config::RigConfig;
+use crate::rig::controller::{Axis, Position};
+use crate::rng::Rng;
+use crate::target::{render_noise_scene, TargetSpec};
+
+/// The machine position as last reported by the controller.
+pub type PositionSource = Arc<Mutex<Position>>;
+
+/// Faults a test can inject (all default off).
+#[derive(Debug, Default)]
+pub struct CameraFaults {
+    /// Every capture fails with [`CameraError::Timeout`].
+    pub timeout: AtomicBool,
+    /// One-shot counter: the next `n` frames are dropped by the "driver"; the camera records
+    /// them as discarded and waits for replacements (documented recovery).
+    pub drop_frames: AtomicUsize,
+    /// When > 0: captures after this many succeeded time out (simulates a hang mid-session).
+    pub timeout_after_captures: AtomicUsize,
+}
+
+/// The simulated optics and sensor a mock rig uses, from the config's `[lens]` table.
+#[derive(Clone, Debug)]
+pub struct MockOptics {
+    pub lens: LensModel,
+    pub f_number_open: f64,
+    /// `None`: an ideal (perfectly sharp) pinhole reference.
+    pub f_number_pinhole: Option<f64>,
+    pub pixels_per_cell: f64,
+    pub cells_per_mm: f64,
+    pub brightness: f64,
+    pub sensor: Sensor,
+    pub seed: u64,
+    pub aperture_axis: Axis,
+    pub stage_axis: Axis,
+    pub aperture_open: f64,
+    pub aperture_pinhole: f64,
+    /// Tile grid and kernel size the PSFs are rendered with.
+    pub psf_columns: usize,
+    pub psf_rows: usize,
+    pub kernel_size: usize,
+}
+
+impl MockOptics {
+    /// Reads `[lens]` (see the module docs).
+    ///
+    /// # Errors
+    /// A key with the wrong type or an impossible value.
+    pub fn from_config(cfg: &RigConfig) -> Result<Self, String> {
+        let empty = toml::Table::new();
+        let t = cfg.lens.as_ref().unwrap_or(&empty);
+        let num = |k: &str, d: f64| -> Result<f64, String> {
+            match t.get(k) {
+                None => Ok(d),
+                Some(toml::Value::Float(f)) => Ok(*f),
+                Some(toml::Value::Integer(i)) => Ok(*i as f64),
+                Some(v) => Err(format!("lens.{k}: expected a number, got {v}")),
+            }
+        };
+        let s = |k: &str, d: &str| -> Result<String, String> {
+            match t.get(k) {
+                None => Ok(d.to_string()),
+                Some(toml::Value::String(s)) => Ok(s.clone()),
+                Some(v) => Err(format!("lens.{k}: expected a string, got {v}")),
+            }
+        };
+        const KNOWN: [&str; 13] = [
+            "focal_length_mm",
+            "pixel_pitch_um",
+            "f_number_open",
+            "f_number_pinhole",
+            "pinhole",
+            "pixels_per_cell",
+            "cells_per_mm",
+            "brightness",
+            "full_well_e",
+            "read_noise_e",
+            "bands",
+            "seed",
+            "timeout_after_captures",
+        ];
+        if let Some(k) = t.keys().find(|k| !KNOWN.contains(&k.as_str())) {
+            return Err(format!("lens.{k}: unknown key (known: {})", KNOWN.join(", ")));
+        }
+        let (w, h) = (cfg.camera.width as usize, cfg.camera.height as usize);
+        let mut lens = LensModel::demo(w, h);
+        match s("bands", "mono")?.as_str() {
+            "mono" => lens.bands = mono_band(),
+            "rgb" => {}
+            o => return Err(format!("lens.bands: expected \"mono\" or \"rgb\", got {o:?}")),
+        }
+        let f_open = num("f_number_open", 2.8)?;
+        let f_pin = num("f_number_pinhole", 22.0)?;
+        if !(f_open > 0.0 && f_pin > f_open) {
+            return Err(format!("lens: need 0 < f_number_open < f_number_pinhole, got {f_open} and {f_pin}"));
+        }
+        let pinhole = match s("pinhole", "f-number")?.as_str() {
+            "ideal" => None,
+            "f-number" => Some(f_pin),
+            o => return Err(format!("lens.pinhole: expected \"f-number\" or \"ideal\", got {o:?}")),
+        };
+        let ppc = num("pixels_per_cell", 1.6)?;
+        if ppc <= 0.0 {
+            return Err("lens.pixels_per_cell: must be > 0".into());
+        }
+        let sensor = Sensor { full_well_e: num("full_well_e", 20_000.0)?, read_noise_e: num("read_noise_e", 6.0)?, ..Sensor::default() };
+        let kernel_size = lens.suggested_kernel_size(f_open);
+        Ok(Self {
+            f_number_open: f_open,
+            f_number_pinhole: pinhole,
+            pixels_per_cell: ppc,
+            cells_per_mm: num("cells_per_mm", 1.0)?,
+            brightness: num("brightness", 300.0)?,
+            sensor,
+            seed: num("seed", 1.0)? as u64,
+            aperture_axis: cfg.axes.aperture.axis,
+            stage_axis: cfg.axes.stage.axis,
+            aperture_open: cfg.axes.aperture.open,
+            aperture_pinhole: cfg.axes.aperture.pinhole,
+            psf_columns: 9,
+            psf_rows: 7,
+            kernel_size,
+            lens,
+        })
+    }
+
+    /// The f-number at an aperture axis position; `None` = ideal sharp reference.
+    pub fn f_number_at(&self, aperture_mm: f64) -> Option<f64> {
+        let span = self.aperture_pinhole - self.aperture_open;
+        let a = ((aperture_mm - self.aperture_open) / span).clamp(0.0, 1.0);
+        match self.f_number_pinhole {
+            None if a > 0.999 => None,
+            None => Some(self.f_number_open),
+            Some(p) => Some((self.f_number_open.ln() * (1.0 - a) + p.ln() * a).exp()),
+        }
+    }
+
+    /// The PSF grid the camera renders with at `f_number` (the simulator's truth).
+    pub fn truth_grid(&self, f_number: f64) -> crate::optics::psf_grid::PsfGrid {
+        self.lens.psf_grid(f_number, self.psf_columns, self.psf_rows, self.kernel_size)
+    }
+}
+
+/// The mock camera. See the module docs.
+pub struct MockCamera {
+    optics: MockOptics,
+    target: TargetSpec,
+    position: PositionSource,
+    pub faults: Arc<CameraFaults>,
+    exposure_us: u32,
+    gain: f64,
+    discard_after_change: usize,
+    owed_discards: usize,
+    captures: usize,
+    cache: HashMap<(u64, i64), Vec<Plane>>,
+    rng: Rng,
+    format: FrameFormat,
+}
+
+impl MockCamera {
+    /// # Errors
+    /// Bad `[lens]` keys, a missing `[target]`, an unreadable target file.
+    pub fn new(cfg: &RigConfig, position: PositionSource) -> Result<Self, String> {
+        let optics = MockOptics::from_config(cfg)?;
+        let tpath = cfg.target.as_ref().ok_or("a mock camera needs [target] path = \"…toml\"")?;
+        let target = TargetSpec::load(&tpath.path).map_err(|e| format!("target {}: {e}", tpath.path.display()))?;
+        let faults = Arc::new(CameraFaults::default());
+        if let Some(v) = cfg.lens.as_ref().and_then(|t| t.get("timeout_after_captures")).and_then(toml::Value::as_integer) {
+            faults.timeout_after_captures.store(v.max(0) as usize, Ordering::SeqCst);
+        }
+        // Test hook (the config must stay identical for --resume): same as the key above.
+        if let Some(v) = std::env::var("LENSRIG_MOCK_TIMEOUT_AFTER_CAPTURES").ok().and_then(|v| v.parse().ok()) {
+            faults.timeout_after_captures.store(v, Ordering::SeqCst);
+        }
+        let format = FrameFormat { width: cfg.camera.width, height: cfg.camera.height, fourcc: FourCc(*b"Y16 "), transfer: Transfer::Linear };
+        Ok(Self {
+            rng: Rng::new(optics.seed.wrapping_mul(7919) + 17),
+            optics,
+            target,
+            position,
+            faults,
+            exposure_us: cfg.camera.exposure_us,
+            gain: cfg.camera.gain,
+            discard_after_change: cfg.camera.discard_after_change as usize,
+            owed_discards: 0,
+            captures: 0,
+            cache: HashMap::new(),
+            format,
+        })
+    }
+
+    pub fn optics(&self) -> &MockOptics {
+        &self.optics
+    }
+
+    fn device(&self) -> PathBuf {
+        PathBuf::from("mock")
+    }
+
+    /// The clean linear image at exposure 1 (white = 1) for the current position.
+    fn clean(&mut self) -> Vec<Plane> {
+        let pos = *self.position.lock().unwrap_or_else(|e| e.into_inner());
+        let n = self.optics.f_number_at(pos.get(self.optics.aperture_axis));
+        let stage = pos.get(self.optics.stage_axis);
+        let key = (n.map_or(0, f64::to_bits), (stage * 1000.0).round() as i64);
+        if let Some(c) = self.cache.get(&key) {
+            return c.clone();
+        }
+        let (w, h) = (self.format.width as usize, self.format.height as usize);
+        let u0 = 7.0 - stage * self.optics.cells_per_mm;
+        let scene = render_noise_scene(&self.target, w, h, self.optics.pixels_per_cell, u0, 5.0);
+        let scene = vec![scene; self.optics.lens.bands.len()];
+        let mut shot = match n {
+            Some(n) => Shot::lens(n, 1.0, self.optics.psf_columns, self.optics.psf_rows, self.optics.kernel_size),
+            None => Shot::ideal(1.0),
+        };
+        shot.clip = false;
+        let sensor = Sensor { noise: false, ..self.optics.sensor.clone() };
+        let r = render(&scene, &self.optics.lens, &shot, &sensor, &mut Rng::new(1));
+        self.cache.insert(key, r.clean.clone());
+        r.clean
+    }
+
+    fn white_level(&self) -> f64 {
+        let pos = *self.position.lock().unwrap_or_else(|e| e.into_inner());
+        // an ideal pinhole passes as much light as the pinhole f-number would
+        let n = self.optics.f_number_at(pos.get(self.optics.aperture_axis)).unwrap_or(22.0);
+        self.optics.brightness * self.exposure_us as f64 * 1e-6 * 10f64.powf(self.gain / 20.0) / (n * n)
+    }
+
+    fn one_frame(&mut self, clean: &[Plane], white: f64) -> Vec<Plane> {
+        let g = 10f64.powf(self.gain / 20.0);
+        let fw = self.optics.sensor.full_well_e;
+        let read = self.optics.sensor.read_noise_e;
+        let full = 65535.0f64;
+        clean
+            .iter()
+            .map(|p| {
+                let mut out = p.clone();
+                for v in out.data.iter_mut() {
+                    let x = (*v as f64 * white).max(0.0);
+                    let var = g * x / fw + (read * g / fw).powi(2);
+                    let y = (x + var.sqrt() * self.rng.normal()).clamp(0.0, 1.0);
+                    *v = ((y * full).round() / full) as f32;
+                }
+                out
+            })
+            .collect()
+    }
+}
+
+impl Camera for MockCamera {
+    fn format(&self) -> FrameFormat {
+        self.format
+    }
+
+    fn set_exposure(&mut self, us: u32) -> Result<u32, CameraError> {
+        if us == 0 {
+            return Err(CameraError::InvalidArgument { device: self.device(), what: "exposure must be ≥ 1 µs".into() });
+        }
+        if us != self.exposure_us {
+            self.owed_discards = self.discard_after_change;
+        }
+        self.exposure_us = us;
+        Ok(us)
+    }
+
+    fn set_gain(&mut self, gain: f64) -> Result<f64, CameraError> {
+        if gain != self.gain {
+            self.owed_discards = self.discard_after_change;
+        }
+        self.gain = gain.max(0.0);
+        Ok(self.gain)
+    }
+
+    fn capture(&mut self, frames: usize) -> Result<Frame, CameraError> {
+        let after = Duration::from_millis(1000);
+        let limit = self.faults.timeout_after_captures.load(Ordering::SeqCst);
+        if self.faults.timeout.load(Ordering::SeqCst) || (limit > 0 && self.captures >= limit) {
+            return Err(CameraError::Timeout { device: self.device(), after });
+        }
+        if frames == 0 {
+            return Err(CameraError::InvalidArgument { device: self.device(), what: "capture needs at least one frame".into() });
+        }
+        let time = SystemTime::now();
+        let clean = self.clean();
+        let white = self.white_level();
+        let mut discarded = std::mem::take(&mut self.owed_discards);
+        let mut sum: Vec<Vec<f64>> = clean.iter().map(|p| vec![0.0; p.data.len()]).collect();
+        let mut got = 0;
+        while got < frames {
+            let planes = self.one_frame(&clean, white);
+            // a frame the driver dropped never arrives: count it and wait for the next one
+            if self.faults.drop_frames.load(Ordering::SeqCst) > 0 {
+                self.faults.drop_frames.fetch_sub(1, Ordering::SeqCst);
+                discarded += 1;
+                continue;
+            }
+            for (s, p) in sum.iter_mut().zip(&planes) {
+                for (a, &v) in s.iter_mut().zip(&p.data) {
+                    *a += v as f64;
+                }
+            }
+            got += 1;
+        }
+        let planes: Vec<Plane> = clean
+            .iter()
+            .zip(&sum)
+            .map(|(p, s)| Plane { width: p.width, height: p.height, data: s.iter().map(|&v| (v / frames as f64) as f32).collect() })
+            .collect();
+        let mut image = Image::new(planes);
+        image.channels = self.optics.lens.channel_names();
+        image.format = SampleFormat::U16;
+        image.transfer = Transfer::Linear;
+        self.captures += 1;
+        Ok(Frame {
+            image,
+            meta: FrameMeta {
+                time,
+                exposure_us: self.exposure_us,
+                gain: self.gain,
+                frames_averaged: frames,
+                frames_discarded: discarded,
+                transfer: Transfer::Linear,
+                fourcc: self.format.fourcc,
+                sequence: Some(self.captures as u32),
+            },
+        })
+    }
+
+    fn invalidate(&mut self) {
+        self.owed_discards = self.discard_after_change;
+    }
+
+    fn describe(&self) -> String {
+        format!(
+            "mock camera (simulated lens f/{} open, pinhole {}), {}x{} {} linear",
+            self.optics.f_number_open,
+            self.optics.f_number_pinhole.map_or("ideal".to_string(), |n| format!("f/{n}")),
+            self.format.width,
+            self.format.height,
+            self.format.fourcc
+        )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rig::config;
+
+    fn cam() -> (MockCamera, PositionSource) {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("rig-configs");
+        let mut cfg = config::load(&dir.join("mock.toml")).unwrap();
+        cfg.camera.width = 96;
+        cfg.camera.height = 72;
+        let pos = Arc::new(Mutex::new(Position::ZERO));
+        (MockCamera::new(&cfg, pos.clone()).unwrap(), pos)
+    }
+
+    fn mean(f: &Frame) -> f64 {
+        f.image.planes[0].data.iter().map(|&v| v as f64).sum::<f64>() / f.image.planes[0].data.len() as f64
+    }
+
+    #[test]
+    fn aperture_position_maps_to_f_number_and_light() {
+        let (mut c, pos) = cam();
+        c.optics.f_number_pinhole = Some(22.0);
+        let o = c.optics().clone();
+        assert!((o.f_number_at(o.aperture_open).unwrap() - o.f_number_open).abs() < 1e-9);
+        assert!((o.f_number_at(o.aperture_pinhole).unwrap() - 22.0).abs() < 1e-9);
+        pos.lock().unwrap().set(o.aperture_axis, o.aperture_open);
+        let open = c.capture(1).unwrap();
+        pos.lock().unwrap().set(o.aperture_axis, o.aperture_pinhole);
+        let pin = c.capture(1).unwrap();
+        let ratio = mean(&open) / mean(&pin);
+        let want = (22.0f64 / o.f_number_open).powi(2);
+        assert!((ratio / want - 1.0).abs() < 0.05, "{ratio} vs {want}");
+    }
+
+    #[test]
+    fn averaging_lowers_noise_and_overexposure_clips() {
+        let (mut c, pos) = cam();
+        let o = c.optics().clone();
+        pos.lock().unwrap().set(o.aperture_axis, o.aperture_open);
+        let d = |a: &Frame, b: &Frame| {
+            let n = a.image.planes[0].data.len() as f64;
+            (a.image.planes[0].data.iter().zip(&b.image.planes[0].data).map(|(x, y)| ((x - y) as f64).powi(2)).sum::<f64>() / n).sqrt()
+        };
+        let (a1, b1) = (c.capture(1).unwrap(), c.capture(1).unwrap());
+        let (a16, b16) = (c.capture(16).unwrap(), c.capture(16).unwrap());
+        let r = d(&a1, &b1) / d(&a16, &b16);
+        assert!((r - 4.0).abs() < 0.6, "noise ratio {r}");
+        c.set_exposure(1_000_000).unwrap();
+        let f = c.capture(1).unwrap();
+        assert!(f.image.planes[0].data.iter().filter(|&&v| v >= 1.0).count() > 100);
+        assert_eq!(f.meta.frames_discarded, 2);
+    }
+
+    #[test]
+    fn faults_time_out_and_dropped_frames_are_replaced() {
+        let (mut c, _) = cam();
+        c.faults.drop_frames.store(2, Ordering::SeqCst);
+        let f = c.capture(3).unwrap();
+        assert_eq!((f.meta.frames_averaged, f.meta.frames_discarded), (3, 2));
+        c.faults.timeout.store(true, Ordering::SeqCst);
+        let e = c.capture(1).unwrap_err();
+        assert!(matches!(e, CameraError::Timeout { .. }), "{e}");
+    }
+}

@@ -1,0 +1,479 @@
+//! The assembled rig ([`Rig`]), the capture plan ([`plan`]) and capture sessions on disk
+//! ([`capture`]).
+//!
+//! # Plan
+//! For each stage position: move the stage; then for the aperture in `[open, pinhole]`: move
+//! the aperture, settle, set the exposure and capture `frames_to_average` frames. The open
+//! exposure starts at `camera.exposure_us`; with `plan.auto_bracket` a single test frame is
+//! taken and the exposure scaled down until the 99.9th percentile is below 0.95 full scale.
+//! The pinhole exposure is the open exposure × `plan.pinhole_exposure_scale` (capped at 10 s).
+//! With `plan.dark_frames > 0` a **bias/dark frame** is recorded after the pinhole: the
+//! average of that many frames at the shortest exposure (1 µs), aperture at pinhole — the
+//! black level `estimate --session` subtracts. (A capped lens is not needed at 1 µs.)
+//!
+//! The camera never sees the plan: after each move the controller's status report is read
+//! and written to the shared [`PositionSource`].
+//!
+//! # Session directory
+//! ```text
+//! SESSION/session.toml                 what ran, with what, and how it ended
+//! SESSION/rig.toml                     a copy of the rig config
+//! SESSION/pairs/000-stage-X-20.000/    one finished pair:
+//!     open.png open.toml pinhole.png pinhole.toml [dark.png dark.toml]
+//! ```
+//! Frames are lossless 16-bit PNGs, each with a TOML sidecar ([`FrameRecord`]). Every file
+//! is written atomically. A pair is captured into `NNN-….partial/` and renamed when both
+//! frames and their metadata are on disk, so a pair directory without `.partial` is always
+//! complete. An existing session directory is never overwritten; `resume` deletes
+//! `.partial` directories (unfinished pairs are redone) and continues after the last finished
+//! pair, leaving finished pairs untouched.
+
+use std::fs;
+use std::io;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use serde::{Deserialize, Serialize};
+
+use super::camera::mock::{CameraFaults, MockCamera, MockOptics, PositionSource};
+use super::camera::{Camera, CameraError, Frame};
+use super::config::{CameraKind, ControllerKind, RigConfig};
+use super::controller::sim::{spawn_pty, SimHandle, SimOptions};
+use super::controller::{Axis, Controller, ControllerError, Position, SerialController, Status};
+use crate::fsutil::{write_atomic, Overwrite};
+use crate::image::io::{write_png16, ImageError};
+
+/// Anything that stops a capture.
+#[derive(Debug, thiserror::Error)]
+pub enum SessionError {
+    #[error(transparent)]
+    Controller(#[from] ControllerError),
+    #[error(transparent)]
+    Camera(#[from] CameraError),
+    #[error(transparent)]
+    Image(#[from] ImageError),
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: io::Error,
+    },
+    #[error("{0}")]
+    Setup(String),
+    #[error("session {0} already exists; pass --resume to continue it, or choose another --out (sessions are never overwritten)")]
+    Exists(PathBuf),
+    #[error("{0}")]
+    Resume(String),
+}
+
+fn io_err(path: &Path) -> impl FnOnce(io::Error) -> SessionError + '_ {
+    move |source| SessionError::Io { path: path.to_path_buf(), source }
+}
+
+/// A camera and a controller, injected, plus what the simulated parts expose to tests.
+pub struct Rig {
+    pub camera: Box<dyn Camera>,
+    pub controller: Box<dyn Controller>,
+    /// Written after every move from the controller's status report; read by a mock camera.
+    pub position: PositionSource,
+    /// The simulated firmware (`controller.kind = "sim"`): its faults and true state.
+    pub sim: Option<SimHandle>,
+    /// The mock camera's fault switches and optics (`camera.kind = "mock"`).
+    pub camera_faults: Option<Arc<CameraFaults>>,
+    pub mock_optics: Option<MockOptics>,
+    /// The controller's port path.
+    pub port: String,
+}
+
+impl Rig {
+    /// Injects a camera and a controller.
+    pub fn new(camera: Box<dyn Camera>, controller: Box<dyn Controller>, position: PositionSource, port: String) -> Self {
+        Self { camera, controller, position, sim: None, camera_faults: None, mock_optics: None, port }
+    }
+
+    /// Builds the rig a config describes: `controller.kind = "sim"` runs the simulated grbl
+    /// firmware on a pseudo-terminal and opens its slave path as a serial port; `"serial"`
+    /// opens `controller.port` or `port_override`.
+    ///
+    /// # Errors
+    /// A port or camera that cannot be opened, bad `[lens]` keys, a failed homing cycle.
+    pub fn from_config(cfg: &RigConfig, port_override: Option<&Path>) -> Result<Rig, SessionError> {
+        let mut sim = None;
+        let port = match (port_override, cfg.controller.kind) {
+            (Some(p), _) => p.display().to_string(),
+            (None, ControllerKind::Serial) => cfg.controller.port.clone().unwrap_or_default(),
+            (None, ControllerKind::Sim) => {
+                let mut o = SimOptions::fast();
+                if cfg.controller.home_on_start {
+                    o = o.with(22, 1.0);
+                }
+                let (h, path) = spawn_pty(o).map_err(|e| SessionError::Setup(format!("cannot start the simulated controller: {e}")))?;
+                sim = Some(h);
+                path
+            }
+        };
+        let ctl = SerialController::open(&port, cfg.controller.baud, cfg.controller_options())?;
+        let position: PositionSource = Arc::new(Mutex::new(Position::ZERO));
+        let (camera, faults, optics): (Box<dyn Camera>, _, _) = match cfg.camera.kind {
+            CameraKind::Mock => {
+                let c = MockCamera::new(cfg, position.clone()).map_err(SessionError::Setup)?;
+                let (f, o) = (c.faults.clone(), c.optics().clone());
+                (Box::new(c), Some(f), Some(o))
+            }
+            CameraKind::V4l2 => (open_v4l(cfg)?, None, None),
+        };
+        let mut rig = Rig::new(camera, Box::new(ctl), position, port);
+        rig.sim = sim;
+        rig.camera_faults = faults;
+        rig.mock_optics = optics;
+        Ok(rig)
+    }
+
+    /// Moves one axis, then reads the status report and publishes the reported position.
+    fn move_axis(&mut self, axis: Axis, mm: f64) -> Result<Status, SessionError> {
+        self.controller.move_to(&[(axis, mm)])?;
+        let st = self.controller.status()?;
+        *self.position.lock().unwrap_or_else(|e| e.into_inner()) = st.mpos;
+        self.camera.invalidate();
+        Ok(st)
+    }
+}
+
+#[cfg(feature = "v4l2")]
+fn open_v4l(cfg: &RigConfig) -> Result<Box<dyn Camera>, SessionError> {
+    use super::camera::decode::ColorMode;
+    use super::camera::v4l::{V4lCamera, V4lSettings};
+    let c = &cfg.camera;
+    let s = V4lSettings {
+        device: c.device.clone().unwrap_or_default(),
+        fourcc: super::camera::FourCc(c.fourcc()),
+        width: c.width,
+        height: c.height,
+        exposure_us: c.exposure_us,
+        gain: c.gain,
+        discard_after_change: c.discard_after_change as usize,
+        color: ColorMode::Luma,
+        frame_timeout: Duration::from_secs(5),
+    };
+    Ok(Box::new(V4lCamera::open(&s)?))
+}
+
+#[cfg(not(feature = "v4l2"))]
+fn open_v4l(_cfg: &RigConfig) -> Result<Box<dyn Camera>, SessionError> {
+    Err(SessionError::Setup("camera.kind = \"v4l2\" needs lensrig built with `--features v4l2`".into()))
+}
+
+/// One stage position of the plan.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PairPlan {
+    pub index: usize,
+    pub stage_mm: f64,
+    /// Directory name under `pairs/`, also the profile key: `000-stage-X-20.000`.
+    pub key: String,
+}
+
+/// The pairs a config asks for, in order.
+pub fn plan(cfg: &RigConfig) -> Vec<PairPlan> {
+    let s = &cfg.axes.stage;
+    s.positions.iter().enumerate().map(|(i, &p)| PairPlan { index: i, stage_mm: p, key: format!("{i:03}-stage-{}{p:+.3}", s.axis) }).collect()
+}
+
+/// Every move and capture of the plan, one line each, after checking every target against the
+/// axis ranges. Touches no device.
+///
+/// # Errors
+/// A target outside its axis range (naming the axis, the value and the range).
+pub fn dry_run(cfg: &RigConfig) -> Result<Vec<String>, SessionError> {
+    let (a, s) = (&cfg.axes.aperture, &cfg.axes.stage);
+    let check = |axis: Axis, v: f64, min: f64, max: f64| {
+        if v >= min && v <= max {
+            Ok(())
+        } else {
+            Err(SessionError::Setup(format!("{axis} target {v} mm outside the configured range [{min}, {max}] mm")))
+        }
+    };
+    let c = &cfg.camera;
+    let mut out = vec![format!("connect {:?} controller{}, home: {}", cfg.controller.kind, cfg.controller.port.as_deref().map(|p| format!(" on {p}")).unwrap_or_default(), cfg.controller.home_on_start)];
+    for p in plan(cfg) {
+        check(s.axis, p.stage_mm, s.min, s.max)?;
+        check(a.axis, a.open, a.min, a.max)?;
+        check(a.axis, a.pinhole, a.min, a.max)?;
+        out.push(format!("pair {}: move stage {} to {:.3} mm", p.key, s.axis, p.stage_mm));
+        out.push(format!("  move aperture {} to {:.3} mm (open), settle {} ms", a.axis, a.open, cfg.plan.settle_ms));
+        out.push(format!(
+            "  capture open: exposure {} µs{}, gain {}, average {} frame(s)",
+            c.exposure_us,
+            if cfg.plan.auto_bracket { " (auto-bracketed down until < 0.95 full scale)" } else { "" },
+            c.gain,
+            c.frames_to_average
+        ));
+        out.push(format!("  move aperture {} to {:.3} mm (pinhole), settle {} ms", a.axis, a.pinhole, cfg.plan.settle_ms));
+        out.push(format!("  capture pinhole: exposure open × {} (≤ 10 s), average {} frame(s)", cfg.plan.pinhole_exposure_scale, c.frames_to_average));
+        if cfg.plan.dark_frames > 0 {
+            out.push(format!("  capture dark: exposure 1 µs, average {} frame(s)", cfg.plan.dark_frames));
+        }
+        out.push(format!("  write pairs/{}/ (open, pinhole{})", p.key, if cfg.plan.dark_frames > 0 { ", dark" } else { "" }));
+    }
+    Ok(out)
+}
+
+/// `session.toml`.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct SessionRecord {
+    pub software: String,
+    /// The rig config as given, and its copy in the session.
+    pub rig_config: String,
+    pub rig_config_copy: String,
+    pub camera: String,
+    pub camera_format: FormatRecord,
+    pub controller_port: String,
+    pub target: Option<String>,
+    pub started: String,
+    pub finished: Option<String>,
+    /// `running` (or killed while running), `complete`, or `failed: <error>`.
+    pub status: String,
+    /// Times the session was resumed.
+    #[serde(default)]
+    pub resumed: Vec<String>,
+    #[serde(default)]
+    pub pairs: Vec<PairRecord>,
+}
+
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct FormatRecord {
+    pub width: u32,
+    pub height: u32,
+    pub fourcc: String,
+    pub transfer: String,
+}
+
+/// One finished pair.
+#[derive(Clone, Debug, Default, Serialize, Deserialize, PartialEq)]
+pub struct PairRecord {
+    pub index: usize,
+    pub key: String,
+    pub stage_mm: f64,
+    /// Relative to the session directory.
+    pub dir: String,
+    pub open: String,
+    pub pinhole: String,
+    pub dark: Option<String>,
+}
+
+/// The sidecar of one frame (`open.toml`, …).
+#[derive(Clone, Debug, Default, Serialize, Deserialize, PartialEq)]
+pub struct FrameRecord {
+    pub role: String,
+    pub time: String,
+    pub exposure_us: u32,
+    pub gain: f64,
+    /// Positions as reported by the controller (machine coordinates, mm).
+    pub aperture_mm: f64,
+    pub stage_mm: f64,
+    pub frames_averaged: usize,
+    pub frames_discarded: usize,
+    pub transfer: String,
+    pub fourcc: String,
+    pub sequence: Option<u32>,
+}
+
+/// Reads `session.toml`.
+///
+/// # Errors
+/// Missing or unreadable file.
+pub fn load_session(dir: &Path) -> Result<SessionRecord, SessionError> {
+    let p = dir.join("session.toml");
+    let text = fs::read_to_string(&p).map_err(io_err(&p))?;
+    toml::from_str(&text).map_err(|e| SessionError::Resume(format!("{}: {}", p.display(), crate::toml_error(&text, &e))))
+}
+
+/// Reads a frame's sidecar.
+///
+/// # Errors
+/// Missing or unreadable file.
+pub fn load_frame_record(path: &Path) -> Result<FrameRecord, SessionError> {
+    let text = fs::read_to_string(path).map_err(io_err(path))?;
+    toml::from_str(&text).map_err(|e| SessionError::Resume(format!("{}: {}", path.display(), crate::toml_error(&text, &e))))
+}
+
+fn save_record(dir: &Path, rec: &SessionRecord) -> Result<(), SessionError> {
+    let p = dir.join("session.toml");
+    let text = toml::to_string_pretty(rec).map_err(|e| SessionError::Setup(format!("cannot encode session.toml: {e}")))?;
+    write_atomic(&p, text.as_bytes(), Overwrite::Replace).map_err(io_err(&p))
+}
+
+/// How to run [`capture`].
+#[derive(Clone, Debug)]
+pub struct CaptureOptions {
+    pub resume: bool,
+    /// Progress lines on stderr.
+    pub progress: bool,
+}
+
+/// Captures (or resumes) a session into `out` with `rig`, following `cfg`.
+///
+/// # Errors
+/// An existing `out` without `resume`; any device or file error (the session's status says
+/// `failed: …`; finished pairs stay on disk).
+pub fn capture(rig: &mut Rig, cfg: &RigConfig, config_path: &Path, out: &Path, o: &CaptureOptions) -> Result<SessionRecord, SessionError> {
+    let config_text = fs::read_to_string(config_path).map_err(io_err(config_path))?;
+    let mut rec = if o.resume {
+        let mut rec = load_session(out)?;
+        let copy = fs::read_to_string(out.join("rig.toml")).map_err(io_err(&out.join("rig.toml")))?;
+        if copy != config_text {
+            return Err(SessionError::Resume(format!("{} differs from the config this session was captured with ({}); resume with the same config", config_path.display(), out.join("rig.toml").display())));
+        }
+        rec.resumed.push(crate::timestamp_utc());
+        rec
+    } else {
+        if out.exists() {
+            return Err(SessionError::Exists(out.to_path_buf()));
+        }
+        fs::create_dir_all(out.join("pairs")).map_err(io_err(out))?;
+        write_atomic(&out.join("rig.toml"), config_text.as_bytes(), Overwrite::Never).map_err(io_err(&out.join("rig.toml")))?;
+        let f = rig.camera.format();
+        SessionRecord {
+            software: format!("lensrig {}", env!("CARGO_PKG_VERSION")),
+            rig_config: config_path.display().to_string(),
+            rig_config_copy: "rig.toml".into(),
+            camera: rig.camera.describe(),
+            camera_format: FormatRecord { width: f.width, height: f.height, fourcc: f.fourcc.to_string(), transfer: f.transfer.name().into() },
+            controller_port: rig.port.clone(),
+            target: cfg.target.as_ref().map(|t| t.path.display().to_string()),
+            started: crate::timestamp_utc(),
+            ..Default::default()
+        }
+    };
+    rec.status = "running".into();
+    rec.finished = None;
+    // pairs on disk: finished ones are kept, unfinished ones removed
+    let pairs_dir = out.join("pairs");
+    fs::create_dir_all(&pairs_dir).map_err(io_err(&pairs_dir))?;
+    for e in fs::read_dir(&pairs_dir).map_err(io_err(&pairs_dir))? {
+        let p = e.map_err(io_err(&pairs_dir))?.path();
+        if p.extension().is_some_and(|x| x == "partial") {
+            if o.progress {
+                eprintln!("removing unfinished pair {}", p.display());
+            }
+            fs::remove_dir_all(&p).map_err(io_err(&p))?;
+        }
+    }
+    let pairs = plan(cfg);
+    rec.pairs.retain(|r| pairs_dir.join(&r.key).is_dir());
+    save_record(out, &rec)?;
+    let result = run_pairs(rig, cfg, out, &pairs, &mut rec, o);
+    rec.finished = Some(crate::timestamp_utc());
+    rec.status = match &result {
+        Ok(()) => "complete".into(),
+        Err(e) => format!("failed: {e}"),
+    };
+    save_record(out, &rec)?;
+    result.map(|()| rec)
+}
+
+fn run_pairs(rig: &mut Rig, cfg: &RigConfig, out: &Path, pairs: &[PairPlan], rec: &mut SessionRecord, o: &CaptureOptions) -> Result<(), SessionError> {
+    let (a, s) = (cfg.axes.aperture.clone(), cfg.axes.stage.clone());
+    let settle = Duration::from_millis(cfg.plan.settle_ms);
+    let n = cfg.camera.frames_to_average as usize;
+    rig.camera.set_gain(cfg.camera.gain)?;
+    for p in pairs {
+        let final_dir = out.join("pairs").join(&p.key);
+        if final_dir.is_dir() {
+            if o.progress {
+                eprintln!("pair {}/{} {}: already captured", p.index + 1, pairs.len(), p.key);
+            }
+            continue;
+        }
+        if o.progress {
+            eprintln!("pair {}/{} {}: stage {} → {:.3} mm", p.index + 1, pairs.len(), p.key, s.axis, p.stage_mm);
+        }
+        let tmp = out.join("pairs").join(format!("{}.partial", p.key));
+        fs::create_dir_all(&tmp).map_err(io_err(&tmp))?;
+        rig.move_axis(s.axis, p.stage_mm)?;
+        // open
+        rig.move_axis(a.axis, a.open)?;
+        std::thread::sleep(settle);
+        let mut exp = cfg.camera.exposure_us;
+        rig.camera.set_exposure(exp)?;
+        if cfg.plan.auto_bracket {
+            for _ in 0..12 {
+                let f = rig.camera.capture(1)?;
+                let p999 = percentile(&f, 0.999);
+                if p999 < 0.95 {
+                    break;
+                }
+                let factor = if p999 >= 0.999 { 0.5 } else { 0.9 / p999 as f64 };
+                exp = ((exp as f64 * factor) as u32).max(1);
+                exp = rig.camera.set_exposure(exp)?;
+                if o.progress {
+                    eprintln!("  open frame clips (99.9th percentile {p999:.3}); exposure → {exp} µs");
+                }
+            }
+        }
+        let open = rig.camera.capture(n)?;
+        write_frame(&tmp, "open", &open, rig, &a, &s)?;
+        // pinhole
+        rig.move_axis(a.axis, a.pinhole)?;
+        std::thread::sleep(settle);
+        let pexp = ((exp as f64 * cfg.plan.pinhole_exposure_scale).round() as u32).clamp(1, 10_000_000);
+        rig.camera.set_exposure(pexp)?;
+        let pin = rig.camera.capture(n)?;
+        write_frame(&tmp, "pinhole", &pin, rig, &a, &s)?;
+        let dark = if cfg.plan.dark_frames > 0 {
+            rig.camera.set_exposure(1)?;
+            let d = rig.camera.capture(cfg.plan.dark_frames as usize)?;
+            write_frame(&tmp, "dark", &d, rig, &a, &s)?;
+            Some("dark.png".to_string())
+        } else {
+            None
+        };
+        fs::rename(&tmp, &final_dir).map_err(io_err(&final_dir))?;
+        if let Ok(d) = fs::File::open(out.join("pairs")) {
+            let _ = d.sync_all();
+        }
+        rec.pairs.push(PairRecord {
+            index: p.index,
+            key: p.key.clone(),
+            stage_mm: p.stage_mm,
+            dir: format!("pairs/{}", p.key),
+            open: "open.png".into(),
+            pinhole: "pinhole.png".into(),
+            dark,
+        });
+        save_record(out, rec)?;
+        if o.progress {
+            eprintln!("  open {} µs, pinhole {} µs, {} frame(s) each: saved", open.meta.exposure_us, pin.meta.exposure_us, n);
+        }
+    }
+    Ok(())
+}
+
+fn percentile(f: &Frame, q: f64) -> f32 {
+    let mut v: Vec<f32> = f.image.planes.iter().flat_map(|p| p.data.iter().map(|&x| f.image.transfer.decode(x))).collect();
+    v.sort_by(f32::total_cmp);
+    v[((v.len() - 1) as f64 * q) as usize]
+}
+
+fn write_frame(dir: &Path, role: &str, f: &Frame, rig: &Rig, a: &super::config::ApertureAxis, s: &super::config::StageAxis) -> Result<(), SessionError> {
+    let pos = *rig.position.lock().unwrap_or_else(|e| e.into_inner());
+    write_png16(&dir.join(format!("{role}.png")), &f.image, Overwrite::Never)?;
+    let m = &f.meta;
+    let r = FrameRecord {
+        role: role.into(),
+        // written right after the capture; seconds precision
+        time: crate::timestamp_utc(),
+        exposure_us: m.exposure_us,
+        gain: m.gain,
+        aperture_mm: pos.get(a.axis),
+        stage_mm: pos.get(s.axis),
+        frames_averaged: m.frames_averaged,
+        frames_discarded: m.frames_discarded,
+        transfer: m.transfer.name().into(),
+        fourcc: m.fourcc.to_string(),
+        sequence: m.sequence,
+    };
+    let p = dir.join(format!("{role}.toml"));
+    let text = toml::to_string_pretty(&r).map_err(|e| SessionError::Setup(format!("cannot encode {}: {e}", p.display())))?;
+    write_atomic(&p, text.as_bytes(), Overwrite::Never).map_err(io_err(&p))
+}

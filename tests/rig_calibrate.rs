@@ -1,0 +1,138 @@
+//! The rig end to end on the simulated hardware (grbl firmware on a pty + mock camera), through
+//! the real binary: calibrate against the simulator's truth, dry runs, never-overwrite, resume.
+
+use lensrig::estimate::relative_error;
+use lensrig::profile::Profile;
+use lensrig::rig::camera::mock::MockOptics;
+use lensrig::rig::config;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_lensrig"))
+}
+
+fn mock() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("rig-configs/mock.toml")
+}
+
+fn run(args: &[&str]) -> Output {
+    bin().args(args).output().unwrap()
+}
+
+fn ok(args: &[&str]) -> String {
+    let o = run(args);
+    assert!(o.status.success(), "{args:?} failed: {}", String::from_utf8_lossy(&o.stderr));
+    String::from_utf8_lossy(&o.stdout).to_string()
+}
+
+fn fails(args: &[&str]) -> String {
+    let o = run(args);
+    assert!(!o.status.success(), "{args:?} should fail");
+    String::from_utf8_lossy(&o.stderr).to_string()
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("lensrig-rig-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    d
+}
+
+/// A copy of mock.toml with absolute target path and `edit` applied.
+fn config_variant(dir: &Path, edit: impl Fn(String) -> String) -> PathBuf {
+    std::fs::create_dir_all(dir).unwrap();
+    let text = std::fs::read_to_string(mock()).unwrap();
+    let target = Path::new(env!("CARGO_MANIFEST_DIR")).join("targets/a4-noise-300dpi.toml");
+    let text = edit(text.replace("\"../targets/a4-noise-300dpi.toml\"", &format!("{:?}", target.display().to_string())));
+    let p = dir.join("rig.toml");
+    std::fs::write(&p, text).unwrap();
+    p
+}
+
+#[test]
+fn calibrate_on_the_mock_rig_recovers_the_true_psfs() {
+    let out = tmp("calibrate");
+    let rig = mock();
+    let t = std::time::Instant::now();
+    let stdout = ok(&["calibrate", "--rig", rig.to_str().unwrap(), "--out", out.to_str().unwrap(), "--quiet"]);
+    eprintln!("{stdout} ({:.1} s)", t.elapsed().as_secs_f64());
+    assert!(out.join("index.html").is_file() && out.join("summary.json").is_file());
+    let session = std::fs::read_to_string(out.join("session/session.toml")).unwrap();
+    assert!(session.contains("status = \"complete\""), "{session}");
+    // truth, computed here with the same lens model and f-number the mock renders with
+    let cfg = config::load(&rig).unwrap();
+    let optics = MockOptics::from_config(&cfg).unwrap();
+    let truth = optics.truth_grid(optics.f_number_open);
+    let keys: Vec<_> = lensrig::rig::session::plan(&cfg).into_iter().map(|p| p.key).collect();
+    assert_eq!(keys.len(), 3);
+    for key in keys {
+        let prof = Profile::load(&out.join("profiles").join(&key)).unwrap();
+        let g = &prof.grid;
+        let mut e: Vec<f64> = (0..g.tile_count()).map(|t| relative_error(&g.kernels[0][t], &truth.kernel_at(0, g.centers[t][0], g.centers[t][1]))).collect();
+        e.sort_by(f64::total_cmp);
+        let med = e[e.len() / 2];
+        eprintln!("{key}: median relative kernel error {:.1}% over {} tiles", med * 100.0, e.len());
+        assert!(med <= 0.10, "{key}: median kernel error {med}");
+        // frames have sidecars with the reported positions
+        let meta = std::fs::read_to_string(out.join("session/pairs").join(&key).join("pinhole.toml")).unwrap();
+        assert!(meta.contains("aperture_mm = -8.0") && meta.contains("frames_averaged = 16"), "{meta}");
+    }
+    // an existing session is never overwritten
+    let e = fails(&["capture", "--rig", rig.to_str().unwrap(), "--out", out.join("session").to_str().unwrap()]);
+    assert!(e.contains("already exists") && e.contains("--resume"), "{e}");
+    // estimate --session writes one profile per stage position
+    let prof = out.join("again");
+    ok(&["estimate", "--session", out.join("session").to_str().unwrap(), "--out", prof.to_str().unwrap(), "--quiet", "--kernel", "31"]);
+    assert!(prof.join("002-stage-X-60.000/profile.toml").is_file());
+    let e = fails(&["estimate", "--session", "s", "--open", "a.png", "--out", "x"]);
+    assert!(e.contains("cannot be used with"), "{e}");
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+#[test]
+fn dry_run_lists_moves_and_rejects_out_of_limit_positions() {
+    let s = ok(&["capture", "--rig", mock().to_str().unwrap(), "--out", "/nonexistent/never-created", "--dry-run"]);
+    assert!(s.contains("move stage X to -40.000 mm") && s.contains("(pinhole)") && s.contains("capture dark"), "{s}");
+    assert!(!Path::new("/nonexistent/never-created").exists());
+    let dir = tmp("dry");
+    let cfg = config_variant(&dir, |t| t.replace("positions = [-20.0, -40.0, -60.0]", "positions = [-20.0, -140.0]"));
+    let e = fails(&["capture", "--rig", cfg.to_str().unwrap(), "--out", dir.join("s").to_str().unwrap(), "--dry-run"]);
+    assert!(e.contains("axes.stage.positions") && e.contains("-140 mm is outside"), "{e}");
+    let ok_msg = ok(&["check-config", mock().to_str().unwrap()]);
+    assert!(ok_msg.contains(": ok"), "{ok_msg}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn resume_after_an_interrupted_session_keeps_finished_pairs_byte_identical() {
+    let dir = tmp("resume");
+    let cfg = config_variant(&dir, |t| t.replace("frames_to_average = 16", "frames_to_average = 2"));
+    let s = dir.join("session");
+    // each pair takes 4 captures (bracketing test frame, open, pinhole, dark): time out in pair 2
+    let o = bin().args(["capture", "--rig", cfg.to_str().unwrap(), "--out", s.to_str().unwrap(), "--quiet"]).env("LENSRIG_MOCK_TIMEOUT_AFTER_CAPTURES", "6").output().unwrap();
+    assert!(!o.status.success());
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(e.contains("camera mock: no frame within"), "{e}");
+    let rec = std::fs::read_to_string(s.join("session.toml")).unwrap();
+    assert!(rec.contains("status = \"failed: camera mock: no frame"), "{rec}");
+    let first = s.join("pairs/000-stage-X-20.000");
+    let before: Vec<Vec<u8>> = ["open.png", "open.toml", "pinhole.png", "pinhole.toml", "dark.png"].iter().map(|f| std::fs::read(first.join(f)).unwrap()).collect();
+    // the unfinished pair is only in a .partial directory
+    assert!(s.join("pairs/001-stage-X-40.000.partial").is_dir() && !s.join("pairs/001-stage-X-40.000").exists());
+    // a plain capture into it is refused; --resume finishes it
+    fails(&["capture", "--rig", cfg.to_str().unwrap(), "--out", s.to_str().unwrap()]);
+    ok(&["capture", "--rig", cfg.to_str().unwrap(), "--out", s.to_str().unwrap(), "--resume", "--quiet"]);
+    let rec = std::fs::read_to_string(s.join("session.toml")).unwrap();
+    assert!(rec.contains("status = \"complete\"") && rec.contains("resumed = ["), "{rec}");
+    let after: Vec<Vec<u8>> = ["open.png", "open.toml", "pinhole.png", "pinhole.toml", "dark.png"].iter().map(|f| std::fs::read(first.join(f)).unwrap()).collect();
+    assert!(before == after, "finished pair changed on resume");
+    for k in ["000-stage-X-20.000", "001-stage-X-40.000", "002-stage-X-60.000"] {
+        assert!(s.join("pairs").join(k).join("pinhole.toml").is_file(), "{k}");
+    }
+    assert!(!s.join("pairs/001-stage-X-40.000.partial").exists());
+    // resuming with a different config is refused
+    let other = config_variant(&dir.join("other"), |t| t.replace("frames_to_average = 16", "frames_to_average = 3"));
+    let e = fails(&["capture", "--rig", other.to_str().unwrap(), "--out", s.to_str().unwrap(), "--resume"]);
+    assert!(e.contains("differs"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

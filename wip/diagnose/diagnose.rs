@@ -1,0 +1,196 @@
+//! The diagnosis proof suite: for each catalogue effect, a pair rendered by the simulator with
+//! that effect concealed at a randomised magnitude; the report must name it first, end within
+//! 1.10× of the true noise floor, and recover its parameters; clean data must give "no
+//! mismatch". Plus the report files, the corrected profile, the CLI entry point and the HTML
+//! in a headless browser.
+
+use lensrig::diagnose::cli::{bench_case, proof_options, run, DiagnoseArgs};
+use lensrig::diagnose::model::apply_corrections;
+use lensrig::diagnose::proof::CaseSpec;
+use lensrig::diagnose::report::{write_report, Sources};
+use lensrig::diagnose::Diagnosis;
+use lensrig::fsutil::Overwrite;
+use lensrig::image::io::{read_image, write_png16};
+use lensrig::optics::capture::Sensor;
+use lensrig::profile::Profile;
+
+const FLOOR: f64 = 1.10;
+
+fn case(effect: Option<&str>, seed: u64) -> (lensrig::diagnose::cli::BenchRow, Diagnosis, lensrig::diagnose::proof::Case) {
+    let spec = CaseSpec::default();
+    bench_case(effect, seed, &spec, &proof_options(&spec)).expect("diagnosis runs")
+}
+
+fn check_named(effect: &str, seed: u64) -> (Diagnosis, lensrig::diagnose::proof::Case) {
+    let (row, d, c) = case(Some(effect), seed);
+    let names: Vec<&str> = d.effects.iter().map(|e| e.name.as_str()).collect();
+    assert_eq!(names.first().copied(), Some(effect), "{effect} (seed {seed}, truth {}): named {names:?}; rounds {:?}", c.truth, d.rounds);
+    assert!(row.floor_ratio <= FLOOR, "{effect}: final residual {:.3}× the true noise floor", row.floor_ratio);
+    assert!(row.final_chi2 < row.base_chi2, "{effect}: χ² {} → {}", row.base_chi2, row.final_chi2);
+    let e = &d.effects[0];
+    assert!(!e.evidence.is_empty() && !e.location.is_empty() && e.after.reduced_chi2 < e.before.reduced_chi2);
+    (d, c)
+}
+
+#[test]
+fn clean_data_is_no_mismatch_and_the_noise_model_matches_the_sensor() {
+    let (row, d, c) = case(None, 1);
+    assert!(d.effects.is_empty(), "false alarm: {:?}", d.effects.iter().map(|e| &e.name).collect::<Vec<_>>());
+    assert!(d.verdict.starts_with("no mismatch"), "{}", d.verdict);
+    assert!(row.floor_ratio <= FLOOR, "base residual {:.3}× the floor", row.floor_ratio);
+    // the noise law against the simulator's sensor at mid level
+    let sensor = Sensor::default();
+    for l in [0.15f32, 0.35] {
+        let want = sensor.variance(l) as f64;
+        let got = d.noise[0].a * l as f64 + d.noise[0].b;
+        assert!((got / want - 1.0).abs() < 0.15, "variance at {l}: {got:.3e} vs true {want:.3e}");
+    }
+    // the predicted floor against the true one (propagated pinhole noise included)
+    let true_floor: f64 = {
+        let (mut s, mut n) = (0.0, 0);
+        for (i, &m) in d.final_fit.eval[0].iter().enumerate() {
+            if m {
+                s += c.true_variance[0].data[i] as f64;
+                n += 1;
+            }
+        }
+        (s / n as f64).sqrt()
+    };
+    let floor = d.final_fit.noise_rms();
+    assert!((floor / true_floor - 1.0).abs() < 0.10, "noise floor {floor:.3e} vs true {true_floor:.3e}");
+}
+
+#[test]
+fn vignetting_is_named_and_its_gain_recovered() {
+    let (d, c) = check_named("vignetting", 2);
+    let p = &d.effects[0].parameters;
+    let g = |v: &serde_json::Value, r2: f64| 1.0 + v["k1"].as_f64().unwrap() * r2 + v["k2"].as_f64().unwrap() * r2 * r2 + v["k3"].as_f64().unwrap() * r2.powi(3);
+    for r2 in [0.25, 0.5, 1.0] {
+        assert!((g(p, r2) / g(&c.truth, r2) - 1.0).abs() < 0.02, "gain at r²={r2}: {p} vs {}", c.truth);
+    }
+    assert!((p["k1"].as_f64().unwrap() / c.truth["k1"].as_f64().unwrap() - 1.0).abs() < 0.25, "k1 {p} vs {}", c.truth);
+}
+
+#[test]
+fn illumination_gradient_is_named_and_recovered() {
+    let (d, c) = check_named("illumination_gradient", 3);
+    let p = &d.effects[0].parameters;
+    for k in ["gx", "gy"] {
+        assert!((p[k].as_f64().unwrap() - c.truth[k].as_f64().unwrap()).abs() < 0.01, "{k}: {p} vs {}", c.truth);
+    }
+}
+
+#[test]
+fn black_level_is_named_and_recovered() {
+    let (d, c) = check_named("black_level", 4);
+    let got = d.effects[0].parameters["offset"][0].as_f64().unwrap();
+    let want = c.truth["offset"][0].as_f64().unwrap();
+    assert!((got - want).abs() < 0.003, "offset {got} vs {want}");
+}
+
+#[test]
+fn tone_curve_is_named() {
+    let (d, _) = check_named("tone_curve", 5);
+    assert_eq!(d.effects[0].parameters["transfer"], "srgb");
+}
+
+#[test]
+fn veiling_glare_is_named_and_its_fraction_recovered() {
+    let (d, c) = check_named("veiling_glare", 6);
+    let got = d.effects[0].parameters["fraction"].as_f64().unwrap();
+    let want = c.truth["fraction"].as_f64().unwrap();
+    assert!((got / want - 1.0).abs() < 0.35, "glare fraction {got} vs {want}");
+}
+
+#[test]
+fn misregistration_is_named_and_its_rotation_recovered() {
+    let (d, c) = check_named("misregistration", 7);
+    let got = d.effects[0].parameters["rotation_deg"].as_f64().unwrap();
+    let want = c.truth["rotation_deg"].as_f64().unwrap();
+    // the simulator moves the pinhole's content by the inverse map: opposite sign
+    assert!((got.abs() - want.abs()).abs() < 0.05 && got * want < 0.0, "rotation {got} vs {want}");
+}
+
+#[test]
+fn saturation_is_named() {
+    check_named("saturation", 8);
+}
+
+#[test]
+fn psf_field_variation_is_named() {
+    check_named("psf_field_variation", 9);
+}
+
+/// The report files, the corrected profile through `apply_corrections`, the CLI entry point,
+/// and the HTML in headless Chromium when it is installed.
+#[test]
+fn report_profile_cli_and_browser() {
+    let spec = CaseSpec::default();
+    let c = lensrig::diagnose::proof::render_case(Some("vignetting"), 11, &spec).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let open = dir.path().join("open.png");
+    let pin = dir.path().join("pinhole.png");
+    write_png16(&open, &c.open.image, Overwrite::Replace).unwrap();
+    write_png16(&pin, &c.pinhole.image, Overwrite::Replace).unwrap();
+    let out = dir.path().join("report");
+    let args = DiagnoseArgs {
+        open: Some(open.clone()),
+        pinhole: Some(pin.clone()),
+        profile: None,
+        out: Some(out.clone()),
+        transfer: lensrig::image::Transfer::Linear,
+        kernel: Some(spec.kernel_size),
+        tile: Some(96),
+        max_iterations: 150,
+        max_effects: 4,
+        bench_seeds: None,
+        bench_first_seed: 1,
+        bench_effect: None,
+        quiet: true,
+    };
+    run(&args).expect("diagnose runs");
+    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    assert_eq!(report["effects"][0]["name"], "vignetting");
+    for key in ["noise", "base", "final", "effects"] {
+        assert!(!report[key].is_null(), "report.json lacks {key}");
+    }
+    assert!(report["final"]["reduced_chi2"].as_f64().unwrap() < report["base"]["reduced_chi2"].as_f64().unwrap());
+    let o = read_image(&open).unwrap();
+    for f in ["predicted_base.png", "predicted_final.png"] {
+        let p = read_image(&out.join(f)).unwrap();
+        assert_eq!((p.width(), p.height(), p.channel_count(), p.format), (o.width(), o.height(), o.channel_count(), o.format), "{f}");
+    }
+    // the corrected profile predicts what the report predicted
+    let prof = Profile::load(&out.join("profile")).unwrap();
+    assert!(prof.meta.corrections.contains_key("vignetting"));
+    let pred = apply_corrections(&prof, &read_image(&pin).unwrap()).unwrap();
+    let fin = read_image(&out.join("predicted_final.png")).unwrap();
+    let (w, h) = (o.width(), o.height());
+    let mut worst = 0.0f32;
+    for y in 10..h - 10 {
+        for x in 10..w - 10 {
+            worst = worst.max((pred.planes[0].get(x, y) - fin.planes[0].get(x, y)).abs());
+        }
+    }
+    assert!(worst < 2e-3, "apply_corrections differs from the report's prediction by {worst}");
+    // an unreadable input names the file
+    let bad = DiagnoseArgs { open: Some(dir.path().join("missing.png")), ..args.clone() };
+    let e = format!("{:#}", run(&bad).unwrap_err());
+    assert!(e.contains("missing.png"), "{e}");
+
+    // headless browser
+    let browser = ["chromium", "chromium-browser", "google-chrome"].iter().find(|b| std::process::Command::new(b).arg("--version").output().is_ok_and(|o| o.status.success()));
+    let Some(browser) = browser else {
+        eprintln!("SKIPPED browser check: no chromium found (apt-get install -y chromium)");
+        return;
+    };
+    let url = format!("file://{}", out.join("index.html").display());
+    let o = std::process::Command::new(browser)
+        .args(["--headless", "--no-sandbox", "--disable-gpu", "--virtual-time-budget=5000", "--dump-dom", &url])
+        .output()
+        .expect("run chromium");
+    let dom = String::from_utf8_lossy(&o.stdout);
+    assert!(dom.contains("vignetting") && dom.contains("Verdict"), "DOM lacks the effect: {}", &dom[..dom.len().min(500)]);
+    assert!(dom.contains("data-images-loaded=\"4/4\""), "not every image loaded: {}", dom.lines().find(|l| l.contains("<body")).unwrap_or(""));
+    assert!(dom.matches("<svg").count() >= 5, "plots missing");
+}

@@ -1,0 +1,251 @@
+//! Residual analysis of a fitted model: where the normalised residual `z = (data − model)/σ`
+//! departs from unit white noise, and along which variable.
+//!
+//! - per tile and channel: mean, RMS (spread) and reduced χ² of `z`;
+//! - dependence curves (mean `z` and mean `z²` in bins) on the predicted intensity, the radius
+//!   (`r = 1` at half the diagonal), the position inside the tile (distance to the nearest tile
+//!   centre over half the tile diagonal), the local gradient of the prediction, and the
+//!   large-scale brightness of the reference (Gaussian σ = 1/16 of the image diagonal);
+//! - a histogram of `z` against the standard normal, skewness and excess kurtosis;
+//! - a planar trend of `z` (`z ≈ a + bx·x̂ + by·ŷ`).
+
+use super::fit::Fit;
+use crate::optics::capture::gaussian_blur;
+use crate::image::Plane;
+use serde::Serialize;
+
+/// One dependence curve.
+#[derive(Clone, Debug, Serialize)]
+pub struct Curve {
+    pub name: String,
+    /// Bin centres (mean of the variable in the bin).
+    pub x: Vec<f64>,
+    /// Mean normalised residual per bin.
+    pub mean: Vec<f64>,
+    /// Mean squared normalised residual per bin (1 = at the noise floor).
+    pub msq: Vec<f64>,
+}
+
+impl Curve {
+    /// Largest minus smallest bin mean.
+    pub fn mean_range(&self) -> f64 {
+        let mx = self.mean.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        let mn = self.mean.iter().copied().fold(f64::INFINITY, f64::min);
+        if mx.is_finite() { mx - mn } else { 0.0 }
+    }
+    /// Largest minus smallest bin mean square.
+    pub fn msq_range(&self) -> f64 {
+        let mx = self.msq.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        let mn = self.msq.iter().copied().fold(f64::INFINITY, f64::min);
+        if mx.is_finite() { mx - mn } else { 0.0 }
+    }
+}
+
+/// Statistics of one tile of one channel.
+#[derive(Clone, Debug, Serialize)]
+pub struct TileStat {
+    pub channel: String,
+    pub column: usize,
+    pub row: usize,
+    pub mean: f64,
+    pub spread: f64,
+    pub reduced_chi2: f64,
+}
+
+/// The residual analysis of one fit.
+#[derive(Clone, Debug, Serialize)]
+pub struct Analysis {
+    pub reduced_chi2: f64,
+    pub reduced_chi2_channel: Vec<f64>,
+    pub tiles: Vec<TileStat>,
+    pub curves: Vec<Curve>,
+    pub histogram_edges: Vec<f64>,
+    pub histogram: Vec<f64>,
+    pub histogram_normal: Vec<f64>,
+    pub skewness: f64,
+    pub excess_kurtosis: f64,
+    /// `[a, bx, by]` of the planar trend of `z`.
+    pub planar: [f64; 3],
+    /// The worst tile (highest reduced χ²).
+    pub worst: Option<TileStat>,
+}
+
+fn binned(name: &str, vals: &[(f32, f32)], bins: usize, quantile: bool) -> Curve {
+    let mut v: Vec<(f32, f32)> = vals.to_vec();
+    let (mut x, mut mean, mut msq) = (vec![], vec![], vec![]);
+    if v.is_empty() {
+        return Curve { name: name.into(), x, mean, msq };
+    }
+    let groups: Vec<Vec<(f32, f32)>> = if quantile {
+        v.sort_by(|a, b| a.0.total_cmp(&b.0));
+        (0..bins).map(|b| v[b * v.len() / bins..(b + 1) * v.len() / bins].to_vec()).collect()
+    } else {
+        let lo = v.iter().map(|q| q.0).fold(f32::INFINITY, f32::min);
+        let hi = v.iter().map(|q| q.0).fold(f32::NEG_INFINITY, f32::max);
+        let mut g = vec![Vec::new(); bins];
+        for q in v {
+            let b = (((q.0 - lo) / (hi - lo).max(1e-12)) * bins as f32) as usize;
+            g[b.min(bins - 1)].push(q);
+        }
+        g
+    };
+    for g in groups.iter().filter(|g| g.len() >= 20) {
+        let n = g.len() as f64;
+        x.push(g.iter().map(|q| q.0 as f64).sum::<f64>() / n);
+        mean.push(g.iter().map(|q| q.1 as f64).sum::<f64>() / n);
+        msq.push(g.iter().map(|q| (q.1 as f64).powi(2)).sum::<f64>() / n);
+    }
+    Curve { name: name.into(), x, mean, msq }
+}
+
+/// Analyses a fit's normalised residual.
+pub fn analyse(fit: &Fit) -> Analysis {
+    let grid = &fit.model.grid;
+    let nch = fit.normalized.len();
+    let (w, h) = (fit.normalized[0].width, fit.normalized[0].height);
+    let (cx, cy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
+    let hd = 0.5 * ((w * w + h * h) as f64).sqrt();
+    let xs = grid.column_xs();
+    let ys = grid.row_ys();
+    let tile_half_diag = 0.5 * ((w as f64 / grid.columns as f64).powi(2) + (h as f64 / grid.rows as f64).powi(2)).sqrt();
+    let mut tiles = Vec::new();
+    let mut feats: [Vec<(f32, f32)>; 5] = Default::default();
+    let mut all_z = Vec::new();
+    let (mut ata, mut atb) = ([[0.0f64; 3]; 3], [0.0f64; 3]);
+    for c in 0..nch {
+        let z = &fit.normalized[c];
+        let pred = &fit.predicted[c];
+        let mut large = fit.reference[c].clone();
+        large = gaussian_blur(&large, (2.0 * hd / 16.0).max(2.0));
+        let mut tsum = vec![(0.0f64, 0.0f64, 0usize); grid.tile_count()];
+        for y in 1..h - 1 {
+            for x in 1..w - 1 {
+                let i = y * w + x;
+                if !fit.eval[c][i] {
+                    continue;
+                }
+                let zi = z.data[i];
+                all_z.push(zi);
+                let (dx, dy) = (x as f64 - cx, y as f64 - cy);
+                let r = (dx * dx + dy * dy).sqrt() / hd;
+                let col = xs.iter().enumerate().min_by(|a, b| (a.1 - x as f64).abs().total_cmp(&(b.1 - x as f64).abs())).map_or(0, |q| q.0);
+                let row = ys.iter().enumerate().min_by(|a, b| (a.1 - y as f64).abs().total_cmp(&(b.1 - y as f64).abs())).map_or(0, |q| q.0);
+                let d_in = ((x as f64 - xs[col]).powi(2) + (y as f64 - ys[row]).powi(2)).sqrt() / tile_half_diag;
+                let gx = pred.get(x + 1, y) - pred.get(x - 1, y);
+                let gy = pred.get(x, y + 1) - pred.get(x, y - 1);
+                feats[0].push((pred.data[i], zi));
+                feats[1].push((r as f32, zi));
+                feats[2].push((d_in as f32, zi));
+                feats[3].push(((0.5 * (gx * gx + gy * gy).sqrt()), zi));
+                feats[4].push((large.data[i], zi));
+                let t = &mut tsum[row * grid.columns + col];
+                t.0 += zi as f64;
+                t.1 += (zi as f64).powi(2);
+                t.2 += 1;
+                let row3 = [1.0, dx / cx.max(0.5), dy / cy.max(0.5)];
+                for a in 0..3 {
+                    atb[a] += row3[a] * zi as f64;
+                    for b in 0..3 {
+                        ata[a][b] += row3[a] * row3[b];
+                    }
+                }
+            }
+        }
+        for (t, &(s, s2, n)) in tsum.iter().enumerate() {
+            if n == 0 {
+                continue;
+            }
+            let mean = s / n as f64;
+            tiles.push(TileStat {
+                channel: grid.channels.get(c).cloned().unwrap_or_default(),
+                column: t % grid.columns,
+                row: t / grid.columns,
+                mean,
+                spread: (s2 / n as f64 - mean * mean).max(0.0).sqrt(),
+                reduced_chi2: s2 / n as f64,
+            });
+        }
+    }
+    let names = ["intensity", "radius", "position_in_tile", "gradient", "large_scale_brightness"];
+    let curves = names.iter().enumerate().map(|(j, n)| binned(n, &feats[j], 10, j != 1 && j != 2)).collect();
+    // histogram
+    let edges: Vec<f64> = (0..=40).map(|i| -5.0 + 0.25 * i as f64).collect();
+    let mut hist = vec![0.0f64; 40];
+    let n = all_z.len().max(1) as f64;
+    let (mut m1, mut m2, mut m3, mut m4) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
+    for &z in &all_z {
+        let z = z as f64;
+        m1 += z;
+        if (-5.0..5.0).contains(&z) {
+            hist[((z + 5.0) / 0.25) as usize] += 1.0 / (n * 0.25);
+        }
+    }
+    m1 /= n;
+    for &z in &all_z {
+        let d = z as f64 - m1;
+        m2 += d * d;
+        m3 += d * d * d;
+        m4 += d * d * d * d;
+    }
+    m2 /= n;
+    m3 /= n;
+    m4 /= n;
+    let normal: Vec<f64> = edges.windows(2).map(|e| {
+        let x = 0.5 * (e[0] + e[1]);
+        (-0.5 * x * x).exp() / (2.0 * std::f64::consts::PI).sqrt()
+    }).collect();
+    let planar = solve3(ata, atb).unwrap_or([0.0; 3]);
+    let worst = tiles.iter().max_by(|a, b| a.reduced_chi2.total_cmp(&b.reduced_chi2)).cloned();
+    Analysis {
+        reduced_chi2: fit.reduced_chi2(),
+        reduced_chi2_channel: fit.chi2_channel.iter().zip(&fit.n_channel).map(|(c, n)| c / (*n as f64 - fit.params as f64 / nch as f64).max(1.0)).collect(),
+        tiles,
+        curves,
+        histogram_edges: edges,
+        histogram: hist,
+        histogram_normal: normal,
+        skewness: m3 / m2.max(1e-300).powf(1.5),
+        excess_kurtosis: m4 / m2.max(1e-300).powi(2) - 3.0,
+        planar,
+        worst,
+    }
+}
+
+fn solve3(mut a: [[f64; 3]; 3], mut b: [f64; 3]) -> Option<[f64; 3]> {
+    for i in 0..3 {
+        let piv = (i..3).max_by(|&x, &y| a[x][i].abs().total_cmp(&a[y][i].abs()))?;
+        if a[piv][i].abs() < 1e-12 {
+            return None;
+        }
+        a.swap(i, piv);
+        b.swap(i, piv);
+        for r in 0..3 {
+            if r != i {
+                let f = a[r][i] / a[i][i];
+                for k in 0..3 {
+                    a[r][k] -= f * a[i][k];
+                }
+                b[r] -= f * b[i];
+            }
+        }
+    }
+    Some([b[0] / a[0][0], b[1] / a[1][1], b[2] / a[2][2]])
+}
+
+/// The curve called `name`.
+pub fn curve<'a>(a: &'a Analysis, name: &str) -> Option<&'a Curve> {
+    a.curves.iter().find(|c| c.name == name)
+}
+
+/// A short plain-text description of the worst place.
+pub fn where_text(a: &Analysis) -> String {
+    match &a.worst {
+        Some(t) => format!("whole field; worst at tile column {} row {} of channel {} (reduced χ² {:.2}, mean z {:+.2})", t.column, t.row, t.channel, t.reduced_chi2, t.mean),
+        None => "no evaluated pixels".into(),
+    }
+}
+
+/// Normalised residual map as a displayable plane: `z` mapped from [−5, 5] to [0, 1].
+pub fn residual_image(z: &Plane) -> Plane {
+    z.map(|v| ((v + 5.0) / 10.0).clamp(0.0, 1.0))
+}

@@ -1,0 +1,305 @@
+//! The catalogue of physical effects (METHOD.md §7) as candidate extensions of a fitted model,
+//! each with the evidence in the current residual that speaks for it.
+//!
+//! | name | equation (see [`super::model`]) | parameters |
+//! |---|---|---|
+//! | `vignetting` | gain `1 + k1 r² + k2 r⁴ + k3 r⁶` | 3 |
+//! | `illumination_gradient` | gain `1 + gx x̂ + gy ŷ` | 2 |
+//! | `tone_curve` | both captures sRGB-encoded: decode before the physics | 1 |
+//! | `black_level` | `+ β_c` | 1 per channel |
+//! | `veiling_glare` | `(1 − f)·K*P + f·G_σ*P` | 1 per channel + σ |
+//! | `misregistration` | similarity (rotation, scale) between the captures | 2 beyond the base translation |
+//! | `saturation` | clipped pixels censored, reference-clipped pixels out of the data term | 1 |
+//! | `psf_field_variation` | a finer kernel grid (twice the tiles per axis) | the extra kernels |
+//!
+//! `pinhole_diffraction` (the reference's own PSF) is not a candidate yet; see the crate
+//! report.
+
+use super::analysis::{curve, where_text, Analysis};
+use super::fit::{fit, Data, Fit, FitSettings, Model, CLIP};
+use super::model::{BlackLevelCorrection, Corrections, FieldCorrection, GlareCorrection, GradientCorrection, SaturationCorrection, ToneCorrection, VignettingCorrection};
+use crate::image::Transfer;
+use serde_json::json;
+
+/// A candidate model: the current corrections plus one effect.
+pub struct Candidate {
+    pub name: &'static str,
+    pub corrections: Corrections,
+    pub evidence: String,
+    pub location: String,
+    /// Starting point other than the current model (kernels moved to the new geometry).
+    pub init: Option<Model>,
+}
+
+/// The similarity (rotation and scale about the image centre) that the current kernels'
+/// centroids follow, by least squares over the tiles (channel-averaged): a kernel at `+d`
+/// means `open(p) ≈ pinhole(p − d)`, the registration convention. Returns the registration
+/// (with the base model's integer translation: the kernels keep any constant remainder), the current model with every kernel
+/// moved by minus the similarity's displacement at its tile centre, and the displacement at
+/// the corners in pixels.
+pub fn similarity_from_kernels(current: &Fit, base: &crate::profile::RegistrationInfo) -> Option<(crate::profile::RegistrationInfo, Model, f64)> {
+    centroid_similarity(current).map(|p| similarity_model(current, base, p))
+}
+
+/// `[p0, p1]` of the similarity the kernels' centroids follow (least squares over the tiles).
+pub fn centroid_similarity(current: &Fit) -> Option<[f64; 2]> {
+    let g = &current.model.grid;
+    let (w, h) = (current.normalized[0].width as f64, current.normalized[0].height as f64);
+    let (cx, cy) = ((w - 1.0) / 2.0, (h - 1.0) / 2.0);
+    // d = [[p, −q], [q, p]]·(x, y) + (tx, ty): unknowns p, q, tx, ty
+    let mut ata = vec![vec![0.0f64; 4]; 4];
+    let mut atb = vec![0.0f64; 4];
+    for t in 0..g.tile_count() {
+        let (mut dx, mut dy) = (0.0, 0.0);
+        for c in 0..g.channels.len() {
+            let (a, b) = crate::optics::lens::centroid(&g.kernels[c][t]);
+            dx += a / g.channels.len() as f64;
+            dy += b / g.channels.len() as f64;
+        }
+        let (x, y) = (g.centers[t][0] - cx, g.centers[t][1] - cy);
+        for (row, d) in [([x, -y, 1.0, 0.0], dx), ([y, x, 0.0, 1.0], dy)] {
+            for i in 0..4 {
+                atb[i] += row[i] * d;
+                for j in 0..4 {
+                    ata[i][j] += row[i] * row[j];
+                }
+            }
+        }
+    }
+    let p = super::fit::solve_dense(ata, atb)?;
+    Some([p[0], p[1]])
+}
+
+/// The registration with `A − I = [[p0, −p1], [p1, p0]]` and the current model's kernels moved
+/// to it (see [`similarity_from_kernels`]); also the corner displacement.
+pub fn similarity_model(current: &Fit, base: &crate::profile::RegistrationInfo, p: [f64; 2]) -> (crate::profile::RegistrationInfo, Model, f64) {
+    let g = &current.model.grid;
+    let (w, h) = (current.normalized[0].width as f64, current.normalized[0].height as f64);
+    let (cx, cy) = ((w - 1.0) / 2.0, (h - 1.0) / 2.0);
+    let info = crate::profile::RegistrationInfo { model: "similarity".into(), matrix: [1.0 + p[0], -p[1], p[1], 1.0 + p[0]], translation: [base.translation[0].round(), base.translation[1].round()], residual_px: 0.0 };
+    let corner = 0.5 * (w * w + h * h).sqrt() * (p[0] * p[0] + p[1] * p[1]).sqrt();
+    let mut init = current.model.clone();
+    for t in 0..g.tile_count() {
+        let (x, y) = (g.centers[t][0] - cx, g.centers[t][1] - cy);
+        let (dx, dy) = (p[0] * x - p[1] * y, p[1] * x + p[0] * y);
+        for c in 0..g.channels.len() {
+            // content moves by −d: sample at q + d
+            let k = crate::optics::capture::warp_similarity(&g.kernels[c][t], &crate::optics::capture::Similarity { dx, dy, ..Default::default() });
+            let k = k.map(|v| v.max(0.0));
+            let s = k.sum().max(1e-30) as f32;
+            init.grid.kernels[c][t] = k.map(|v| v / s);
+        }
+    }
+    (info, init, corner)
+}
+
+/// Refines the scale part of a similarity by golden-section search of χ² (quick fits): radial
+/// coma moves kernel centroids like a magnification change, so the centroids alone
+/// under- or over-state the scale; the rotation (tangential) is taken from them.
+fn refine_scale(data: &Data, current: &Fit, p: [f64; 2]) -> [f64; 2] {
+    let quick = FitSettings { rounds: 1, kernel_iterations: 25 };
+    let c0 = &current.model.corrections;
+    let eval = |s: f64| -> f64 {
+        let (info, init, _) = similarity_model(current, &data.base_registration, [s, p[1]]);
+        fit(data, &Corrections { misregistration: Some(info), ..c0.clone() }, &init, quick).chi2()
+    };
+    let (mut a, mut b) = (p[0] - 0.008, p[0] + 0.008);
+    let gr = 0.5 * (5f64.sqrt() - 1.0);
+    let (mut x1, mut x2) = (b - gr * (b - a), a + gr * (b - a));
+    let (mut f1, mut f2) = (eval(x1), eval(x2));
+    for _ in 0..6 {
+        if f1 < f2 {
+            b = x2;
+            x2 = x1;
+            f2 = f1;
+            x1 = b - gr * (b - a);
+            f1 = eval(x1);
+        } else {
+            a = x1;
+            x1 = x2;
+            f1 = f2;
+            x2 = a + gr * (b - a);
+            f2 = eval(x2);
+        }
+    }
+    [if f1 < f2 { x1 } else { x2 }, p[1]]
+}
+
+/// Glare widths tried, as fractions of the image diagonal.
+const GLARE_SIGMAS: [f64; 4] = [0.03, 0.06, 0.12, 0.24];
+
+fn curve_text(a: &Analysis, name: &str) -> String {
+    match curve(a, name) {
+        Some(c) if !c.x.is_empty() => {
+            let n = c.x.len() - 1;
+            format!("mean z {:+.2} at {} ≈ {:.3} → {:+.2} at {:.3}; mean z² {:.2} → {:.2}", c.mean[0], c.name, c.x[0], c.mean[n], c.x[n], c.msq[0], c.msq[n])
+        }
+        _ => format!("no {name} curve"),
+    }
+}
+
+fn channel_list(data: &Data) -> String {
+    data.open.channels.join(",")
+}
+
+/// The candidates for extending `current`.
+pub fn propose(data: &Data, current: &Fit, a: &Analysis) -> Vec<Candidate> {
+    let c0 = &current.model.corrections;
+    let nch = data.open.channel_count();
+    let loc = |what: &str| format!("{what}; channels {}; {}", channel_list(data), where_text(a));
+    let mut out = Vec::new();
+    if c0.vignetting.is_none() {
+        out.push(Candidate {
+            name: "vignetting",
+            corrections: Corrections { vignetting: Some(VignettingCorrection { k1: 0.0, k2: 0.0, k3: 0.0 }), ..c0.clone() },
+            evidence: format!("residual against radius: {}", curve_text(a, "radius")),
+            init: None,
+            location: loc("radial, centre to corners"),
+        });
+    }
+    if c0.illumination_gradient.is_none() {
+        out.push(Candidate {
+            name: "illumination_gradient",
+            corrections: Corrections { illumination_gradient: Some(GradientCorrection { gx: 0.0, gy: 0.0 }), ..c0.clone() },
+            evidence: format!("planar trend of the residual: z ≈ {:+.3} {:+.3}·x̂ {:+.3}·ŷ", a.planar[0], a.planar[1], a.planar[2]),
+            init: None,
+            location: loc("planar across the field"),
+        });
+    }
+    if c0.black_level.is_none() {
+        out.push(Candidate {
+            name: "black_level",
+            corrections: Corrections { black_level: Some(BlackLevelCorrection { offset: vec![0.0; nch] }), ..c0.clone() },
+            evidence: format!("residual against intensity (an offset weighs most in the dark): {}", curve_text(a, "intensity")),
+            init: None,
+            location: loc("dark regions first"),
+        });
+    }
+    if c0.tone_curve.is_none() && data.open.transfer == Transfer::Linear {
+        let lin: Vec<f64> = data.curves.iter().map(|c| super::noise::PoissonGaussian::fit(c, Transfer::Linear).misfit).collect();
+        let srgb: Vec<f64> = data.curves.iter().map(|c| super::noise::PoissonGaussian::fit(c, Transfer::Srgb).misfit).collect();
+        out.push(Candidate {
+            name: "tone_curve",
+            corrections: Corrections { tone_curve: Some(ToneCorrection { transfer: Transfer::Srgb }), ..c0.clone() },
+            evidence: format!(
+                "residual against intensity: {}; the noise curve misfits a linear Poisson–Gaussian law by {:.0}% and an sRGB-decoded one by {:.0}%",
+                curve_text(a, "intensity"),
+                100.0 * lin.iter().sum::<f64>() / lin.len().max(1) as f64,
+                100.0 * srgb.iter().sum::<f64>() / srgb.len().max(1) as f64
+            ),
+            init: None,
+            location: loc("all intensities, nonlinear"),
+        });
+    }
+    if c0.veiling_glare.is_none() {
+        let diag = ((data.open.width().pow(2) + data.open.height().pow(2)) as f64).sqrt();
+        // screen the width with the kernels held fixed
+        let screen = FitSettings { rounds: 1, kernel_iterations: 0 };
+        let mut best: Option<(f64, f64)> = None;
+        for frac in GLARE_SIGMAS {
+            let sigma = (frac * diag).round().max(2.0);
+            let c = Corrections { veiling_glare: Some(GlareCorrection { fraction: 0.02, sigma_px: sigma }), ..c0.clone() };
+            let f = fit(data, &c, &current.model, screen);
+            if best.is_none_or(|b| f.chi2() < b.1) {
+                best = Some((sigma, f.chi2()));
+            }
+        }
+        if let Some((sigma, _)) = best {
+            out.push(Candidate {
+                name: "veiling_glare",
+                corrections: Corrections { veiling_glare: Some(GlareCorrection { fraction: 0.02, sigma_px: sigma }), ..c0.clone() },
+                evidence: format!("residual against the large-scale brightness of the scene: {}", curve_text(a, "large_scale_brightness")),
+                init: None,
+            location: loc("beyond the kernel support, around bright regions"),
+            });
+        }
+    }
+    if c0.misregistration.is_none() {
+        if let Some(p0) = centroid_similarity(current) {
+            let (info, init, corner) = similarity_model(current, &data.base_registration, refine_scale(data, current, p0));
+            let (a11, a21) = (info.matrix[0], info.matrix[2]);
+            let rot = a21.atan2(a11).to_degrees();
+            let scale = (a11 * a11 + a21 * a21).sqrt() - 1.0;
+            if corner >= 0.25 {
+                out.push(Candidate {
+                    name: "misregistration",
+                    evidence: format!(
+                        "the fitted kernels' centroids follow a similarity across the field: rotation {rot:+.3}°, scale {scale:+.5}, i.e. {corner:.2} px at the corners, which tile-wise kernels follow only at the tile centres; residual against position in tile: {}",
+                        curve_text(a, "position_in_tile")
+                    ),
+                    corrections: Corrections { misregistration: Some(info), ..c0.clone() },
+            location: loc("growing towards the corners"),
+                    init: Some(init),
+                });
+            }
+        }
+    }
+    if c0.saturation.is_none() {
+        let clipped: usize = data.open.planes.iter().chain(&data.pinhole.planes).map(|p| p.data.iter().filter(|&&v| v >= CLIP).count()).sum();
+        if clipped > 0 {
+            let mut zc = (0.0f64, 0usize);
+            for c in 0..nch {
+                for (i, &v) in data.open.planes[c].data.iter().enumerate() {
+                    if v >= CLIP && current.eval[c][i] {
+                        zc.0 += (current.normalized[c].data[i] as f64).powi(2);
+                        zc.1 += 1;
+                    }
+                }
+            }
+            out.push(Candidate {
+                name: "saturation",
+                corrections: Corrections { saturation: Some(SaturationCorrection { clip_level: 1.0 }), ..c0.clone() },
+                evidence: format!(
+                    "{clipped} stored values at ≥ {CLIP} of full scale; mean z² on the clipped wide-open pixels {:.1}; residual against intensity: {}",
+                    zc.0 / zc.1.max(1) as f64,
+                    curve_text(a, "intensity")
+                ),
+                init: None,
+            location: loc("the brightest regions"),
+            });
+        }
+    }
+    if c0.psf_field_variation.is_none() {
+        let g = &current.model.grid;
+        let (cols, rows) = (2 * g.columns, 2 * g.rows);
+        let (w, h) = (data.open.width(), data.open.height());
+        if w / cols >= 2 * g.kernel_size && h / rows >= 2 * g.kernel_size {
+            let spread = a.tiles.iter().map(|t| t.reduced_chi2).fold(0.0f64, f64::max) - a.tiles.iter().map(|t| t.reduced_chi2).fold(f64::INFINITY, f64::min);
+            out.push(Candidate {
+                name: "psf_field_variation",
+                corrections: Corrections { psf_field_variation: Some(FieldCorrection { columns: cols, rows: rows }), ..c0.clone() },
+                evidence: format!(
+                    "residual against position inside the tile: {}; per-tile reduced χ² spans {:.2}",
+                    curve_text(a, "position_in_tile"),
+                    spread
+                ),
+                init: None,
+            location: loc(&format!("between tile centres; refit on {cols}x{rows} tiles instead of {}x{}", g.columns, g.rows)),
+            });
+        }
+    }
+    out
+}
+
+/// The fitted parameters of effect `name` as JSON.
+pub fn parameters_json(name: &str, c: &Corrections) -> serde_json::Value {
+    let v = match name {
+        "vignetting" => serde_json::to_value(c.vignetting),
+        "illumination_gradient" => serde_json::to_value(c.illumination_gradient),
+        "black_level" => serde_json::to_value(&c.black_level),
+        "tone_curve" => serde_json::to_value(c.tone_curve),
+        "veiling_glare" => serde_json::to_value(c.veiling_glare),
+        "misregistration" => serde_json::to_value(&c.misregistration).map(|mut v| {
+            if let Some(info) = &c.misregistration {
+                let (a11, a21) = (info.matrix[0], info.matrix[2]);
+                v["rotation_deg"] = json!(a21.atan2(a11).to_degrees());
+                v["scale"] = json!((a11 * a11 + a21 * a21).sqrt() - 1.0);
+            }
+            v
+        }),
+        "saturation" => serde_json::to_value(c.saturation),
+        "psf_field_variation" => serde_json::to_value(c.psf_field_variation),
+        _ => Ok(serde_json::Value::Null),
+    };
+    v.unwrap_or(serde_json::Value::Null)
+}

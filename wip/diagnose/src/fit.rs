@@ -1,0 +1,493 @@
+//! Fitting one model (base + a set of [`Corrections`]) to a wide-open / pinhole pair, and its
+//! figures: χ², reduced χ², RMS, normalised residual maps.
+//!
+//! # Model in the fit
+//! Per channel `c` on the linear axis of the model's transfer curve:
+//! `m = G(x)·(Σ_t w_t·(U_t * P̃) + g_c·(G_σ * P̃)) + β_c`
+//! with `U_t = s·(1 − f)·K_t` (one common sum per channel), `g_c = s·f` the glare amplitude,
+//! `G` the vignetting × gradient gain and `β_c` the offset (each present only when its
+//! correction is). The fit alternates: kernels by projected FISTA ([`super::kernels`]) with the
+//! other parameters fixed, then one Gauss–Newton step for the scalar parameters, then the
+//! weights `1/Var` from the new prediction. Three rounds.
+//!
+//! # Noise and χ²
+//! `Var = Var_open(m) + ΣK²·s²·Var_pinhole(level)` on the linear axis, from the measured
+//! [`NoiseCurve`]s (the pinhole's own noise propagated through the kernel), mapped to the stored
+//! axis by the transfer curve's slope. `χ² = Σ (stored − encode(m))² / Var_stored` over the
+//! evaluation set: every pixel at least a kernel radius inside the image, in every channel.
+//! Under `saturation`, clipped wide-open pixels are censored (no contribution while the model
+//! also reaches the clip level) and pixels whose reference footprint is clipped count as one
+//! (the model cannot predict them; they leave the data term).
+//!
+//! Parameters: `C·(T·(k² − 1) + 1)` for the kernels and sums plus each correction's own.
+
+use super::kernels::{fit_kernels, GatherOperator, KernelFitSettings};
+use super::model::{model_transfer, reference_planes, Corrections, GlareCorrection};
+use super::noise::{srgb_slope, NoiseCurve};
+use crate::estimate::dilate;
+use crate::image::{Image, Plane, Transfer};
+use crate::optics::capture::gaussian_blur;
+use crate::optics::psf_grid::PsfGrid;
+use crate::profile::RegistrationInfo;
+
+/// Stored values at or above this count as clipped.
+pub const CLIP: f32 = 0.995;
+
+/// The measured pair and what is known before any model is fitted.
+pub struct Data {
+    pub open: Image,
+    pub pinhole: Image,
+    /// Per channel, the wide-open capture's noise curve.
+    pub curves: Vec<NoiseCurve>,
+    /// The base registration (translation, applied as an integer shift).
+    pub base_registration: RegistrationInfo,
+}
+
+/// A fitted model's free parameters.
+#[derive(Clone, Debug)]
+pub struct Model {
+    pub corrections: Corrections,
+    /// Kernels summing to 1.
+    pub grid: PsfGrid,
+    /// Exposure ratio `s` per channel (kernel part plus glare part).
+    pub exposure: Vec<f64>,
+}
+
+/// Iteration budget of a fit.
+#[derive(Clone, Copy, Debug)]
+pub struct FitSettings {
+    pub rounds: usize,
+    pub kernel_iterations: usize,
+}
+
+impl Default for FitSettings {
+    fn default() -> Self {
+        Self { rounds: 3, kernel_iterations: 60 }
+    }
+}
+
+/// A fitted model and its figures.
+#[derive(Clone)]
+pub struct Fit {
+    pub model: Model,
+    pub transfer: Transfer,
+    /// Prediction on the stored axis (encoded, clipped under `saturation`).
+    pub predicted: Vec<Plane>,
+    /// `(stored − predicted)/σ` on the evaluation set, 0 elsewhere.
+    pub normalized: Vec<Plane>,
+    /// Stored-axis predicted variance.
+    pub variance: Vec<Plane>,
+    pub eval: Vec<Vec<bool>>,
+    pub chi2_channel: Vec<f64>,
+    pub n_channel: Vec<usize>,
+    /// Plain squared residual and variance sums per channel (stored axis).
+    pub sq_channel: Vec<f64>,
+    pub var_channel: Vec<f64>,
+    pub params: usize,
+    /// How badly the noise curve misfits a Poisson–Gaussian law on this model's linear axis
+    /// (Σ over channels of [`super::noise::PoissonGaussian::chi2`]), and the worst relative
+    /// misfit of a channel.
+    pub noise_chi2: f64,
+    pub noise_misfit: f64,
+    /// The registered linear reference planes the model used.
+    pub reference: Vec<Plane>,
+}
+
+impl Fit {
+    pub fn chi2(&self) -> f64 {
+        self.chi2_channel.iter().sum()
+    }
+    pub fn n(&self) -> usize {
+        self.n_channel.iter().sum()
+    }
+    /// χ² per degree of freedom.
+    pub fn reduced_chi2(&self) -> f64 {
+        self.chi2() / (self.n() as f64 - self.params as f64).max(1.0)
+    }
+    /// `χ² + χ²_noise-law + p·ln N`.
+    pub fn bic(&self) -> f64 {
+        self.chi2() + self.noise_chi2 + self.params as f64 * (self.n().max(2) as f64).ln()
+    }
+    /// RMS of the residual (stored axis).
+    pub fn rms(&self) -> f64 {
+        (self.sq_channel.iter().sum::<f64>() / self.n().max(1) as f64).sqrt()
+    }
+    /// RMS of the predicted noise (stored axis): the noise floor.
+    pub fn noise_rms(&self) -> f64 {
+        (self.var_channel.iter().sum::<f64>() / self.n().max(1) as f64).sqrt()
+    }
+}
+
+/// Extra parameters each correction adds.
+pub fn correction_params(c: &Corrections, channels: usize) -> usize {
+    let mut p = 0;
+    if c.tone_curve.is_some() {
+        p += 1;
+    }
+    if c.misregistration.is_some() {
+        p += 2;
+    }
+    if c.veiling_glare.is_some() {
+        p += channels + 1;
+    }
+    if c.vignetting.is_some() {
+        p += 3;
+    }
+    if c.illumination_gradient.is_some() {
+        p += 2;
+    }
+    if c.black_level.is_some() {
+        p += channels;
+    }
+    if c.saturation.is_some() {
+        p += 1;
+    }
+    p
+}
+
+/// The kernels of `grid` resampled to a `columns × rows` grid (interpolated at the new centres).
+pub fn regrid(grid: &PsfGrid, width: usize, height: usize, columns: usize, rows: usize) -> PsfGrid {
+    let centers = PsfGrid::regular_centers(width, height, columns, rows);
+    let kernels = (0..grid.channels.len()).map(|c| centers.iter().map(|p| grid.kernel_at(c, p[0], p[1])).collect()).collect();
+    PsfGrid { kernel_size: grid.kernel_size, columns, rows, centers, channels: grid.channels.clone(), kernels }
+}
+
+pub fn solve_dense(mut a: Vec<Vec<f64>>, mut b: Vec<f64>) -> Option<Vec<f64>> {
+    let n = b.len();
+    for i in 0..n {
+        let piv = (i..n).max_by(|&x, &y| a[x][i].abs().total_cmp(&a[y][i].abs()))?;
+        if a[piv][i].abs() < 1e-300 {
+            return None;
+        }
+        a.swap(i, piv);
+        b.swap(i, piv);
+        for r in 0..n {
+            if r != i {
+                let f = a[r][i] / a[i][i];
+                if f != 0.0 {
+                    for k in i..n {
+                        a[r][k] -= f * a[i][k];
+                    }
+                    b[r] -= f * b[i];
+                }
+            }
+        }
+    }
+    Some((0..n).map(|i| b[i] / a[i][i]).collect())
+}
+
+/// Fits `corrections` (their parameter values are starting points) to `data`, starting from
+/// `init`'s kernels and exposure ratios.
+pub fn fit(data: &Data, corrections: &Corrections, init: &Model, settings: FitSettings) -> Fit {
+    fit_masked(data, corrections, init, settings, &|_, _| true)
+}
+
+/// [`fit`] with the data term restricted to pixels where `keep(x, y)` (for cross-validation;
+/// the figures still cover the whole evaluation set).
+pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings: FitSettings, keep: &dyn Fn(usize, usize) -> bool) -> Fit {
+    let mut corr = corrections.clone();
+    let transfer = model_transfer(&corr, data.open.transfer);
+    let (w, h) = (data.open.width(), data.open.height());
+    let nch = data.open.channel_count();
+    let registration = corr.misregistration.clone().unwrap_or_else(|| data.base_registration.clone());
+    let reference = reference_planes(&data.pinhole, transfer, &registration);
+    let open_lin: Vec<Plane> = data.open.planes.iter().map(|p| p.map(|v| transfer.decode(v))).collect();
+    let grid0 = match corr.psf_field_variation {
+        Some(f) if f.columns != init.grid.columns || f.rows != init.grid.rows => regrid(&init.grid, w, h, f.columns, f.rows),
+        _ => init.grid.clone(),
+    };
+    let k = grid0.kernel_size;
+    let r = k / 2;
+    let saturation = corr.saturation.is_some();
+
+    // masks
+    let interior: Vec<bool> = (0..w * h).map(|i| (i % w) >= r && (i % w) + r < w && (i / w) >= r && (i / w) + r < h).collect();
+    let clipped_open: Vec<Vec<bool>> = data.open.planes.iter().map(|p| p.data.iter().map(|&v| v >= CLIP).collect()).collect();
+    let pin_clipped: Vec<Vec<bool>> = data
+        .pinhole
+        .planes
+        .iter()
+        .map(|p| {
+            let m = Plane { width: w, height: h, data: p.data.iter().map(|&v| (v >= CLIP) as u8 as f32).collect() };
+            let reg = crate::estimate::register::apply(&m, &registration);
+            dilate(&reg.data.iter().map(|&v| v > 0.0).collect::<Vec<_>>(), w, h, r)
+        })
+        .collect();
+    let fitmask: Vec<Vec<bool>> = (0..nch)
+        .map(|c| (0..w * h).map(|i| interior[i] && keep(i % w, i / w) && (!saturation || (!clipped_open[c][i] && !pin_clipped[c][i]))).collect())
+        .collect();
+
+    let gain_plane = |corr: &Corrections| -> Plane { Plane::from_fn(w, h, |x, y| corr.gain(x, y, w, h) as f32) };
+    let glare_planes: Option<Vec<Plane>> = corr.veiling_glare.map(|g| reference.iter().map(|p| gaussian_blur(p, g.sigma_px)).collect());
+    let ops: Vec<GatherOperator> = reference.iter().map(|p| GatherOperator::new(p, &grid0)).collect();
+
+    // free parameters
+    let mut u: Vec<Vec<Plane>> = (0..nch)
+        .map(|c| {
+            let f = corr.veiling_glare.map_or(0.0, |g| g.fraction);
+            let s = init.exposure.get(c).copied().unwrap_or(1.0) * (1.0 - f);
+            grid0.kernels[c].iter().map(|kk| kk.map(|v| v * s as f32)).collect()
+        })
+        .collect();
+    let mut glare_amp: Vec<f64> = (0..nch).map(|c| corr.veiling_glare.map_or(0.0, |g| g.fraction * init.exposure.get(c).copied().unwrap_or(1.0))).collect();
+    let mut beta: Vec<f64> = (0..nch).map(|c| corr.black_level.as_ref().and_then(|b| b.offset.get(c).copied()).unwrap_or(0.0)).collect();
+
+    // prediction pieces
+    let blur_part = |c: usize, u: &[Plane]| ops[c].apply(u);
+    // Σ_t w_t(x)·ΣU_t², the gain of the pinhole's noise through the interpolated kernel
+    let kernel_energy = |u: &[Plane]| -> Plane {
+        let e: Vec<f32> = u.iter().map(|kk| kk.data.iter().map(|v| v * v).sum::<f32>()).collect();
+        Plane::from_fn(w, h, |x, y| grid0.weights_at(x as f64, y as f64).iter().map(|q| q.weight * e[q.tile]).sum())
+    };
+
+    let mut variance_lin: Vec<Plane> = vec![Plane::new(w, h); nch];
+    let mut a_parts: Vec<Plane> = (0..nch).map(|c| blur_part(c, &u[c])).collect();
+    let lin_var = |curve: &NoiseCurve, v: f32| curve.linear_variance(v, transfer).max(1e-12);
+    let update_variance = |c: usize, a: &Plane, u: &[Plane], g: &Plane, glare_amp: f64, beta: f64| -> Plane {
+        let kq = kernel_energy(u);
+        let s = u.iter().map(|kk| kk.sum()).sum::<f64>() / u.len().max(1) as f64;
+        Plane::from_fn(w, h, |x, y| {
+            let i = y * w + x;
+            let b = a.data[i] + glare_amp as f32 * glare_planes.as_ref().map_or(0.0, |gp| gp[c].data[i]);
+            let m = g.data[i] * b + beta as f32;
+            let level = (a.data[i] as f64 / s.max(1e-12)) as f32;
+            lin_var(&data.curves[c], m) + g.data[i] * g.data[i] * kq.data[i] * lin_var(&data.curves[c], level)
+        })
+    };
+
+    let kset = KernelFitSettings { iterations: settings.kernel_iterations, rounds: 1 };
+    for _round in 0..settings.rounds {
+        let g = gain_plane(&corr);
+        for c in 0..nch {
+            variance_lin[c] = update_variance(c, &a_parts[c], &u[c], &g, glare_amp[c], beta[c]);
+            // kernel step
+            let y = Plane::from_fn(w, h, |x, yy| {
+                let i = yy * w + x;
+                (open_lin[c].data[i] - beta[c] as f32) / g.data[i] - glare_amp[c] as f32 * glare_planes.as_ref().map_or(0.0, |gp| gp[c].data[i])
+            });
+            let wt: Vec<f32> = (0..w * h).map(|i| if fitmask[c][i] { g.data[i] * g.data[i] / variance_lin[c].data[i] } else { 0.0 }).collect();
+            if kset.iterations > 0 {
+                let (nu, _s) = fit_kernels(&ops[c], &y, &wt, &u[c], kset);
+                u[c] = nu;
+                a_parts[c] = blur_part(c, &u[c]);
+            }
+        }
+        // Gauss–Newton on the scalar parameters (shared ones couple the channels)
+        for _ in 0..2 {
+            let g = gain_plane(&corr);
+            let mut names: Vec<(usize, &'static str)> = Vec::new(); // (channel or usize::MAX, name)
+            for c in 0..nch {
+                names.push((c, "scale"));
+                if corr.black_level.is_some() {
+                    names.push((c, "beta"));
+                }
+                if corr.veiling_glare.is_some() {
+                    names.push((c, "glare"));
+                }
+            }
+            let shared: Vec<&'static str> = {
+                let mut s = vec![];
+                if corr.vignetting.is_some() {
+                    s.extend(["k1", "k2", "k3"]);
+                }
+                if corr.illumination_gradient.is_some() {
+                    s.extend(["gx", "gy"]);
+                }
+                s
+            };
+            for n in &shared {
+                names.push((usize::MAX, n));
+            }
+            let np = names.len();
+            let mut ata = vec![vec![0.0f64; np]; np];
+            let mut atb = vec![0.0f64; np];
+            let (cx, cy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
+            let hd2 = 0.25 * ((w * w + h * h) as f64);
+            let vig = corr.vignetting;
+            let grad = corr.illumination_gradient;
+            let mut row = vec![0.0f64; np];
+            for c in 0..nch {
+                for y in 0..h {
+                    for x in 0..w {
+                        let i = y * w + x;
+                        if !fitmask[c][i] {
+                            continue;
+                        }
+                        let lp = glare_planes.as_ref().map_or(0.0, |gp| gp[c].data[i] as f64);
+                        let a = a_parts[c].data[i] as f64;
+                        let b = a + glare_amp[c] * lp;
+                        let gg = g.data[i] as f64;
+                        let m = gg * b + beta[c];
+                        let res = open_lin[c].data[i] as f64 - m;
+                        let wt = 1.0 / variance_lin[c].data[i] as f64;
+                        let (dx, dy) = (x as f64 - cx, y as f64 - cy);
+                        let r2 = (dx * dx + dy * dy) / hd2;
+                        let (xn, yn) = (dx / cx.max(0.5), dy / cy.max(0.5));
+                        let vv = vig.map_or(1.0, |v| 1.0 + v.k1 * r2 + v.k2 * r2 * r2 + v.k3 * r2 * r2 * r2);
+                        let dd = grad.map_or(1.0, |d| 1.0 + d.gx * xn + d.gy * yn);
+                        for (j, (ch, n)) in names.iter().enumerate() {
+                            row[j] = if *ch != usize::MAX && *ch != c {
+                                0.0
+                            } else {
+                                match *n {
+                                    "scale" => gg * a,
+                                    "beta" => 1.0,
+                                    "glare" => gg * lp,
+                                    "k1" => b * dd * r2,
+                                    "k2" => b * dd * r2 * r2,
+                                    "k3" => b * dd * r2 * r2 * r2,
+                                    "gx" => b * vv * xn,
+                                    "gy" => b * vv * yn,
+                                    _ => 0.0,
+                                }
+                            };
+                        }
+                        for j in 0..np {
+                            if row[j] == 0.0 {
+                                continue;
+                            }
+                            atb[j] += wt * row[j] * res;
+                            for l in j..np {
+                                ata[j][l] += wt * row[j] * row[l];
+                            }
+                        }
+                    }
+                }
+            }
+            for j in 0..np {
+                for l in 0..j {
+                    ata[j][l] = ata[l][j];
+                }
+            }
+            let Some(delta) = solve_dense(ata, atb) else { break };
+            for (j, (ch, n)) in names.iter().enumerate() {
+                let d = delta[j];
+                match *n {
+                    "scale" => {
+                        let f = (1.0 + d) as f32;
+                        u[*ch].iter_mut().for_each(|kk| kk.scale(f));
+                        a_parts[*ch].scale(f);
+                    }
+                    "beta" => beta[*ch] += d,
+                    "glare" => glare_amp[*ch] = (glare_amp[*ch] + d).max(0.0),
+                    "k1" | "k2" | "k3" => {
+                        if let Some(v) = corr.vignetting.as_mut() {
+                            match *n {
+                                "k1" => v.k1 += d,
+                                "k2" => v.k2 += d,
+                                _ => v.k3 += d,
+                            }
+                        }
+                    }
+                    "gx" => {
+                        if let Some(v) = corr.illumination_gradient.as_mut() {
+                            v.gx += d;
+                        }
+                    }
+                    "gy" => {
+                        if let Some(v) = corr.illumination_gradient.as_mut() {
+                            v.gy += d;
+                        }
+                    }
+                    _ => {}
+                }
+            }
+        }
+    }
+
+    // final parameters into the model
+    let g = gain_plane(&corr);
+    let mut kernels = Vec::with_capacity(nch);
+    let mut exposure = Vec::with_capacity(nch);
+    let mut fractions = Vec::new();
+    for c in 0..nch {
+        let s_k = u[c].iter().map(|kk| kk.sum()).sum::<f64>() / u[c].len().max(1) as f64;
+        kernels.push(u[c].iter().map(|kk| kk.map(|v| (v as f64 / s_k.max(1e-30)) as f32)).collect::<Vec<_>>());
+        exposure.push(s_k + glare_amp[c]);
+        fractions.push(glare_amp[c] / (s_k + glare_amp[c]).max(1e-30));
+    }
+    if let Some(gc) = corr.veiling_glare.as_mut() {
+        *gc = GlareCorrection { fraction: fractions.iter().sum::<f64>() / nch as f64, sigma_px: gc.sigma_px };
+    }
+    if let Some(b) = corr.black_level.as_mut() {
+        b.offset = beta.clone();
+    }
+    if let Some(f) = corr.psf_field_variation.as_mut() {
+        f.columns = grid0.columns;
+        f.rows = grid0.rows;
+    }
+    let grid = PsfGrid { kernels, ..grid0.clone() };
+
+    // figures on the stored axis
+    let mut predicted = Vec::with_capacity(nch);
+    let mut normalized = Vec::with_capacity(nch);
+    let mut variance = Vec::with_capacity(nch);
+    let mut eval = Vec::with_capacity(nch);
+    let (mut chi2_channel, mut n_channel, mut sq_channel, mut var_channel) = (vec![], vec![], vec![], vec![]);
+    let clip = corr.saturation.map(|s| s.clip_level);
+    for c in 0..nch {
+        let vl = update_variance(c, &a_parts[c], &u[c], &g, glare_amp[c], beta[c]);
+        let mut pred = Plane::new(w, h);
+        let mut norm = Plane::new(w, h);
+        let mut var_s = Plane::new(w, h);
+        let (mut chi2, mut n, mut sq, mut vs) = (0.0f64, 0usize, 0.0f64, 0.0f64);
+        for i in 0..w * h {
+            let lp = glare_planes.as_ref().map_or(0.0, |gp| gp[c].data[i]);
+            let m = g.data[i] * (a_parts[c].data[i] + glare_amp[c] as f32 * lp) + beta[c] as f32;
+            let mut e = transfer.encode(m);
+            if let Some(l) = clip {
+                e = e.min(l);
+            }
+            pred.data[i] = e;
+            let slope = match transfer {
+                Transfer::Linear => 1.0,
+                Transfer::Srgb => srgb_slope(m.max(1e-4)),
+            };
+            let v = vl.data[i] * slope * slope;
+            var_s.data[i] = v;
+            if !interior[i] {
+                continue;
+            }
+            let o = data.open.planes[c].data[i];
+            let d = o - e;
+            let contrib = if saturation && pin_clipped[c][i] {
+                1.0
+            } else if saturation && clipped_open[c][i] {
+                if e >= CLIP { 0.0 } else { ((CLIP - e) as f64).powi(2) / v as f64 }
+            } else {
+                (d as f64).powi(2) / v as f64
+            };
+            norm.data[i] = if contrib == 0.0 { 0.0 } else { (contrib.sqrt() as f32).copysign(d) };
+            chi2 += contrib;
+            sq += (d as f64).powi(2);
+            vs += v as f64;
+            n += 1;
+        }
+        predicted.push(pred);
+        normalized.push(norm);
+        variance.push(var_s);
+        eval.push(interior.clone());
+        chi2_channel.push(chi2);
+        n_channel.push(n);
+        sq_channel.push(sq);
+        var_channel.push(vs);
+    }
+    let laws: Vec<super::noise::PoissonGaussian> = data.curves.iter().map(|c| super::noise::PoissonGaussian::fit(c, transfer)).collect();
+    let params = nch * (grid.tile_count() * (k * k - 1) + 1) + correction_params(&corr, nch);
+    Fit {
+        model: Model { corrections: corr, grid, exposure },
+        transfer,
+        predicted,
+        normalized,
+        variance,
+        eval,
+        chi2_channel,
+        n_channel,
+        sq_channel,
+        var_channel,
+        params,
+        noise_chi2: laws.iter().map(|l| l.chi2).sum(),
+        noise_misfit: laws.iter().map(|l| l.misfit).fold(0.0, f64::max),
+        reference,
+    }
+}

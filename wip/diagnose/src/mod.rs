@@ -1,0 +1,363 @@
+//! Model-mismatch diagnosis (`lensrig diagnose`): where the base model (tile-wise PSFs, sharp
+//! pinhole reference, linear radiometry with one exposure ratio; METHOD.md §6) and the
+//! recording disagree, which physics it left out (METHOD.md §7), the refit with that physics,
+//! and the fit against the noise floor.
+//!
+//! # Pipeline
+//! 1. [`noise`]: the sensor's noise curve from the wide-open capture alone.
+//! 2. Base model: a profile (given, or estimated with [`crate::estimate`]), then every kernel
+//!    refitted jointly in the forward model ([`kernels`], [`fit`]); its normalised residual is
+//!    analysed ([`analysis`]).
+//! 3. While the reduced χ² exceeds [`DiagnoseOptions::consistent`] (noise-model uncertainty
+//!    included): every catalogue effect not yet in the model is added in turn and refitted
+//!    from the current model ([`candidates`]); so is the current model itself with the same
+//!    budget (the *null refit*, so extra iterations are never credited to physics). The effect
+//!    with the lowest BIC (`χ² + p·ln N`) wins if it beats the null refit's BIC and removes at
+//!    least [`DiagnoseOptions::min_gain`] of its χ².
+//! 4. The final model's kernels and corrections form a profile ([`model`]); [`report`] writes
+//!    `report.json`, the predictions, residual maps and `index.html`.
+//!
+//! # Conventions
+//! χ² and RMS are on the stored axis of the wide-open file; the noise floor is the predicted
+//! noise RMS (wide-open noise plus the pinhole's noise through the kernel).
+
+pub mod analysis;
+pub mod candidates;
+pub mod cli;
+pub mod fit;
+pub mod kernels;
+pub mod model;
+pub mod noise;
+pub mod proof;
+pub mod report;
+
+use crate::estimate::register::{self, RegistrationModel};
+use crate::estimate::{estimate, EstimateError, EstimateOptions};
+use crate::image::{Image, Plane};
+use crate::profile::Profile;
+use analysis::{analyse, Analysis};
+use fit::{Data, Fit, FitSettings, Model};
+use noise::{NoiseCurve, PoissonGaussian};
+use serde::Serialize;
+
+/// Why the diagnosis failed.
+#[derive(Debug, thiserror::Error)]
+pub enum DiagnoseError {
+    #[error("the images differ: {0}")]
+    Mismatch(String),
+    #[error("base estimate failed: {0}")]
+    Estimate(#[from] EstimateError),
+    #[error("the profile does not fit the images: {0}")]
+    Profile(String),
+    #[error(transparent)]
+    Corrections(#[from] model::CorrectionError),
+}
+
+/// Settings of [`diagnose`].
+#[derive(Clone, Debug)]
+pub struct DiagnoseOptions {
+    /// Used when no profile is given.
+    pub estimate: EstimateOptions,
+    /// Budget of the base fit.
+    pub base_fit: FitSettings,
+    /// Budget of each candidate's refit (and the null refit).
+    pub candidate_fit: FitSettings,
+    /// At most this many effects are added.
+    pub max_effects: usize,
+    /// A reduced χ² at or below this is consistent with noise (the noise curve is measured, not
+    /// known: a few percent of slack).
+    pub consistent: f64,
+    /// An effect must remove at least this fraction of the null refit's χ².
+    pub min_gain: f64,
+    /// The noise curve is consistent with a Poisson–Gaussian law when its RMS relative misfit
+    /// is at most this.
+    pub consistent_noise: f64,
+}
+
+impl Default for DiagnoseOptions {
+    fn default() -> Self {
+        Self {
+            estimate: EstimateOptions { max_iterations: 150, ..Default::default() },
+            base_fit: FitSettings { rounds: 3, kernel_iterations: 80 },
+            candidate_fit: FitSettings { rounds: 2, kernel_iterations: 40 },
+            max_effects: 4,
+            consistent: 1.06,
+            min_gain: 0.01,
+            consistent_noise: 0.10,
+        }
+    }
+}
+
+/// Fit figures for the report.
+#[derive(Clone, Debug, Serialize)]
+pub struct Figures {
+    pub reduced_chi2: f64,
+    pub chi2: f64,
+    pub pixels: usize,
+    pub parameters: usize,
+    pub bic: f64,
+    /// Residual RMS, stored axis.
+    pub rms: f64,
+    /// Predicted noise RMS (the floor), stored axis.
+    pub noise_rms: f64,
+    pub reduced_chi2_channel: Vec<f64>,
+}
+
+impl Figures {
+    pub fn of(fit: &Fit) -> Figures {
+        let nch = fit.chi2_channel.len().max(1);
+        Figures {
+            reduced_chi2: fit.reduced_chi2(),
+            chi2: fit.chi2(),
+            pixels: fit.n(),
+            parameters: fit.params,
+            bic: fit.bic(),
+            rms: fit.rms(),
+            noise_rms: fit.noise_rms(),
+            reduced_chi2_channel: fit.chi2_channel.iter().zip(&fit.n_channel).map(|(c, n)| c / (*n as f64 - fit.params as f64 / nch as f64).max(1.0)).collect(),
+        }
+    }
+}
+
+/// The noise model of one channel.
+#[derive(Clone, Debug, Serialize)]
+pub struct NoiseReport {
+    pub channel: String,
+    /// Poisson–Gaussian law on the final model's linear axis: `Var = a·L + b`.
+    pub a: f64,
+    pub b: f64,
+    /// RMS relative misfit of the measured bins to the law.
+    pub misfit: f64,
+    /// The same law assuming linear data (differs from the above when a tone curve was found).
+    pub a_linear: f64,
+    pub b_linear: f64,
+    pub misfit_linear: f64,
+    /// Measured `(mean stored value, variance, pixels)` bins.
+    pub curve: NoiseCurve,
+    /// Noise floor of the final model (predicted noise RMS in this channel, stored axis).
+    pub floor_rms: f64,
+}
+
+/// One effect the diagnosis added.
+#[derive(Clone, Debug, Serialize)]
+pub struct FoundEffect {
+    pub name: String,
+    pub evidence: String,
+    #[serde(rename = "where")]
+    pub location: String,
+    pub parameters: serde_json::Value,
+    pub before: Figures,
+    pub after: Figures,
+    /// BIC of the model with the effect minus the null refit's.
+    pub delta_bic: f64,
+}
+
+/// A candidate's score in one round.
+#[derive(Clone, Debug, Serialize)]
+pub struct CandidateScore {
+    pub name: String,
+    /// The candidate's fitted parameters.
+    pub parameters: serde_json::Value,
+    pub reduced_chi2: f64,
+    pub delta_bic: f64,
+    pub note: String,
+}
+
+/// Everything the diagnosis found.
+pub struct Diagnosis {
+    pub noise: Vec<NoiseReport>,
+    pub base: Fit,
+    pub base_analysis: Analysis,
+    pub final_fit: Fit,
+    pub final_analysis: Analysis,
+    pub effects: Vec<FoundEffect>,
+    /// Per round, every candidate tried (the null refit first).
+    pub rounds: Vec<Vec<CandidateScore>>,
+    /// "no mismatch", "explained" or "unexplained: …".
+    pub verdict: String,
+    /// Held-out reduced χ² of the final model (fit on one half of a checkerboard of blocks,
+    /// evaluated on the other, both ways) next to the in-sample value.
+    pub cross_validation: [f64; 2],
+    /// The corrected profile.
+    pub profile: Profile,
+    pub open: Image,
+}
+
+fn sum_planes(ps: &[Plane]) -> Plane {
+    let mut s = Plane::new(ps[0].width, ps[0].height);
+    for p in ps {
+        for (a, b) in s.data.iter_mut().zip(&p.data) {
+            *a += b;
+        }
+    }
+    s
+}
+
+/// Diagnoses a wide-open / pinhole pair (as stored; `open.transfer` is the declared encoding)
+/// against `profile`, or against a base profile estimated here when none is given.
+///
+/// # Errors
+/// Size or channel mismatch, a profile for other images, or a failed base estimate.
+pub fn diagnose(open: &Image, pinhole: &Image, profile: Option<&Profile>, opts: &DiagnoseOptions) -> Result<Diagnosis, DiagnoseError> {
+    if open.width() != pinhole.width() || open.height() != pinhole.height() || open.channel_count() != pinhole.channel_count() {
+        return Err(DiagnoseError::Mismatch(format!(
+            "wide-open is {}x{} with {} channel(s), pinhole {}x{} with {}",
+            open.width(),
+            open.height(),
+            open.channel_count(),
+            pinhole.width(),
+            pinhole.height(),
+            pinhole.channel_count()
+        )));
+    }
+    let base_profile = match profile {
+        Some(p) => {
+            let s = &p.meta.source;
+            if s.width != open.width() || s.height != open.height() || p.grid.channels.len() != open.channel_count() {
+                return Err(DiagnoseError::Profile(format!(
+                    "profile is for {}x{} images with {} channel(s), the captures are {}x{} with {}",
+                    s.width,
+                    s.height,
+                    p.grid.channels.len(),
+                    open.width(),
+                    open.height(),
+                    open.channel_count()
+                )));
+            }
+            p.clone()
+        }
+        None => {
+            // the base model keeps clipped pixels in the data term (that is a catalogue effect)
+            let eo = EstimateOptions { saturation: f32::INFINITY, ..opts.estimate.clone() };
+            estimate(open, pinhole, &eo)?.profile
+        }
+    };
+    let curves: Vec<NoiseCurve> = open.planes.iter().map(|p| noise::measure(p, 16)).collect();
+    let lin = |img: &Image| -> Vec<Plane> { img.planes.iter().map(|p| p.map(|v| img.transfer.decode(v))).collect() };
+    let base_registration = register::register(&sum_planes(&lin(open)), &sum_planes(&lin(pinhole)), RegistrationModel::Translation).info;
+    let data = Data { open: open.clone(), pinhole: pinhole.clone(), curves, base_registration };
+    let init = Model { corrections: model::Corrections::default(), grid: base_profile.grid.clone(), exposure: base_profile.meta.exposure_ratio.clone() };
+    let provisional = fit::fit(&data, &init.corrections, &init, opts.base_fit);
+    // the noise curve from the base model's residual (module docs of `noise`), then the base
+    // model refitted with it; the curve stays fixed for every later model
+    let mut data = data;
+    data.curves = (0..open.channel_count())
+        .map(|c| noise::measure_residual(&open.planes[c], &provisional.predicted[c], &provisional.eval[c], 16, 8))
+        .collect();
+    let base = fit::fit(&data, &provisional.model.corrections, &provisional.model, FitSettings { rounds: 1, kernel_iterations: opts.base_fit.kernel_iterations });
+    let base_analysis = analyse(&base);
+
+    let mut current_analysis = base_analysis.clone();
+    let mut current = base.clone();
+    let mut effects = Vec::new();
+    let mut rounds = Vec::new();
+    let consistent = |f: &Fit| f.reduced_chi2() <= opts.consistent && f.noise_misfit <= opts.consistent_noise;
+    while effects.len() < opts.max_effects && !consistent(&current) {
+        let null = fit::fit(&data, &current.model.corrections, &current.model, opts.candidate_fit);
+        let mut scores = vec![CandidateScore { name: "(null refit)".into(), reduced_chi2: null.reduced_chi2(), parameters: serde_json::Value::Null, delta_bic: 0.0, note: "the current model refitted with the candidates' budget".into() }];
+        let mut best: Option<(candidates::Candidate, Fit, f64)> = None;
+        for cand in candidates::propose(&data, &current, &current_analysis) {
+            let f = fit::fit(&data, &cand.corrections, cand.init.as_ref().unwrap_or(&current.model), opts.candidate_fit);
+            let dbic = f.bic() - null.bic();
+            let total = |f: &Fit| f.chi2() + f.noise_chi2;
+            let gain = (total(&null) - total(&f)) / total(&null).max(1e-300);
+            scores.push(CandidateScore { name: cand.name.to_string(), parameters: candidates::parameters_json(cand.name, &f.model.corrections), reduced_chi2: f.reduced_chi2(), delta_bic: dbic, note: format!("removes {:.1}% of χ²", 100.0 * gain) });
+            if dbic < 0.0 && gain >= opts.min_gain && best.as_ref().is_none_or(|b| dbic < b.2) {
+                best = Some((cand, f, dbic));
+            }
+        }
+        rounds.push(scores);
+        let Some((cand, f, dbic)) = best else { break };
+        let before = Figures::of(&current);
+        // polish the winner with the base budget
+        let polished = fit::fit(&data, &f.model.corrections, &f.model, opts.base_fit);
+        let f = if polished.chi2() <= f.chi2() { polished } else { f };
+        let after = Figures::of(&f);
+        let parameters = candidates::parameters_json(cand.name, &f.model.corrections);
+        effects.push(FoundEffect {
+            name: cand.name.to_string(),
+            evidence: cand.evidence,
+            location: cand.location,
+            parameters,
+            before,
+            after,
+            delta_bic: dbic,
+        });
+        // the better model's residual gives a cleaner noise curve; refigure with it
+        data.curves = (0..open.channel_count()).map(|c| noise::measure_residual(&open.planes[c], &f.predicted[c], &f.eval[c], 16, 8)).collect();
+        current = fit::fit(&data, &f.model.corrections, &f.model, FitSettings { rounds: 1, kernel_iterations: opts.candidate_fit.kernel_iterations });
+        current_analysis = analyse(&current);
+    }
+    let final_analysis = current_analysis;
+    let verdict = if effects.is_empty() && consistent(&current) {
+        "no mismatch: the base model fits to the noise floor".to_string()
+    } else if consistent(&current) {
+        format!("explained: {} bring the fit to the noise floor", effects.iter().map(|e| e.name.as_str()).collect::<Vec<_>>().join(", "))
+    } else {
+        let curvebits: Vec<String> = final_analysis
+            .curves
+            .iter()
+            .filter(|c| c.msq_range() > 0.3 || c.mean_range() > 0.3)
+            .map(|c| format!("{} (mean z spans {:.2}, z² spans {:.2})", c.name, c.mean_range(), c.msq_range()))
+            .collect();
+        format!(
+            "unexplained: reduced χ² {:.3} remains (noise law misfit {:.0}%); {}; residual depends on {}; excess kurtosis {:.2}",
+            current.reduced_chi2(),
+            100.0 * current.noise_misfit,
+            analysis::where_text(&final_analysis),
+            if curvebits.is_empty() { "no single variable".to_string() } else { curvebits.join(", ") },
+            final_analysis.excess_kurtosis
+        )
+    };
+    let cross_validation = cross_validate(&data, &current, opts.candidate_fit);
+    let transfer = current.transfer;
+    let noise = data
+        .curves
+        .iter()
+        .enumerate()
+        .map(|(c, curve)| {
+            let pg = PoissonGaussian::fit(curve, transfer);
+            let pl = PoissonGaussian::fit(curve, crate::image::Transfer::Linear);
+            NoiseReport {
+                channel: open.channels.get(c).cloned().unwrap_or_default(),
+                a: pg.a,
+                b: pg.b,
+                misfit: pg.misfit,
+                a_linear: pl.a,
+                b_linear: pl.b,
+                misfit_linear: pl.misfit,
+                curve: curve.clone(),
+                floor_rms: (current.var_channel[c] / current.n_channel[c].max(1) as f64).sqrt(),
+            }
+        })
+        .collect();
+    let mut out_profile = base_profile.clone();
+    out_profile.grid = current.model.grid.clone();
+    out_profile.meta.exposure_ratio = current.model.exposure.clone();
+    out_profile.meta.psf.columns = current.model.grid.columns;
+    out_profile.meta.psf.rows = current.model.grid.rows;
+    out_profile.meta.psf.centers = current.model.grid.centers.clone();
+    out_profile.meta.psf.tile_size = Some([open.width() / current.model.grid.columns, open.height() / current.model.grid.rows]);
+    out_profile.meta.corrections = current.model.corrections.to_table()?;
+    out_profile.meta.note = format!("refitted by `lensrig diagnose`: {verdict}");
+    Ok(Diagnosis { noise, base, base_analysis, final_fit: current, final_analysis, effects, rounds, verdict, cross_validation, profile: out_profile, open: open.clone() })
+}
+
+/// Held-out χ²: the model is refitted on one colour of a 16-px checkerboard and evaluated on
+/// the other, both ways; returns `[held-out reduced χ², in-sample reduced χ²]`.
+fn cross_validate(data: &Data, current: &Fit, settings: FitSettings) -> [f64; 2] {
+    let mut held = (0.0f64, 0usize);
+    for parity in 0..2 {
+        let f = fit::fit_masked(data, &current.model.corrections, &current.model, settings, &|x, y| ((x / 16) + (y / 16)) % 2 == parity);
+        for c in 0..f.normalized.len() {
+            for (i, z) in f.normalized[c].data.iter().enumerate() {
+                let (x, y) = (i % f.normalized[c].width, i / f.normalized[c].width);
+                if f.eval[c][i] && ((x / 16) + (y / 16)) % 2 != parity {
+                    held.0 += (*z as f64).powi(2);
+                    held.1 += 1;
+                }
+            }
+        }
+    }
+    [held.0 / held.1.max(1) as f64, current.reduced_chi2()]
+}

@@ -1,0 +1,363 @@
+//! The corrected forward model: the physics `diagnose` can add to a profile, stored in
+//! `profile.toml`'s `[corrections]` table and applied by [`apply_corrections`].
+//!
+//! # The model, in the order it is applied to a sharp (pinhole) image `P`
+//! 1. `tone_curve` — both captures are encoded: `L_p = T⁻¹(P)` (`transfer = "srgb"`), and the
+//!    prediction is encoded back at the end. Without it the profile's source transfer is used.
+//! 2. `misregistration` — the reference is resampled onto the wide-open geometry with the fitted
+//!    similarity (`matrix`, `translation`; the convention of [`crate::profile::RegistrationInfo`]).
+//! 3. **blur** — `A = Σ_t w_t·(K_t * L_p)`, the profile's kernels (sum 1), hat-interpolated.
+//!    `psf_field_variation` records the finer grid (`columns`, `rows`) the kernels were refitted
+//!    on; the kernels themselves are the profile's `[psf]`.
+//! 4. `veiling_glare` — `B = (1 − f)·A + f·(G_σ * L_p)` (`fraction f`, `sigma_px σ`, a
+//!    Gaussian, energy conserving like the simulator's).
+//! 5. **exposure and gain** — `s·V(r)·D(x̂, ŷ)·B` with `s` the profile's exposure ratio,
+//!    `vignetting` `V = 1 + k1 r² + k2 r⁴ + k3 r⁶` (`r = 1` at half the diagonal) and
+//!    `illumination_gradient` `D = 1 + gx·x̂ + gy·ŷ` (`x̂, ŷ ∈ [−1, 1]` across the image):
+//!    the gain of the wide-open capture *relative to* the reference.
+//! 6. `black_level` — `+ β_c` per channel (linear full scale): the offset of the wide-open
+//!    capture relative to `s` times the reference's.
+//! 7. encode (step 1), then `saturation` — `min(value, clip_level)` on the stored axis.
+//!
+//! Every correction is optional; an empty table is the base model of METHOD.md §6.
+
+use crate::estimate::register;
+use crate::image::{Image, Plane, Transfer};
+use crate::optics::capture::gaussian_blur;
+use crate::optics::forward::blur_channel;
+use crate::profile::{Profile, RegistrationInfo};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+
+/// Veiling glare parameters.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GlareCorrection {
+    pub fraction: f64,
+    pub sigma_px: f64,
+}
+
+/// Tone curve: the transfer function both captures were encoded with.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ToneCorrection {
+    pub transfer: Transfer,
+}
+
+/// Clipping level on the stored axis.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SaturationCorrection {
+    pub clip_level: f32,
+}
+
+/// The grid the kernels were refitted on.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FieldCorrection {
+    pub columns: usize,
+    pub rows: usize,
+}
+
+/// Vignetting ratio coefficients.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct VignettingCorrection {
+    pub k1: f64,
+    pub k2: f64,
+    pub k3: f64,
+}
+
+/// Planar gain.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GradientCorrection {
+    pub gx: f64,
+    pub gy: f64,
+}
+
+/// Per-channel offsets.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BlackLevelCorrection {
+    pub offset: Vec<f64>,
+}
+
+/// Every correction the diagnosis can fit; `None` = not part of the model.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Corrections {
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub tone_curve: Option<ToneCorrection>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub misregistration: Option<RegistrationInfo>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub psf_field_variation: Option<FieldCorrection>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub veiling_glare: Option<GlareCorrection>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub vignetting: Option<VignettingCorrection>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub illumination_gradient: Option<GradientCorrection>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub black_level: Option<BlackLevelCorrection>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub saturation: Option<SaturationCorrection>,
+}
+
+/// Why corrections could not be read or applied.
+#[derive(Debug, thiserror::Error)]
+pub enum CorrectionError {
+    #[error("[corrections] table: {0}")]
+    Table(String),
+    #[error("image does not fit the profile: {0}")]
+    Mismatch(String),
+}
+
+impl Corrections {
+    /// The names of the corrections present, in model order.
+    pub fn names(&self) -> Vec<&'static str> {
+        let mut v = Vec::new();
+        if self.tone_curve.is_some() {
+            v.push("tone_curve");
+        }
+        if self.misregistration.is_some() {
+            v.push("misregistration");
+        }
+        if self.psf_field_variation.is_some() {
+            v.push("psf_field_variation");
+        }
+        if self.veiling_glare.is_some() {
+            v.push("veiling_glare");
+        }
+        if self.vignetting.is_some() {
+            v.push("vignetting");
+        }
+        if self.illumination_gradient.is_some() {
+            v.push("illumination_gradient");
+        }
+        if self.black_level.is_some() {
+            v.push("black_level");
+        }
+        if self.saturation.is_some() {
+            v.push("saturation");
+        }
+        v
+    }
+
+    /// The `[corrections]` table of `profile.toml`.
+    ///
+    /// # Errors
+    /// When a value cannot be represented in TOML (not expected for finite numbers).
+    pub fn to_table(&self) -> Result<BTreeMap<String, toml::Value>, CorrectionError> {
+        let v = toml::Value::try_from(self).map_err(|e| CorrectionError::Table(e.to_string()))?;
+        match v {
+            toml::Value::Table(t) => Ok(t.into_iter().collect()),
+            _ => Err(CorrectionError::Table("corrections did not serialise to a table".into())),
+        }
+    }
+
+    /// Reads the `[corrections]` table (unknown effect names are an error).
+    ///
+    /// # Errors
+    /// Unknown names or malformed parameters.
+    pub fn from_table(t: &BTreeMap<String, toml::Value>) -> Result<Corrections, CorrectionError> {
+        let table: toml::Table = t.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
+        toml::Value::Table(table).try_into().map_err(|e: toml::de::Error| CorrectionError::Table(e.message().to_string()))
+    }
+
+    /// Gain `V(r)·D(x̂, ŷ)` at pixel `(x, y)` of a `w × h` image.
+    pub fn gain(&self, x: usize, y: usize, w: usize, h: usize) -> f64 {
+        let cx = (w as f64 - 1.0) / 2.0;
+        let cy = (h as f64 - 1.0) / 2.0;
+        let (dx, dy) = (x as f64 - cx, y as f64 - cy);
+        let r2 = (dx * dx + dy * dy) / (0.25 * ((w * w + h * h) as f64));
+        let mut g = 1.0;
+        if let Some(v) = self.vignetting {
+            g *= 1.0 + v.k1 * r2 + v.k2 * r2 * r2 + v.k3 * r2 * r2 * r2;
+        }
+        if let Some(d) = self.illumination_gradient {
+            g *= 1.0 + d.gx * dx / cx.max(0.5) + d.gy * dy / cy.max(0.5);
+        }
+        g
+    }
+}
+
+/// The transfer a model uses for both captures.
+pub fn model_transfer(c: &Corrections, declared: Transfer) -> Transfer {
+    c.tone_curve.map_or(declared, |t| t.transfer)
+}
+
+/// Linear reference planes as the model sees them: decoded, then registered.
+pub fn reference_planes(pinhole: &Image, transfer: Transfer, registration: &RegistrationInfo) -> Vec<Plane> {
+    pinhole.planes.iter().map(|p| register_reference(&p.map(|v| transfer.decode(v)), registration)).collect()
+}
+
+/// Applies a registration to a reference plane: translations as in
+/// [`register::apply`] (integer part), similarities by Lanczos-4 resampling (the reference is
+/// sharp: bicubic resampling would low-pass exactly the detail the kernels must reproduce, and
+/// by an amount that varies with the fractional offset across the field).
+pub fn register_reference(p: &Plane, info: &RegistrationInfo) -> Plane {
+    if info.model != "similarity" {
+        return register::apply(p, info);
+    }
+    // sample at p − d(p) = (2I − A)(p − c) + c − t
+    let (a, b) = (info.matrix[0], info.matrix[2]);
+    let (m00, m01, m10, m11) = (2.0 - a, b, -b, 2.0 - a);
+    let cx = (p.width as f64 - 1.0) / 2.0;
+    let cy = (p.height as f64 - 1.0) / 2.0;
+    let lanczos = |t: f64| -> f64 {
+        let t = t.abs();
+        if t < 1e-9 {
+            1.0
+        } else if t >= 4.0 {
+            0.0
+        } else {
+            let pt = std::f64::consts::PI * t;
+            4.0 * pt.sin() * (pt / 4.0).sin() / (pt * pt)
+        }
+    };
+    Plane::from_fn(p.width, p.height, |x, y| {
+        let (dx, dy) = (x as f64 - cx, y as f64 - cy);
+        let sx = m00 * dx + m01 * dy + cx - info.translation[0];
+        let sy = m10 * dx + m11 * dy + cy - info.translation[1];
+        let (x0, y0) = (sx.floor(), sy.floor());
+        let (fx, fy) = (sx - x0, sy - y0);
+        let wx: Vec<f64> = (-3..=4).map(|i| lanczos(fx - i as f64)).collect();
+        let wy: Vec<f64> = (-3..=4).map(|j| lanczos(fy - j as f64)).collect();
+        let (sxw, syw) = (wx.iter().sum::<f64>(), wy.iter().sum::<f64>());
+        let mut acc = 0.0;
+        for (j, wyj) in wy.iter().enumerate() {
+            let mut row = 0.0;
+            for (i, wxi) in wx.iter().enumerate() {
+                row += wxi * p.get_reflect(x0 as isize + i as isize - 3, y0 as isize + j as isize - 3) as f64;
+            }
+            acc += wyj * row;
+        }
+        (acc / (sxw * syw)) as f32
+    })
+}
+
+/// The linear prediction (steps 3–6 of the module docs) from registered linear reference
+/// planes, with per-channel exposure ratios.
+pub fn predict_linear(c: &Corrections, profile_grid: &crate::optics::psf_grid::PsfGrid, exposure: &[f64], reference: &[Plane]) -> Vec<Plane> {
+    reference
+        .iter()
+        .enumerate()
+        .map(|(ch, p)| {
+            let (w, h) = (p.width, p.height);
+            let mut a = blur_channel(p, profile_grid, ch);
+            if let Some(g) = c.veiling_glare {
+                let wide = gaussian_blur(p, g.sigma_px);
+                for (v, b) in a.data.iter_mut().zip(&wide.data) {
+                    *v = (1.0 - g.fraction as f32) * *v + g.fraction as f32 * b;
+                }
+            }
+            let s = exposure.get(ch).copied().unwrap_or(1.0);
+            let off = c.black_level.as_ref().and_then(|b| b.offset.get(ch).copied()).unwrap_or(0.0);
+            for y in 0..h {
+                for x in 0..w {
+                    let i = y * w + x;
+                    a.data[i] = (a.data[i] as f64 * s * c.gain(x, y, w, h) + off) as f32;
+                }
+            }
+            a
+        })
+        .collect()
+}
+
+/// Encodes a linear prediction for storage (step 7).
+pub fn encode_prediction(c: &Corrections, transfer: Transfer, linear: &[Plane]) -> Vec<Plane> {
+    let clip = c.saturation.map(|s| s.clip_level);
+    linear
+        .iter()
+        .map(|p| {
+            p.map(|v| {
+                let e = transfer.encode(v);
+                clip.map_or(e, |l| e.min(l))
+            })
+        })
+        .collect()
+}
+
+/// The wide-open image a profile predicts from a sharp (pinhole) image with the profile's
+/// `[corrections]` applied (module docs), in the profile's source encoding (or the tone
+/// curve's), same size and sample format. Without corrections this equals the base
+/// prediction of `lensrig simulate` (which subtracts and restores the source black level).
+///
+/// # Errors
+/// A malformed `[corrections]` table, or an image whose size or channel count differs from
+/// the profile's source.
+pub fn apply_corrections(profile: &Profile, sharp: &Image) -> Result<Image, CorrectionError> {
+    let src = &profile.meta.source;
+    if sharp.width() != src.width || sharp.height() != src.height {
+        return Err(CorrectionError::Mismatch(format!("image is {}x{}, profile source {}x{}", sharp.width(), sharp.height(), src.width, src.height)));
+    }
+    if sharp.channel_count() != profile.grid.channels.len() {
+        return Err(CorrectionError::Mismatch(format!("image has {} channel(s), the profile {}", sharp.channel_count(), profile.grid.channels.len())));
+    }
+    let c = Corrections::from_table(&profile.meta.corrections)?;
+    let transfer = model_transfer(&c, src.transfer);
+    let black = &src.black_level;
+    let bl = |ch: usize| black.get(ch).or(black.first()).copied().unwrap_or(0.0);
+    let reference: Vec<Plane> = sharp
+        .planes
+        .iter()
+        .enumerate()
+        .map(|(ch, p)| {
+            let lin = p.map(|v| transfer.decode(v) - bl(ch));
+            match &c.misregistration {
+                Some(info) => register_reference(&lin, info),
+                None => lin,
+            }
+        })
+        .collect();
+    let mut linear = predict_linear(&c, &profile.grid, &profile.meta.exposure_ratio, &reference);
+    for (ch, p) in linear.iter_mut().enumerate() {
+        let b = bl(ch);
+        p.data.iter_mut().for_each(|v| *v += b);
+    }
+    let mut img = Image::new(encode_prediction(&c, transfer, &linear));
+    img.channels = profile.grid.channels.clone();
+    img.transfer = transfer;
+    img.format = src.sample_format;
+    Ok(img)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn table_round_trip_and_unknown_names() {
+        let c = Corrections {
+            vignetting: Some(VignettingCorrection { k1: -0.2, k2: 0.01, k3: 0.0 }),
+            black_level: Some(BlackLevelCorrection { offset: vec![0.01, 0.02] }),
+            tone_curve: Some(ToneCorrection { transfer: Transfer::Srgb }),
+            ..Default::default()
+        };
+        let t = c.to_table().unwrap();
+        assert!(t.contains_key("vignetting") && t.contains_key("black_level") && t.contains_key("tone_curve"));
+        assert_eq!(Corrections::from_table(&t).unwrap(), c);
+        let mut bad = t.clone();
+        bad.insert("lens_flare".into(), toml::Value::Integer(1));
+        assert!(Corrections::from_table(&bad).is_err());
+        assert_eq!(c.names(), vec!["tone_curve", "vignetting", "black_level"]);
+    }
+
+    #[test]
+    fn gain_matches_the_simulator() {
+        let c = Corrections {
+            vignetting: Some(VignettingCorrection { k1: -0.3, k2: 0.05, k3: 0.01 }),
+            illumination_gradient: Some(GradientCorrection { gx: 0.1, gy: -0.05 }),
+            ..Default::default()
+        };
+        let (w, h) = (40, 30);
+        let mut p = Plane::filled(w, h, 1.0);
+        crate::optics::capture::apply_gain(&mut p, |xn, yn, _| 1.0 + 0.1 * xn - 0.05 * yn);
+        crate::optics::capture::apply_gain(&mut p, |_, _, r2| 1.0 - 0.3 * r2 + 0.05 * r2 * r2 + 0.01 * r2 * r2 * r2);
+        for (x, y) in [(0, 0), (39, 29), (20, 3), (7, 21)] {
+            assert!((p.get(x, y) as f64 - c.gain(x, y, w, h)).abs() < 1e-5);
+        }
+    }
+}

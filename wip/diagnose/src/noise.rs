@@ -1,0 +1,273 @@
+//! The noise model, measured from the wide-open capture alone.
+//!
+//! # Method
+//! At every pixel whose 3×3 neighbourhood is neither clipped nor black, the high-pass
+//! `d = (4·c − n − s − e − w) / √20` (unit gain on white noise) removes the blurred signal and
+//! keeps the noise; the 3×3 mean gives the local level. Pixels are binned by level (equal
+//! counts) and each bin's variance is the squared robust deviation `(1.4826·MAD(d))²`. The
+//! result is a [`NoiseCurve`]: variance of the *stored* values as a function of the stored
+//! value, valid whatever the encoding. A Poisson–Gaussian law `Var = a·L + b` on the linear
+//! axis `L` is then fitted to the bins ([`PoissonGaussian::fit`]) for the chosen transfer
+//! curve; how well it fits is itself evidence about the encoding.
+//!
+//! The curve is a property of the sensor, so the same curve describes the pinhole capture
+//! (same camera): its noise is propagated through the kernel as
+//! `Var_pred = s²·ΣK²·Var_pinhole` ([`super::fit`]).
+//!
+//! All variances are on the full-scale axis squared ([`crate::image`]).
+
+use crate::image::{Plane, Transfer};
+use serde::Serialize;
+
+/// Measured noise variance against level, stored domain, one channel.
+#[derive(Clone, Debug, Serialize)]
+pub struct NoiseCurve {
+    /// `(mean stored value, variance of stored values, pixel count)` per bin, sorted by mean.
+    pub bins: Vec<(f64, f64, usize)>,
+}
+
+impl NoiseCurve {
+    /// Variance of a stored value `v`, interpolated linearly between bins and held flat
+    /// beyond the measured range.
+    pub fn variance(&self, v: f32) -> f32 {
+        let b = &self.bins;
+        if b.is_empty() {
+            return 0.0;
+        }
+        let v = v as f64;
+        if v <= b[0].0 {
+            return b[0].1 as f32;
+        }
+        for i in 1..b.len() {
+            if v <= b[i].0 {
+                let t = (v - b[i - 1].0) / (b[i].0 - b[i - 1].0).max(1e-12);
+                return (b[i - 1].1 + t * (b[i].1 - b[i - 1].1)) as f32;
+            }
+        }
+        b[b.len() - 1].1 as f32
+    }
+
+    /// Variance of a *linear* value `l` under `transfer`: `Var_stored(enc(l)) / enc'(l)²`.
+    pub fn linear_variance(&self, l: f32, transfer: Transfer) -> f32 {
+        match transfer {
+            Transfer::Linear => self.variance(l),
+            Transfer::Srgb => {
+                let d = srgb_slope(l.max(1e-4));
+                self.variance(transfer.encode(l.max(0.0))) / (d * d)
+            }
+        }
+    }
+}
+
+/// Derivative of the sRGB encoding at linear value `l`.
+pub fn srgb_slope(l: f32) -> f32 {
+    if l <= 0.003_130_8 {
+        12.92
+    } else {
+        1.055 / 2.4 * l.powf(1.0 / 2.4 - 1.0)
+    }
+}
+
+/// Measures the noise curve of one stored plane with `bins` level bins.
+pub fn measure(p: &Plane, bins: usize) -> NoiseCurve {
+    let (w, h) = (p.width, p.height);
+    let mut pairs: Vec<(f32, f32)> = Vec::with_capacity(w * h);
+    for y in 1..h.saturating_sub(1) {
+        for x in 1..w.saturating_sub(1) {
+            let mut sum = 0.0;
+            let mut ok = true;
+            for j in 0..3 {
+                for i in 0..3 {
+                    let v = p.get(x + i - 1, y + j - 1);
+                    ok &= v > 0.0 && v < 0.995;
+                    sum += v;
+                }
+            }
+            if !ok {
+                continue;
+            }
+            let c = p.get(x, y);
+            let d = (4.0 * c - p.get(x - 1, y) - p.get(x + 1, y) - p.get(x, y - 1) - p.get(x, y + 1)) / 20f32.sqrt();
+            pairs.push((sum / 9.0, d));
+        }
+    }
+    if pairs.is_empty() {
+        return NoiseCurve { bins: vec![] };
+    }
+    pairs.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let nb = bins.clamp(1, (pairs.len() / 200).max(1));
+    let mut out = Vec::with_capacity(nb);
+    for b in 0..nb {
+        let chunk = &pairs[b * pairs.len() / nb..(b + 1) * pairs.len() / nb];
+        let mean = chunk.iter().map(|q| q.0 as f64).sum::<f64>() / chunk.len() as f64;
+        let mut d: Vec<f32> = chunk.iter().map(|q| q.1).collect();
+        let med = median(&mut d);
+        let mut dev: Vec<f32> = d.iter().map(|v| (v - med).abs()).collect();
+        let mad = median(&mut dev) as f64 * 1.4826;
+        out.push((mean, mad * mad, chunk.len()));
+    }
+    NoiseCurve { bins: out }
+}
+
+/// Measures the noise curve from a model's residual `open − predicted` (stored axis) instead
+/// of the image: the high-pass `d` of the residual, in `win × win` windows, after removing the
+/// part proportional to the high-pass of the prediction (a local gain error: vignetting,
+/// gradients, glare and tone errors are locally gains, offsets vanish in the high-pass). The
+/// windows are binned by level and each bin takes the lower quartile of its windows'
+/// variances, divided by the lower quartile of `χ²_{n−1}/(n−1)`, so windows that still hold
+/// model error do not inflate the noise. `mask` marks usable pixels.
+pub fn measure_residual(open: &Plane, predicted: &Plane, mask: &[bool], win: usize, bins: usize) -> NoiseCurve {
+    let (w, h) = (open.width, open.height);
+    let hp = |p: &dyn Fn(usize) -> f32, x: usize, y: usize| (4.0 * p(y * w + x) - p(y * w + x - 1) - p(y * w + x + 1) - p((y - 1) * w + x) - p((y + 1) * w + x)) / 20f32.sqrt();
+    let res = |i: usize| open.data[i] - predicted.data[i];
+    let prd = |i: usize| predicted.data[i];
+    let mut windows: Vec<(f64, f64)> = Vec::new();
+    for wy in 0..h / win {
+        for wx in 0..w / win {
+            let (mut n, mut rr, mut pp, mut rp, mut lv) = (0usize, 0.0f64, 0.0f64, 0.0f64, 0.0f64);
+            for y in (wy * win).max(1)..((wy + 1) * win).min(h - 1) {
+                for x in (wx * win).max(1)..((wx + 1) * win).min(w - 1) {
+                    let ok = [y * w + x, y * w + x - 1, y * w + x + 1, (y - 1) * w + x, (y + 1) * w + x].iter().all(|&i| mask[i] && open.data[i] < 0.995 && open.data[i] > 0.0);
+                    if !ok {
+                        continue;
+                    }
+                    let a = hp(&res, x, y) as f64;
+                    let b = hp(&prd, x, y) as f64;
+                    n += 1;
+                    rr += a * a;
+                    pp += b * b;
+                    rp += a * b;
+                    lv += open.data[y * w + x] as f64;
+                }
+            }
+            if n * 5 < win * win * 4 || n < 16 {
+                continue;
+            }
+            let v = (rr - if pp > 0.0 { rp * rp / pp } else { 0.0 }) / (n - 1) as f64;
+            windows.push((lv / n as f64, v));
+        }
+    }
+    if windows.is_empty() {
+        return NoiseCurve { bins: vec![] };
+    }
+    windows.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let nb = bins.clamp(1, (windows.len() / 12).max(1));
+    let dof = ((win * win) as f64 * 0.9 - 2.0).max(4.0);
+    let q25 = 1.0 - 0.6745 * (2.0 / dof).sqrt();
+    let mut out = Vec::with_capacity(nb);
+    for b in 0..nb {
+        let chunk = &windows[b * windows.len() / nb..(b + 1) * windows.len() / nb];
+        let mean = chunk.iter().map(|q| q.0).sum::<f64>() / chunk.len() as f64;
+        let mut v: Vec<f64> = chunk.iter().map(|q| q.1).collect();
+        v.sort_by(|a, b| a.total_cmp(b));
+        let lq = v[(v.len() - 1) / 4];
+        out.push((mean, lq / q25, chunk.len()));
+    }
+    NoiseCurve { bins: out }
+}
+
+fn median(v: &mut [f32]) -> f32 {
+    let mid = v.len() / 2;
+    let (_, m, _) = v.select_nth_unstable_by(mid, |a, b| a.total_cmp(b));
+    *m
+}
+
+/// Relative precision assumed for one bin of a [`NoiseCurve`] when scoring a law against it.
+pub const BIN_PRECISION: f64 = 0.05;
+
+/// `Var = a·L + b` on the linear axis: `a` the inverse gain (full scale per electron), `b` the
+/// read (and quantisation) noise variance; both non-negative (the physics of a sensor).
+#[derive(Clone, Copy, Debug, Serialize, PartialEq)]
+pub struct PoissonGaussian {
+    pub a: f64,
+    pub b: f64,
+    /// RMS relative deviation of the bins from the fitted law (0.05 = 5%).
+    pub misfit: f64,
+    /// `Σ (relative deviation / BIN_PRECISION)²` over the bins: the law's share of the
+    /// likelihood, added to a model's BIC (an sRGB-encoded sensor's variance *falls* with the
+    /// stored level, which no non-negative linear law can follow).
+    pub chi2: f64,
+}
+
+impl PoissonGaussian {
+    /// Weighted least-squares fit with `a, b ≥ 0` to a curve's bins mapped to the linear axis
+    /// by `transfer` (relative errors: weights `1/Var²`, which suits a law spanning decades).
+    pub fn fit(curve: &NoiseCurve, transfer: Transfer) -> PoissonGaussian {
+        let pts: Vec<(f64, f64)> = curve
+            .bins
+            .iter()
+            .map(|&(m, _, _)| {
+                let l = transfer.decode(m as f32).max(0.0);
+                (l as f64, curve.linear_variance(l, transfer) as f64)
+            })
+            .filter(|p| p.1 > 0.0)
+            .collect();
+        if pts.is_empty() {
+            return PoissonGaussian { a: 0.0, b: 0.0, misfit: 0.0, chi2: 0.0 };
+        }
+        let (mut s00, mut s01, mut s11, mut t0, mut t1) = (0.0, 0.0, 0.0, 0.0, 0.0);
+        for &(l, v) in &pts {
+            let wt = 1.0 / (v * v);
+            s00 += wt * l * l;
+            s01 += wt * l;
+            s11 += wt;
+            t0 += wt * l * v;
+            t1 += wt * v;
+        }
+        let det = s00 * s11 - s01 * s01;
+        let (mut a, mut b) = if det.abs() > 1e-300 { ((t0 * s11 - t1 * s01) / det, (s00 * t1 - s01 * t0) / det) } else { (0.0, t1 / s11) };
+        let score = |a: f64, b: f64| pts.iter().map(|&(l, v)| ((a * l + b) / v - 1.0).powi(2)).sum::<f64>();
+        if a < 0.0 || b < 0.0 {
+            // the better of the two boundary solutions
+            let (a1, b1) = (0.0, t1 / s11.max(1e-300));
+            let (a2, b2) = (t0 / s00.max(1e-300), 0.0);
+            (a, b) = if score(a1, b1) <= score(a2, b2) { (a1, b1) } else { (a2, b2) };
+        }
+        let ss = score(a, b);
+        PoissonGaussian { a, b, misfit: (ss / pts.len() as f64).sqrt(), chi2: ss / (BIN_PRECISION * BIN_PRECISION) }
+    }
+
+    pub fn variance(&self, l: f64) -> f64 {
+        self.a * l.max(0.0) + self.b
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rng::Rng;
+
+    #[test]
+    fn recovers_a_poisson_gaussian_law_on_smooth_data() {
+        let mut r = Rng::new(4);
+        let (a, b) = (5e-5, 1e-6);
+        let p = Plane::from_fn(300, 200, |x, y| {
+            let l = 0.05 + 0.9 * (x as f64 / 300.0) * (0.5 + 0.5 * (y as f64 / 40.0).sin().abs());
+            (l + (a * l + b).sqrt() * r.normal()) as f32
+        });
+        let c = measure(&p, 12);
+        let pg = PoissonGaussian::fit(&c, Transfer::Linear);
+        assert!((pg.a / a - 1.0).abs() < 0.08, "{pg:?}");
+        assert!(pg.misfit < 0.08, "{pg:?}");
+        for &(m, v, _) in &c.bins {
+            let want = a * m + b;
+            assert!((v / want - 1.0).abs() < 0.15, "bin {m}: {v} vs {want}");
+        }
+    }
+
+    #[test]
+    fn srgb_data_misfits_a_linear_law_and_fits_after_decoding() {
+        let mut r = Rng::new(5);
+        let (a, b) = (5e-5, 4e-7);
+        let p = Plane::from_fn(300, 200, |x, _| {
+            let l = 0.02 + 0.9 * x as f64 / 300.0;
+            let n = l + (a * l + b).sqrt() * r.normal();
+            crate::image::srgb_encode(n as f32)
+        });
+        let c = measure(&p, 12);
+        let lin = PoissonGaussian::fit(&c, Transfer::Linear);
+        let srgb = PoissonGaussian::fit(&c, Transfer::Srgb);
+        assert!(srgb.misfit < 0.1 && srgb.misfit < 0.5 * lin.misfit, "linear {lin:?} srgb {srgb:?}");
+        assert!((srgb.a / a - 1.0).abs() < 0.15, "{srgb:?}");
+    }
+}

@@ -1,0 +1,202 @@
+//! Proof cases: calibration pairs rendered by the simulator ([`crate::optics::capture`]) with one
+//! catalogue effect concealed at a randomised, realistic magnitude, or none (clean), plus the
+//! truth the tests and the benchmark compare the diagnosis against. Nothing here is used by the
+//! diagnosis itself.
+//!
+//! # Scene
+//! The printed noise target ([`crate::target`]) framed by a dimmer background (the paper does
+//! not fill the frame), so large-scale brightness varies and stray light has something to show.
+//!
+//! # Truth noise floor
+//! `Var_true = Var_open + s²·ΣK²·Var_pinhole` from the simulator's per-pixel variances and the
+//! true kernels, mapped to the stored axis by the encoding's slope.
+
+use super::noise::srgb_slope;
+use crate::image::{Plane, Transfer};
+use crate::optics::capture::{render, Blur, Glare, Rendered, Sensor, Shot, Similarity};
+use crate::optics::lens::{mono_band, LensModel};
+use crate::rng::Rng;
+use crate::target::TargetSpec;
+use serde_json::json;
+
+/// The effects the proof suite conceals, in catalogue order.
+pub const CONCEALED: [&str; 8] = ["vignetting", "illumination_gradient", "tone_curve", "black_level", "veiling_glare", "misregistration", "saturation", "psf_field_variation"];
+
+/// Size and optics of a proof case.
+#[derive(Clone, Debug)]
+pub struct CaseSpec {
+    pub width: usize,
+    pub height: usize,
+    /// 1 (monochrome) or 3 (RGB).
+    pub channels: usize,
+    pub f_number: f64,
+    pub kernel_size: usize,
+    /// Tile grid the truth PSFs are rendered on (matching the estimator's tiles for clean data).
+    pub grid: (usize, usize),
+}
+
+impl Default for CaseSpec {
+    fn default() -> Self {
+        Self { width: 256, height: 192, channels: 1, f_number: 5.6, kernel_size: 15, grid: (3, 2) }
+    }
+}
+
+/// A rendered pair with its truth.
+pub struct Case {
+    pub open: Rendered,
+    pub pinhole: Rendered,
+    pub effect: Option<String>,
+    /// The concealed effect's parameters as rendered.
+    pub truth: serde_json::Value,
+    /// Per channel, the true noise variance of a perfect prediction on the stored axis.
+    pub true_variance: Vec<Plane>,
+}
+
+/// The framed noise scene, linear reflectance.
+pub fn scene(w: usize, h: usize, seed: u64) -> Plane {
+    scene_moved(w, h, seed, None)
+}
+
+/// The framed noise scene seen through a moved camera: pixel `q` sees the scene at
+/// `S·R(θ)·(q − c) + c + t` (the convention of [`crate::optics::capture::warp_similarity`]),
+/// rendered exactly from the procedural target (area-averaged, 4×4 samples per pixel) rather
+/// than by resampling a rendered image, which would low-pass the sharp reference.
+pub fn scene_moved(w: usize, h: usize, seed: u64, m: Option<Similarity>) -> Plane {
+    let spec = TargetSpec::new("A4", 300, 4, seed).ok();
+    let (x0, x1, y0, y1) = (0.12 * w as f64, 0.80 * w as f64, 0.10 * h as f64, 0.86 * h as f64);
+    let edge = |v: f64, a: f64, b: f64| {
+        let s = |t: f64| 1.0 / (1.0 + (-t / 1.5).exp());
+        s(v - a) * s(b - v)
+    };
+    let (cx, cy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
+    let m = m.unwrap_or_default();
+    let th = m.rotation_deg.to_radians();
+    let (a, b) = ((1.0 + m.scale) * th.cos(), (1.0 + m.scale) * th.sin());
+    let (ppc, u0, v0) = (1.6, 7.0, 5.0);
+    let ss = 4;
+    Plane::from_fn(w, h, |x, y| {
+        let mut acc = 0.0f32;
+        for j in 0..ss {
+            for i in 0..ss {
+                let qx = x as f64 + (i as f64 + 0.5) / ss as f64 - 0.5 - cx;
+                let qy = y as f64 + (j as f64 + 0.5) / ss as f64 - 0.5 - cy;
+                let (sx, sy) = (a * qx - b * qy + cx + m.dx, b * qx + a * qy + cy + m.dy);
+                let n = spec.as_ref().map_or(0.5, |s| s.noise_at(u0 + (sx + 0.5) / ppc, v0 + (sy + 0.5) / ppc));
+                let frame = edge(sx, x0, x1) * edge(sy, y0, y1);
+                acc += n * (0.2 + 0.8 * frame as f32);
+            }
+        }
+        acc / (ss * ss) as f32
+    })
+}
+
+fn signed(r: &mut Rng, lo: f64, hi: f64) -> f64 {
+    let v = r.range(lo, hi);
+    if r.uniform() < 0.5 { -v } else { v }
+}
+
+/// Renders a proof case: `effect` (one of [`CONCEALED`]) or `None` for clean data.
+///
+/// # Errors
+/// An unknown effect name.
+pub fn render_case(effect: Option<&str>, seed: u64, spec: &CaseSpec) -> Result<Case, String> {
+    let (w, h) = (spec.width, spec.height);
+    let mut lens = LensModel::demo(w, h);
+    if spec.channels == 1 {
+        lens.bands = mono_band();
+    }
+    let mut rng = Rng::new(seed.wrapping_mul(7919).wrapping_add(17));
+    let sc: Vec<Plane> = vec![scene(w, h, seed); lens.bands.len()];
+    let mut sensor = Sensor::default();
+    let k = spec.kernel_size;
+    let mut open_shot = Shot::lens(spec.f_number, 0.7, spec.grid.0, spec.grid.1, k);
+    let pin_shot = Shot::ideal(0.7);
+    let mut moved = None;
+    let truth = match effect {
+        None => json!({}),
+        Some("vignetting") => {
+            let (k1, k2) = (-rng.range(0.15, 0.35), rng.range(0.0, 0.05));
+            open_shot.vignetting = Some([k1, k2, 0.0]);
+            json!({"k1": k1, "k2": k2, "k3": 0.0})
+        }
+        Some("illumination_gradient") => {
+            let (gx, gy) = (signed(&mut rng, 0.04, 0.12), signed(&mut rng, 0.04, 0.12));
+            open_shot.illumination_gradient = Some([gx, gy]);
+            json!({"gx": gx, "gy": gy})
+        }
+        Some("tone_curve") => {
+            sensor.transfer = Transfer::Srgb;
+            json!({"transfer": "srgb"})
+        }
+        Some("black_level") => {
+            let off: Vec<f32> = (0..lens.bands.len()).map(|_| rng.range(0.01, 0.04) as f32).collect();
+            open_shot.black_offset = Some(off.clone());
+            json!({"offset": off})
+        }
+        Some("veiling_glare") => {
+            let (f, s) = (rng.range(0.04, 0.10), rng.range(18.0, 36.0));
+            open_shot.veiling_glare = Some(Glare { fraction: f, sigma_px: s });
+            json!({"fraction": f, "sigma_px": s})
+        }
+        Some("misregistration") => {
+            let m = Similarity { dx: signed(&mut rng, 0.3, 2.0), dy: signed(&mut rng, 0.3, 2.0), rotation_deg: signed(&mut rng, 0.25, 0.6), scale: signed(&mut rng, 0.002, 0.005) };
+            moved = Some(m);
+            json!({"dx": m.dx, "dy": m.dy, "rotation_deg": m.rotation_deg, "scale": m.scale})
+        }
+        Some("saturation") => {
+            let e = rng.range(1.6, 2.2);
+            open_shot.exposure = e;
+            json!({"open_exposure": e})
+        }
+        Some("psf_field_variation") => {
+            open_shot.blur = Blur::Lens { f_number: spec.f_number, columns: 9, rows: 7, kernel_size: k };
+            json!({"true_grid": [9, 7]})
+        }
+        Some(other) => return Err(format!("unknown effect '{other}' (expected one of {})", CONCEALED.join(", "))),
+    };
+    let mut open = render(&sc, &lens, &open_shot, &sensor, &mut Rng::new(seed * 2 + 1));
+    let pin_scene: Vec<Plane> = match moved {
+        Some(m) => vec![scene_moved(w, h, seed, Some(m)); lens.bands.len()],
+        None => sc.clone(),
+    };
+    let mut pinhole = render(&pin_scene, &lens, &pin_shot, &sensor, &mut Rng::new(seed * 2 + 2));
+    // concealed: the files are declared linear whatever the sensor did
+    open.image.transfer = Transfer::Linear;
+    pinhole.image.transfer = Transfer::Linear;
+    // true noise floor of a perfect prediction
+    let grid = open.psfs.clone().expect("the wide-open shot is blurred");
+    let s = open_shot.exposure / pin_shot.exposure;
+    let true_variance = (0..open.variance.len())
+        .map(|c| {
+            let e: Vec<f32> = grid.kernels[c].iter().map(|kk| kk.data.iter().map(|v| v * v).sum()).collect();
+            let pin_local = crate::optics::forward::blur_channel(&pinhole.variance[c], &grid, c);
+            Plane::from_fn(w, h, |x, y| {
+                let kq: f32 = grid.weights_at(x as f64, y as f64).iter().map(|q| q.weight * e[q.tile]).sum();
+                let v = open.variance[c].get(x, y) + (s * s) as f32 * kq * pin_local.get(x, y);
+                match sensor.transfer {
+                    Transfer::Linear => v,
+                    Transfer::Srgb => {
+                        let d = srgb_slope(open.clean[c].get(x, y).max(1e-4));
+                        v * d * d
+                    }
+                }
+            })
+        })
+        .collect();
+    Ok(Case { open, pinhole, effect: effect.map(str::to_string), truth, true_variance })
+}
+
+/// `sqrt(Σ(stored − predicted)² / ΣVar_true)` over `mask`: the residual relative to the true
+/// noise floor (1.0 = at the floor).
+pub fn floor_ratio(case: &Case, predicted: &[Plane], mask: &[Vec<bool>]) -> f64 {
+    let (mut sq, mut v) = (0.0f64, 0.0f64);
+    for c in 0..predicted.len() {
+        for i in 0..predicted[c].data.len() {
+            if mask[c][i] {
+                sq += ((case.open.image.planes[c].data[i] - predicted[c].data[i]) as f64).powi(2);
+                v += case.true_variance[c].data[i] as f64;
+            }
+        }
+    }
+    (sq / v.max(1e-300)).sqrt()
+}

@@ -10,7 +10,7 @@
 //! | `veiling_glare` | `(1 − f)·K*P + f·G_σ*P` | 1 per channel + σ |
 //! | `misregistration` | similarity (rotation, scale) between the captures | 2 beyond the base translation |
 //! | `saturation` | clipped pixels censored, reference-clipped pixels out of the data term | 1 |
-//! | `psf_field_variation` | a finer kernel grid (twice the tiles per axis) | the extra kernels |
+//! | `psf_field_variation` | a finer kernel grid (twice the tiles per axis, at most one tile per two kernel widths; may be proposed again) | the extra kernels |
 //!
 //! `pinhole_diffraction` (the reference's own PSF) is not a candidate yet; see the crate
 //! report.
@@ -93,17 +93,23 @@ pub fn similarity_model(current: &Fit, base: &crate::profile::RegistrationInfo, 
     (info, init, corner)
 }
 
-/// Refines the scale part of a similarity by golden-section search of χ² (quick fits): radial
-/// coma moves kernel centroids like a magnification change, so the centroids alone
-/// under- or over-state the scale; the rotation (tangential) is taken from them.
-fn refine_scale(data: &Data, current: &Fit, p: [f64; 2]) -> [f64; 2] {
+/// Refines a similarity by golden-section searches of χ² (quick fits), scale then rotation:
+/// radial coma moves kernel centroids like a magnification change, and edge tiles see their
+/// displacement averaged towards the image centre, so the centroids alone are biased.
+fn refine_similarity(data: &Data, current: &Fit, p: [f64; 2]) -> [f64; 2] {
+    let s = golden(data, current, p, 0, 0.008);
+    golden(data, current, s, 1, 0.004)
+}
+
+fn golden(data: &Data, current: &Fit, p: [f64; 2], which: usize, half: f64) -> [f64; 2] {
     let quick = FitSettings { rounds: 1, kernel_iterations: 25 };
     let c0 = &current.model.corrections;
-    let eval = |s: f64| -> f64 {
-        let (info, init, _) = similarity_model(current, &data.base_registration, [s, p[1]]);
+    let with = |v: f64| if which == 0 { [v, p[1]] } else { [p[0], v] };
+    let eval = |v: f64| -> f64 {
+        let (info, init, _) = similarity_model(current, &data.base_registration, with(v));
         fit(data, &Corrections { misregistration: Some(info), ..c0.clone() }, &init, quick).chi2()
     };
-    let (mut a, mut b) = (p[0] - 0.008, p[0] + 0.008);
+    let (mut a, mut b) = (p[which] - half, p[which] + half);
     let gr = 0.5 * (5f64.sqrt() - 1.0);
     let (mut x1, mut x2) = (b - gr * (b - a), a + gr * (b - a));
     let (mut f1, mut f2) = (eval(x1), eval(x2));
@@ -122,7 +128,7 @@ fn refine_scale(data: &Data, current: &Fit, p: [f64; 2]) -> [f64; 2] {
             f2 = eval(x2);
         }
     }
-    [if f1 < f2 { x1 } else { x2 }, p[1]]
+    with(if f1 < f2 { x1 } else { x2 })
 }
 
 /// Glare widths tried, as fractions of the image diagonal.
@@ -195,13 +201,38 @@ pub fn propose(data: &Data, current: &Fit, a: &Analysis) -> Vec<Candidate> {
         let diag = ((data.open.width().pow(2) + data.open.height().pow(2)) as f64).sqrt();
         // screen the width with the kernels held fixed
         let screen = FitSettings { rounds: 1, kernel_iterations: 0 };
+        let eval = |sigma: f64| -> f64 {
+            let c = Corrections { veiling_glare: Some(GlareCorrection { fraction: 0.02, sigma_px: sigma }), ..c0.clone() };
+            fit(data, &c, &current.model, screen).chi2()
+        };
         let mut best: Option<(f64, f64)> = None;
         for frac in GLARE_SIGMAS {
-            let sigma = (frac * diag).round().max(2.0);
-            let c = Corrections { veiling_glare: Some(GlareCorrection { fraction: 0.02, sigma_px: sigma }), ..c0.clone() };
-            let f = fit(data, &c, &current.model, screen);
-            if best.is_none_or(|b| f.chi2() < b.1) {
-                best = Some((sigma, f.chi2()));
+            let sigma = (frac * diag).max(2.0);
+            let v = eval(sigma);
+            if best.is_none_or(|b| v < b.1) {
+                best = Some((sigma, v));
+            }
+        }
+        // refine log σ between the neighbours of the best grid value (golden section)
+        if let Some((s0, _)) = best {
+            let (mut a, mut b) = ((s0 / 2.0).ln(), (s0 * 2.0).ln());
+            let gr = 0.5 * (5f64.sqrt() - 1.0);
+            let (mut x1, mut x2) = (b - gr * (b - a), a + gr * (b - a));
+            let (mut f1, mut f2) = (eval(x1.exp()), eval(x2.exp()));
+            for _ in 0..6 {
+                if f1 < f2 {
+                    (b, x2, f2) = (x2, x1, f1);
+                    x1 = b - gr * (b - a);
+                    f1 = eval(x1.exp());
+                } else {
+                    (a, x1, f1) = (x1, x2, f2);
+                    x2 = a + gr * (b - a);
+                    f2 = eval(x2.exp());
+                }
+            }
+            let (xb, fb) = if f1 < f2 { (x1, f1) } else { (x2, f2) };
+            if best.is_none_or(|q| fb < q.1) {
+                best = Some(((xb.exp() * 10.0).round() / 10.0, fb));
             }
         }
         if let Some((sigma, _)) = best {
@@ -216,7 +247,7 @@ pub fn propose(data: &Data, current: &Fit, a: &Analysis) -> Vec<Candidate> {
     }
     if c0.misregistration.is_none() {
         if let Some(p0) = centroid_similarity(current) {
-            let (info, init, corner) = similarity_model(current, &data.base_registration, refine_scale(data, current, p0));
+            let (info, init, corner) = similarity_model(current, &data.base_registration, refine_similarity(data, current, p0));
             let (a11, a21) = (info.matrix[0], info.matrix[2]);
             let rot = a21.atan2(a11).to_degrees();
             let scale = (a11 * a11 + a21 * a21).sqrt() - 1.0;
@@ -259,22 +290,25 @@ pub fn propose(data: &Data, current: &Fit, a: &Analysis) -> Vec<Candidate> {
             });
         }
     }
-    if c0.psf_field_variation.is_none() {
+    // a finer kernel grid: twice the tiles per axis, at most one tile per two kernel widths;
+    // proposed again while the grid can still grow
+    {
         let g = &current.model.grid;
-        let (cols, rows) = (2 * g.columns, 2 * g.rows);
         let (w, h) = (data.open.width(), data.open.height());
-        if w / cols >= 2 * g.kernel_size && h / rows >= 2 * g.kernel_size {
+        let (cmax, rmax) = ((w / (2 * g.kernel_size)).max(1), (h / (2 * g.kernel_size)).max(1));
+        let (cols, rows) = ((2 * g.columns).min(cmax).max(g.columns), (2 * g.rows).min(rmax).max(g.rows));
+        if cols > g.columns || rows > g.rows {
             let spread = a.tiles.iter().map(|t| t.reduced_chi2).fold(0.0f64, f64::max) - a.tiles.iter().map(|t| t.reduced_chi2).fold(f64::INFINITY, f64::min);
             out.push(Candidate {
                 name: "psf_field_variation",
-                corrections: Corrections { psf_field_variation: Some(FieldCorrection { columns: cols, rows: rows }), ..c0.clone() },
+                corrections: Corrections { psf_field_variation: Some(FieldCorrection { columns: cols, rows }), ..c0.clone() },
                 evidence: format!(
                     "residual against position inside the tile: {}; per-tile reduced χ² spans {:.2}",
                     curve_text(a, "position_in_tile"),
                     spread
                 ),
                 init: None,
-            location: loc(&format!("between tile centres; refit on {cols}x{rows} tiles instead of {}x{}", g.columns, g.rows)),
+                location: loc(&format!("between tile centres; refit on {cols}x{rows} tiles instead of {}x{}", g.columns, g.rows)),
             });
         }
     }

@@ -129,37 +129,6 @@ pub fn bench_case(effect: Option<&str>, seed: u64, spec: &CaseSpec, opts: &Diagn
         None => d.effects.is_empty(),
     };
     let ratio = floor_ratio(&case, &d.final_fit.predicted, &d.final_fit.eval);
-    if std::env::var("TMP_TRUTH").is_ok() && effect == Some("misregistration") {
-        use super::fit::{fit, Data, FitSettings};
-        let t = &case.truth;
-        let (th, s) = (t["rotation_deg"].as_f64().unwrap().to_radians(), 1.0 + t["scale"].as_f64().unwrap());
-        let (ia, ib) = (th.cos() / s, -th.sin() / s); // (SR)^-1 = [[ia, -ib],[ib, ia]]
-        let (dx, dy) = (t["dx"].as_f64().unwrap(), t["dy"].as_f64().unwrap());
-        let tr = [ia * dx - ib * dy, ib * dx + ia * dy];
-        let info = crate::profile::RegistrationInfo { model: "similarity".into(), matrix: [2.0 - ia, -ib * -1.0 * -1.0, ib * -1.0, 2.0 - ia], translation: tr, residual_px: 0.0 };
-        let info = crate::profile::RegistrationInfo { matrix: [2.0 - ia, ib, -ib, 2.0 - ia], ..info };
-        for ppc_test in [0usize, 1] {
-            let _ = ppc_test;
-        }
-        let sim = crate::optics::capture::Similarity { dx, dy, rotation_deg: t["rotation_deg"].as_f64().unwrap(), scale: t["scale"].as_f64().unwrap() };
-        let moved = super::proof::scene_moved(256, 192, seed, Some(sim));
-        let still = super::proof::scene(256, 192, seed);
-        let back = super::model::register_reference(&moved, &info);
-        let bicubic = crate::estimate::register::apply(&moved, &info);
-        let rms = |a: &crate::image::Plane| { let mut s = 0.0f64; let mut n = 0; for y in 20..172 { for x in 20..236 { s += ((a.get(x,y) - still.get(x,y)) as f64).powi(2); n += 1; } } (s / n as f64).sqrt() };
-        eprintln!("resampling rms error: lanczos {:.4} bicubic {:.4} (scene std ~0.4)", rms(&back), rms(&bicubic));
-        let mut base = d.final_fit.model.corrections.misregistration.clone().unwrap_or_default();
-        base.model = "translation".into();
-        let data = Data { open: case.open.image.clone(), pinhole: case.pinhole.image.clone(), curves: d.noise.iter().map(|n| n.curve.clone()).collect(), base_registration: base };
-        let mut m = d.final_fit.model.clone();
-        m.corrections.misregistration = Some(info.clone());
-        // centre the kernels
-        for c in 0..m.grid.channels.len() { for k in m.grid.kernels[c].iter_mut() { let (cx, cy) = crate::optics::lens::centroid(k); *k = crate::optics::capture::warp_similarity(k, &crate::optics::capture::Similarity { dx: cx, dy: cy, ..Default::default() }); } }
-        let f = fit(&data, &m.corrections, &m, FitSettings { rounds: 3, kernel_iterations: 200 });
-        eprintln!("TRUTH registration {:?}: chi2 {:.4} floor {:.3}", info, f.reduced_chi2(), floor_ratio(&case, &f.predicted, &f.eval));
-        let f2 = fit(&data, &d.final_fit.model.corrections, &d.final_fit.model, FitSettings { rounds: 3, kernel_iterations: 200 });
-        eprintln!("estimated registration refit: chi2 {:.4} floor {:.3}", f2.reduced_chi2(), floor_ratio(&case, &f2.predicted, &f2.eval));
-    }
     let row = BenchRow {
         effect: effect.unwrap_or("clean").to_string(),
         seed,
@@ -175,12 +144,7 @@ pub fn bench_case(effect: Option<&str>, seed: u64, spec: &CaseSpec, opts: &Diagn
 
 /// Options the proof suite uses (small kernels, few iterations).
 pub fn proof_options(spec: &CaseSpec) -> DiagnoseOptions {
-    let mut o = DiagnoseOptions { estimate: EstimateOptions { kernel_size: Some(spec.kernel_size), tile: Some(96), max_iterations: 150, ..Default::default() }, ..Default::default() };
-    if let Some(n) = std::env::var("TMP_ITERS").ok().and_then(|v| v.parse().ok()) {
-        o.candidate_fit.kernel_iterations = n;
-        o.base_fit.kernel_iterations = n;
-    }
-    o
+    DiagnoseOptions { estimate: EstimateOptions { kernel_size: Some(spec.kernel_size), tile: Some(96), max_iterations: 150, ..Default::default() }, ..Default::default() }
 }
 
 fn bench(a: &DiagnoseArgs, seeds: u64) -> Result<()> {

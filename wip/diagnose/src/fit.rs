@@ -191,7 +191,23 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
     let nch = data.open.channel_count();
     let registration = corr.misregistration.clone().unwrap_or_else(|| data.base_registration.clone());
     let reference = reference_planes(&data.pinhole, transfer, &registration);
-    let open_lin: Vec<Plane> = data.open.planes.iter().map(|p| p.map(|v| transfer.decode(v))).collect();
+    let mut open_lin: Vec<Plane> = data.open.planes.iter().map(|p| p.map(|v| transfer.decode(v))).collect();
+    // misregistration: the (band-limited) data onto the reference geometry, with the
+    // interpolation's effect on its noise variance
+    let mut noise_factor: Option<Plane> = None;
+    if let Some(info) = &corr.misregistration {
+        let inv = super::model::invert2(super::model::misregistration_map(info));
+        let mut factor = None;
+        open_lin = open_lin
+            .iter()
+            .map(|p| {
+                let (q, f) = super::model::resample(p, inv);
+                factor = Some(f);
+                q
+            })
+            .collect();
+        noise_factor = factor;
+    }
     let grid0 = match corr.psf_field_variation {
         Some(f) if f.columns != init.grid.columns || f.rows != init.grid.rows => regrid(&init.grid, w, h, f.columns, f.rows),
         _ => init.grid.clone(),
@@ -251,7 +267,8 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
             let b = a.data[i] + glare_amp as f32 * glare_planes.as_ref().map_or(0.0, |gp| gp[c].data[i]);
             let m = g.data[i] * b + beta as f32;
             let level = (a.data[i] as f64 / s.max(1e-12)) as f32;
-            lin_var(&data.curves[c], m) + g.data[i] * g.data[i] * kq.data[i] * lin_var(&data.curves[c], level)
+            let f = noise_factor.as_ref().map_or(1.0, |nf| nf.data[i]);
+            f * lin_var(&data.curves[c], m) + g.data[i] * g.data[i] * kq.data[i] * lin_var(&data.curves[c], level)
         })
     };
 
@@ -425,15 +442,32 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
     let mut eval = Vec::with_capacity(nch);
     let (mut chi2_channel, mut n_channel, mut sq_channel, mut var_channel) = (vec![], vec![], vec![], vec![]);
     let clip = corr.saturation.map(|s| s.clip_level);
+    let back = corr.misregistration.as_ref().map(super::model::misregistration_map);
     for c in 0..nch {
-        let vl = update_variance(c, &a_parts[c], &u[c], &g, glare_amp[c], beta[c]);
+        let mut vl = update_variance(c, &a_parts[c], &u[c], &g, glare_amp[c], beta[c]);
+        let mut mlin = Plane::from_fn(w, h, |x, y| {
+            let i = y * w + x;
+            let lp = glare_planes.as_ref().map_or(0.0, |gp| gp[c].data[i]);
+            g.data[i] * (a_parts[c].data[i] + glare_amp[c] as f32 * lp) + beta[c] as f32
+        });
+        if let Some(m) = back {
+            // onto the wide-open geometry; the open's own noise there is unscaled
+            if let Some(nf) = &noise_factor {
+                vl = Plane::from_fn(w, h, |x, y| {
+                    let i = y * w + x;
+                    let o = lin_var(&data.curves[c], mlin.data[i]);
+                    vl.data[i] - nf.data[i] * o + o
+                });
+            }
+            mlin = super::model::resample(&mlin, m).0;
+            vl = super::model::resample(&vl, m).0;
+        }
         let mut pred = Plane::new(w, h);
         let mut norm = Plane::new(w, h);
         let mut var_s = Plane::new(w, h);
         let (mut chi2, mut n, mut sq, mut vs) = (0.0f64, 0usize, 0.0f64, 0.0f64);
         for i in 0..w * h {
-            let lp = glare_planes.as_ref().map_or(0.0, |gp| gp[c].data[i]);
-            let m = g.data[i] * (a_parts[c].data[i] + glare_amp[c] as f32 * lp) + beta[c] as f32;
+            let m = mlin.data[i];
             let mut e = transfer.encode(m);
             if let Some(l) = clip {
                 e = e.min(l);

@@ -288,6 +288,17 @@ pub fn diagnose(open: &Image, pinhole: &Image, profile: Option<&Profile>, opts: 
         current = fit::fit(&data, &f.model.corrections, &f.model, FitSettings { rounds: 1, kernel_iterations: opts.candidate_fit.kernel_iterations });
         current_analysis = analyse(&current);
     }
+    if !effects.is_empty() {
+        // a last polish of the final model with a larger budget
+        let polished = fit::fit(&data, &current.model.corrections, &current.model, FitSettings { rounds: 2, kernel_iterations: 2 * opts.base_fit.kernel_iterations });
+        if polished.chi2() < current.chi2() {
+            current = polished;
+            current_analysis = analyse(&current);
+            if let Some(e) = effects.last_mut() {
+                e.after = Figures::of(&current);
+            }
+        }
+    }
     let final_analysis = current_analysis;
     let verdict = if effects.is_empty() && consistent(&current) {
         "no mismatch: the base model fits to the noise floor".to_string()

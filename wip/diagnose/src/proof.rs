@@ -54,14 +54,14 @@ pub struct Case {
 
 /// The framed noise scene, linear reflectance.
 pub fn scene(w: usize, h: usize, seed: u64) -> Plane {
-    scene_moved(w, h, seed, None)
+    scene_moved(w, h, seed, None, 1.6)
 }
 
 /// The framed noise scene seen through a moved camera: pixel `q` sees the scene at
 /// `S·R(θ)·(q − c) + c + t` (the convention of [`crate::optics::capture::warp_similarity`]),
 /// rendered exactly from the procedural target (area-averaged, 4×4 samples per pixel) rather
 /// than by resampling a rendered image, which would low-pass the sharp reference.
-pub fn scene_moved(w: usize, h: usize, seed: u64, m: Option<Similarity>) -> Plane {
+pub fn scene_moved(w: usize, h: usize, seed: u64, m: Option<Similarity>, pixels_per_cell: f64) -> Plane {
     let spec = TargetSpec::new("A4", 300, 4, seed).ok();
     let (x0, x1, y0, y1) = (0.12 * w as f64, 0.80 * w as f64, 0.10 * h as f64, 0.86 * h as f64);
     let edge = |v: f64, a: f64, b: f64| {
@@ -72,7 +72,7 @@ pub fn scene_moved(w: usize, h: usize, seed: u64, m: Option<Similarity>) -> Plan
     let m = m.unwrap_or_default();
     let th = m.rotation_deg.to_radians();
     let (a, b) = ((1.0 + m.scale) * th.cos(), (1.0 + m.scale) * th.sin());
-    let (ppc, u0, v0) = (1.6, 7.0, 5.0);
+    let (ppc, u0, v0) = (pixels_per_cell, 7.0, 5.0);
     let ss = 4;
     Plane::from_fn(w, h, |x, y| {
         let mut acc = 0.0f32;
@@ -106,7 +106,13 @@ pub fn render_case(effect: Option<&str>, seed: u64, spec: &CaseSpec) -> Result<C
         lens.bands = mono_band();
     }
     let mut rng = Rng::new(seed.wrapping_mul(7919).wrapping_add(17));
-    let sc: Vec<Plane> = vec![scene(w, h, seed); lens.bands.len()];
+    let ppc = 1.6;
+    // A sub-pixel move of a reference is only reproducible when the reference is band-limited;
+    // an aliased 1.6-px-cell target is not (a real pinhole reference is softened by diffraction,
+    // about 2.44·λ·N across). The misregistration case therefore uses a softened target
+    // (Gaussian σ = 1 px) in both captures.
+    let soft = |p: Plane| if effect == Some("misregistration") { crate::optics::capture::gaussian_blur(&p, 1.0) } else { p };
+    let sc: Vec<Plane> = vec![soft(scene_moved(w, h, seed, None, ppc)); lens.bands.len()];
     let mut sensor = Sensor::default();
     let k = spec.kernel_size;
     let mut open_shot = Shot::lens(spec.f_number, 0.7, spec.grid.0, spec.grid.1, k);
@@ -156,7 +162,7 @@ pub fn render_case(effect: Option<&str>, seed: u64, spec: &CaseSpec) -> Result<C
     };
     let mut open = render(&sc, &lens, &open_shot, &sensor, &mut Rng::new(seed * 2 + 1));
     let pin_scene: Vec<Plane> = match moved {
-        Some(m) => vec![scene_moved(w, h, seed, Some(m)); lens.bands.len()],
+        Some(m) => vec![soft(scene_moved(w, h, seed, Some(m), ppc)); lens.bands.len()],
         None => sc.clone(),
     };
     let mut pinhole = render(&pin_scene, &lens, &pin_shot, &sensor, &mut Rng::new(seed * 2 + 2));

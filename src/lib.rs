@@ -25,6 +25,7 @@
 #![allow(clippy::needless_range_loop)]
 
 pub mod deconv;
+pub mod diagnose;
 pub mod estimate;
 pub mod fsutil;
 pub mod image;

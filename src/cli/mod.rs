@@ -48,6 +48,9 @@ pub enum Command {
     CheckConfig(capture::CheckConfigArgs),
     /// Capture with the rig, estimate a profile per stage position, write an HTML report.
     Calibrate(calibrate::CalibrateArgs),
+    /// Find where the profile's simulation and the recording disagree, name the missing
+    /// physics, model it and refit (report.json, predictions and an HTML report).
+    Diagnose(lensrig::diagnose::cli::DiagnoseArgs),
 }
 
 #[derive(Args, Debug)]
@@ -133,6 +136,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Capture(a) => capture::run_capture(&a),
         Command::CheckConfig(a) => capture::run_check_config(&a),
         Command::Calibrate(a) => calibrate::run(&a),
+        Command::Diagnose(a) => lensrig::diagnose::cli::run(&a),
     }
 }
 

@@ -122,7 +122,8 @@ pub struct BenchRow {
 pub fn bench_case(effect: Option<&str>, seed: u64, spec: &CaseSpec, opts: &DiagnoseOptions) -> Result<(BenchRow, super::Diagnosis, super::proof::Case)> {
     let t = std::time::Instant::now();
     let case = render_case(effect, seed, spec).map_err(anyhow::Error::msg)?;
-    let d = diagnose(&case.open.image, &case.pinhole.image, None, opts)?;
+    let opts = DiagnoseOptions { pinhole_variance_scale: 1.0 / case.pinhole_frames as f64, ..opts.clone() };
+    let d = diagnose(&case.open.image, &case.pinhole.image, None, &opts)?;
     let named = d.effects.first().map_or("no mismatch".to_string(), |e| e.name.clone());
     let correct = match effect {
         Some(e) => named == e,

@@ -41,6 +41,10 @@ pub struct Data {
     pub curves: Vec<NoiseCurve>,
     /// The base registration (translation, applied as an integer shift).
     pub base_registration: RegistrationInfo,
+    /// The reference's noise variance relative to the wide-open capture's noise curve at the
+    /// same level: `frames_open / frames_pinhole` when the captures average frames (1 for equal
+    /// captures).
+    pub pinhole_variance_scale: f64,
 }
 
 /// A fitted model's free parameters.
@@ -124,6 +128,9 @@ pub fn correction_params(c: &Corrections, channels: usize) -> usize {
     if c.tone_curve.is_some() {
         p += 1;
     }
+    if c.pinhole_diffraction.is_some() {
+        p += 1;
+    }
     if c.misregistration.is_some() {
         p += 2;
     }
@@ -190,7 +197,10 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
     let (w, h) = (data.open.width(), data.open.height());
     let nch = data.open.channel_count();
     let registration = corr.misregistration.clone().unwrap_or_else(|| data.base_registration.clone());
-    let reference = reference_planes(&data.pinhole, transfer, &registration);
+    let mut reference = reference_planes(&data.pinhole, transfer, &registration);
+    if let Some(d) = &corr.pinhole_diffraction {
+        reference = reference.iter().enumerate().map(|(c, p)| d.restore(c, p)).collect();
+    }
     let mut open_lin: Vec<Plane> = data.open.planes.iter().map(|p| p.map(|v| transfer.decode(v))).collect();
     // misregistration: the (band-limited) data onto the reference geometry, with the
     // interpolation's effect on its noise variance
@@ -251,8 +261,18 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
     // prediction pieces
     let blur_part = |c: usize, u: &[Plane]| ops[c].apply(u);
     // Σ_t w_t(x)·ΣU_t², the gain of the pinhole's noise through the interpolated kernel
-    let kernel_energy = |u: &[Plane]| -> Plane {
-        let e: Vec<f32> = u.iter().map(|kk| kk.data.iter().map(|v| v * v).sum::<f32>()).collect();
+    let diffraction = corr.pinhole_diffraction.clone();
+    let kernel_energy = |c: usize, u: &[Plane]| -> Plane {
+        let e: Vec<f32> = u
+            .iter()
+            .map(|kk| match &diffraction {
+                Some(d) => {
+                    let (r, eps) = d.channel(c);
+                    super::diffraction::noise_gain(kk, r, eps)
+                }
+                None => kk.data.iter().map(|v| v * v).sum::<f32>(),
+            })
+            .collect();
         Plane::from_fn(w, h, |x, y| grid0.weights_at(x as f64, y as f64).iter().map(|q| q.weight * e[q.tile]).sum())
     };
 
@@ -260,7 +280,7 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
     let mut a_parts: Vec<Plane> = (0..nch).map(|c| blur_part(c, &u[c])).collect();
     let lin_var = |curve: &NoiseCurve, v: f32| curve.linear_variance(v, transfer).max(1e-12);
     let update_variance = |c: usize, a: &Plane, u: &[Plane], g: &Plane, glare_amp: f64, beta: f64| -> Plane {
-        let kq = kernel_energy(u);
+        let kq = kernel_energy(c, u);
         let s = u.iter().map(|kk| kk.sum()).sum::<f64>() / u.len().max(1) as f64;
         Plane::from_fn(w, h, |x, y| {
             let i = y * w + x;
@@ -268,7 +288,7 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
             let m = g.data[i] * b + beta as f32;
             let level = (a.data[i] as f64 / s.max(1e-12)) as f32;
             let f = noise_factor.as_ref().map_or(1.0, |nf| nf.data[i]);
-            f * lin_var(&data.curves[c], m) + g.data[i] * g.data[i] * kq.data[i] * lin_var(&data.curves[c], level)
+            f * lin_var(&data.curves[c], m) + g.data[i] * g.data[i] * kq.data[i] * data.pinhole_variance_scale as f32 * lin_var(&data.curves[c], level)
         })
     };
 

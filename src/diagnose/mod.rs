@@ -24,6 +24,7 @@
 pub mod analysis;
 pub mod candidates;
 pub mod cli;
+pub mod diffraction;
 pub mod fit;
 pub mod kernels;
 pub mod model;
@@ -72,6 +73,9 @@ pub struct DiagnoseOptions {
     /// The noise curve is consistent with a Poisson–Gaussian law when its RMS relative misfit
     /// is at most this.
     pub consistent_noise: f64,
+    /// The reference's noise variance relative to the wide-open capture's at the same level:
+    /// `frames averaged in the wide-open capture / frames averaged in the pinhole capture`.
+    pub pinhole_variance_scale: f64,
 }
 
 impl Default for DiagnoseOptions {
@@ -84,6 +88,7 @@ impl Default for DiagnoseOptions {
             consistent: 1.06,
             min_gain: 0.01,
             consistent_noise: 0.10,
+            pinhole_variance_scale: 1.0,
         }
     }
 }
@@ -235,7 +240,7 @@ pub fn diagnose(open: &Image, pinhole: &Image, profile: Option<&Profile>, opts: 
     let curves: Vec<NoiseCurve> = open.planes.iter().map(|p| noise::measure(p, 16)).collect();
     let lin = |img: &Image| -> Vec<Plane> { img.planes.iter().map(|p| p.map(|v| img.transfer.decode(v))).collect() };
     let base_registration = register::register(&sum_planes(&lin(open)), &sum_planes(&lin(pinhole)), RegistrationModel::Translation).info;
-    let data = Data { open: open.clone(), pinhole: pinhole.clone(), curves, base_registration };
+    let data = Data { open: open.clone(), pinhole: pinhole.clone(), curves, base_registration, pinhole_variance_scale: opts.pinhole_variance_scale };
     let init = Model { corrections: model::Corrections::default(), grid: base_profile.grid.clone(), exposure: base_profile.meta.exposure_ratio.clone() };
     let provisional = fit::fit(&data, &init.corrections, &init, opts.base_fit);
     // the noise curve from the base model's residual (module docs of `noise`), then the base

@@ -4,6 +4,8 @@
 //! # The model, in the order it is applied to a sharp (pinhole) image `P`
 //! 1. `tone_curve` — both captures are encoded: `L_p = T⁻¹(P)` (`transfer = "srgb"`), and the
 //!    prediction is encoded back at the end. Without it the profile's source transfer is used.
+//! 1b. `pinhole_diffraction` — the reference is restored by the Wiener filter of its own
+//!    diffraction PSF (`airy_radius_px`, `epsilon` per channel; [`super::diffraction`]).
 //! 2. `misregistration` — the reference is resampled onto the wide-open geometry with the fitted
 //!    similarity (`matrix`, `translation`; the convention of [`crate::profile::RegistrationInfo`]).
 //! 3. **blur** — `A = Σ_t w_t·(K_t * L_p)`, the profile's kernels (sum 1), hat-interpolated.
@@ -76,6 +78,29 @@ pub struct GradientCorrection {
     pub gy: f64,
 }
 
+/// The reference's own diffraction PSF ([`super::diffraction`]), per channel.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DiffractionCorrection {
+    /// Radius of the Airy pattern's first dark ring, `1.22·λ·N / pitch`, pixels.
+    pub airy_radius_px: Vec<f64>,
+    /// Wiener noise-to-signal ratio of the restoration.
+    pub epsilon: Vec<f64>,
+}
+
+impl DiffractionCorrection {
+    /// Restores channel `c` of a linear reference.
+    pub fn restore(&self, c: usize, p: &Plane) -> Plane {
+        let r = self.airy_radius_px.get(c).or(self.airy_radius_px.first()).copied().unwrap_or(1.0);
+        let e = self.epsilon.get(c).or(self.epsilon.first()).copied().unwrap_or(1e-2);
+        super::diffraction::restore(p, r, e)
+    }
+    /// `(radius, epsilon)` of channel `c`.
+    pub fn channel(&self, c: usize) -> (f64, f64) {
+        (self.airy_radius_px.get(c).or(self.airy_radius_px.first()).copied().unwrap_or(1.0), self.epsilon.get(c).or(self.epsilon.first()).copied().unwrap_or(1e-2))
+    }
+}
+
 /// Per-channel offsets.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -89,6 +114,8 @@ pub struct BlackLevelCorrection {
 pub struct Corrections {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub tone_curve: Option<ToneCorrection>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub pinhole_diffraction: Option<DiffractionCorrection>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub misregistration: Option<RegistrationInfo>,
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -120,6 +147,9 @@ impl Corrections {
         let mut v = Vec::new();
         if self.tone_curve.is_some() {
             v.push("tone_curve");
+        }
+        if self.pinhole_diffraction.is_some() {
+            v.push("pinhole_diffraction");
         }
         if self.misregistration.is_some() {
             v.push("misregistration");
@@ -333,7 +363,10 @@ pub fn apply_corrections(profile: &Profile, sharp: &Image) -> Result<Image, Corr
         .iter()
         .enumerate()
         .map(|(ch, p)| {
-            let lin = p.map(|v| transfer.decode(v) - bl(ch));
+            let mut lin = p.map(|v| transfer.decode(v) - bl(ch));
+            if let Some(d) = &c.pinhole_diffraction {
+                lin = d.restore(ch, &lin);
+            }
             match &c.misregistration {
                 Some(info) => register::apply(&lin, &RegistrationInfo { model: "translation".into(), ..info.clone() }),
                 None => lin,

@@ -20,7 +20,7 @@ use crate::target::TargetSpec;
 use serde_json::json;
 
 /// The effects the proof suite conceals, in catalogue order.
-pub const CONCEALED: [&str; 8] = ["vignetting", "illumination_gradient", "tone_curve", "black_level", "veiling_glare", "misregistration", "saturation", "psf_field_variation"];
+pub const CONCEALED: [&str; 9] = ["vignetting", "illumination_gradient", "tone_curve", "black_level", "veiling_glare", "misregistration", "saturation", "psf_field_variation", "pinhole_diffraction"];
 
 /// Size and optics of a proof case.
 #[derive(Clone, Debug)]
@@ -50,6 +50,9 @@ pub struct Case {
     pub truth: serde_json::Value,
     /// Per channel, the true noise variance of a perfect prediction on the stored axis.
     pub true_variance: Vec<Plane>,
+    /// Frames averaged in the pinhole capture (the wide-open one: 1), capture metadata a rig
+    /// records; the diagnosis is told it, not the effect.
+    pub pinhole_frames: usize,
 }
 
 /// The framed noise scene, linear reflectance.
@@ -116,7 +119,9 @@ pub fn render_case(effect: Option<&str>, seed: u64, spec: &CaseSpec) -> Result<C
     let mut sensor = Sensor::default();
     let k = spec.kernel_size;
     let mut open_shot = Shot::lens(spec.f_number, 0.7, spec.grid.0, spec.grid.1, k);
-    let pin_shot = Shot::ideal(0.7);
+    let mut pin_shot = Shot::ideal(0.7);
+    let mut pin_sensor = sensor.clone();
+    let mut pinhole_frames = 1usize;
     let mut moved = None;
     let truth = match effect {
         None => json!({}),
@@ -154,6 +159,18 @@ pub fn render_case(effect: Option<&str>, seed: u64, spec: &CaseSpec) -> Result<C
             open_shot.exposure = e;
             json!({"open_exposure": e})
         }
+        Some("pinhole_diffraction") => {
+            // a real stop: f/11–f/22 through the same lens (its residual aberrations included);
+            // the reference averages 16 frames, as the rig's pinhole captures do
+            let n = rng.range(11.0, 22.0);
+            pin_shot = Shot::lens(n, 0.7, spec.grid.0, spec.grid.1, k);
+            pinhole_frames = 16;
+            pin_sensor.full_well_e *= pinhole_frames as f64;
+            pin_sensor.read_noise_e *= (pinhole_frames as f64).sqrt();
+            let (lw, ww) = lens.bands.iter().flat_map(|b| b.wavelengths.iter()).fold((0.0, 0.0), |(a, b), (l, w)| (a + l * w, b + w));
+            let lam = lw / ww / 1000.0;
+            json!({"f_number": n, "airy_radius_px": 1.22 * lam * n / lens.pixel_pitch_um})
+        }
         Some("psf_field_variation") => {
             open_shot.blur = Blur::Lens { f_number: spec.f_number, columns: 9, rows: 7, kernel_size: k };
             json!({"true_grid": [9, 7]})
@@ -165,7 +182,7 @@ pub fn render_case(effect: Option<&str>, seed: u64, spec: &CaseSpec) -> Result<C
         Some(m) => vec![soft(scene_moved(w, h, seed, Some(m), ppc)); lens.bands.len()],
         None => sc.clone(),
     };
-    let mut pinhole = render(&pin_scene, &lens, &pin_shot, &sensor, &mut Rng::new(seed * 2 + 2));
+    let mut pinhole = render(&pin_scene, &lens, &pin_shot, &pin_sensor, &mut Rng::new(seed * 2 + 2));
     // concealed: the files are declared linear whatever the sensor did
     open.image.transfer = Transfer::Linear;
     pinhole.image.transfer = Transfer::Linear;
@@ -189,7 +206,7 @@ pub fn render_case(effect: Option<&str>, seed: u64, spec: &CaseSpec) -> Result<C
             })
         })
         .collect();
-    Ok(Case { open, pinhole, effect: effect.map(str::to_string), truth, true_variance })
+    Ok(Case { open, pinhole, effect: effect.map(str::to_string), truth, true_variance, pinhole_frames })
 }
 
 /// `sqrt(Σ(stored − predicted)² / ΣVar_true)` over `mask`: the residual relative to the true

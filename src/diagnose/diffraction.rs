@@ -1,0 +1,388 @@
+//! `pinhole_diffraction`: the stopped-down reference is not sharp.
+//!
+//! # Physics
+//! At the pinhole stop (f-number `N`) the lens is close to diffraction-limited: its PSF is the
+//! Airy pattern, whose first dark ring has the radius `r = 1.22·λ·N / p` pixels (`p` the pixel
+//! pitch; the Airy core is `2.44·λ·N` across). Its optical transfer function is the incoherent
+//! OTF of a circular pupil,
+//!
+//! `OTF(ν) = (2/π)·(acos ν − ν·√(1 − ν²))` for `ν = |f|/f_c < 1`, 0 beyond,
+//!
+//! with the cut-off `f_c = 1/(λN)` = `1.22 / r` cycles per pixel. The sensor integrates over the
+//! pixel, so the reference is `P = D * S + n` with
+//!
+//! `D̂(fx, fy) = OTF(|f|/f_c) · sinc(fx) · sinc(fy)` (frequencies in cycles per pixel),
+//!
+//! relative to a pixel-integrated sharp target `S` (the convention of the wide-open kernels,
+//! which include the pixel's own integration). A non-negative kernel `K` has `|K̂| ≤ ΣK`, so the
+//! base model `K * P` cannot restore what `D̂` removed: wherever the wide-open lens passes more
+//! than the stopped-down one, the wide-open capture holds detail the model cannot reproduce.
+//!
+//! # The model term
+//! The reference is restored before the kernels act, by the Wiener filter of `D`:
+//!
+//! `S̃ = F⁻¹[ D̂·P̂ / (D̂² + ε) ]`, `ε = σ²_P / σ²_S`
+//!
+//! (`σ²_P` the reference's noise variance, `σ²_S` the target's variance, both measured: the
+//! noise-to-signal ratio of a white target). Parameters: `airy_radius_px` per channel (one
+//! fitted scale; channels follow their nominal wavelengths), and `epsilon` (derived, not fitted).
+//! The restored reference carries more noise: the pinhole's noise reaches the prediction
+//! through `K * W` (`Ŵ = D̂/(D̂² + ε)`), whose energy [`noise_gain`] gives.
+//!
+//! Pixels are linear values; the FFT is mirror-padded so that no circular wrap reaches the image.
+
+use crate::image::Plane;
+use crate::solve::fft::{good_size, Fft2};
+
+/// Nominal centre wavelength (µm) of a channel name, for scaling the Airy radius across
+/// channels (`R`, `G`, `B`; anything else counts as green).
+pub fn channel_wavelength_um(name: &str) -> f64 {
+    match name {
+        "R" => 0.61,
+        "B" => 0.465,
+        _ => 0.55,
+    }
+}
+
+/// The diffraction OTF of a circular pupil at normalised frequency `nu = |f|/f_c`.
+pub fn circular_otf(nu: f64) -> f64 {
+    if nu >= 1.0 {
+        return 0.0;
+    }
+    let nu = nu.max(0.0);
+    (2.0 / std::f64::consts::PI) * (nu.acos() - nu * (1.0 - nu * nu).sqrt())
+}
+
+fn sinc(x: f64) -> f64 {
+    if x.abs() < 1e-12 {
+        1.0
+    } else {
+        let px = std::f64::consts::PI * x;
+        px.sin() / px
+    }
+}
+
+/// `D̂` at frequency `(fx, fy)` (cycles per pixel) for Airy radius `radius_px`.
+pub fn transfer(fx: f64, fy: f64, radius_px: f64) -> f64 {
+    let fc = 1.22 / radius_px.max(1e-6);
+    circular_otf((fx * fx + fy * fy).sqrt() / fc) * sinc(fx) * sinc(fy)
+}
+
+/// The Wiener restoration `S̃` of a reference plane (module docs). Mirror-padded by a margin
+/// of several Airy radii; returns a plane of the input's size.
+pub fn restore(p: &Plane, radius_px: f64, epsilon: f64) -> Plane {
+    let (w, h) = (p.width, p.height);
+    let m = ((6.0 * radius_px).ceil() as usize + 8).min(w.max(h));
+    let (pw, ph) = (good_size(w + 2 * m), good_size(h + 2 * m));
+    let fft = Fft2::plan(pw, ph);
+    let win = p.window_reflect(-(m as isize), -(m as isize), pw, ph);
+    let mean = win.mean() as f32;
+    let centred: Vec<f32> = win.data.iter().map(|v| v - mean).collect();
+    let mut spec = fft.forward(&centred);
+    for (i, s) in spec.iter_mut().enumerate() {
+        let (fx, fy) = fft.frequency(i);
+        let d = transfer(fx as f64, fy as f64, radius_px);
+        *s *= (d / (d * d + epsilon)) as f32;
+    }
+    let full = fft.inverse(spec);
+    Plane::from_fn(w, h, |x, y| full[(y + m) * pw + x + m] + mean)
+}
+
+/// The noise-to-signal ratio `ε = σ²_P / σ²_S` of a reference plane with noise variance
+/// `noise_var`, the target's variance taken from the plane's spectrum (`σ²_S = (var P − σ²_P) /
+/// mean D̂²`), at least `1e-4`.
+pub fn epsilon(p: &Plane, noise_var: f64, radius_px: f64) -> f64 {
+    let n = p.data.len().max(1) as f64;
+    let mean = p.sum() / n;
+    let var = p.data.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / n;
+    // mean of D̂² over the Nyquist square
+    let steps = 64;
+    let mut acc = 0.0;
+    for j in 0..steps {
+        for i in 0..steps {
+            let fx = (i as f64 + 0.5) / steps as f64 - 0.5;
+            let fy = (j as f64 + 0.5) / steps as f64 - 0.5;
+            acc += transfer(fx, fy, radius_px).powi(2);
+        }
+    }
+    let md2 = (acc / (steps * steps) as f64).max(1e-9);
+    let signal = ((var - noise_var).max(1e-3 * var)) / md2;
+    (noise_var / signal.max(1e-30)).max(1e-4)
+}
+
+/// Energy `Σ (K * W)²` of the combined kernel through which the reference's noise reaches the
+/// prediction (`Ŵ = D̂/(D̂² + ε)`), computed on a periodic grid of side `good_size(4k)`.
+pub fn noise_gain(kernel: &Plane, radius_px: f64, epsilon: f64) -> f32 {
+    let k = kernel.width.max(kernel.height);
+    let n = good_size((4 * k).max(64));
+    let fft = Fft2::plan(n, n);
+    let mut buf = vec![0.0f32; n * n];
+    for y in 0..kernel.height {
+        for x in 0..kernel.width {
+            buf[y * n + x] = kernel.get(x, y);
+        }
+    }
+    let spec = fft.forward(&buf);
+    // Parseval over the half spectrum: interior columns count twice
+    let mut e = 0.0f64;
+    for (i, s) in spec.iter().enumerate() {
+        let (fx, fy) = fft.frequency(i);
+        let d = transfer(fx as f64, fy as f64, radius_px);
+        let g = d / (d * d + epsilon);
+        let kx = i / n;
+        let mult = if kx == 0 || (n % 2 == 0 && kx == n / 2) { 1.0 } else { 2.0 };
+        e += mult * (s.norm_sqr() as f64) * g * g;
+    }
+    (e / (n * n) as f64) as f32
+}
+
+/// Radially averaged power ratio `(|Ô|² − N_O) / (s²·(|P̂|² − N_P))` in eight frequency bands
+/// (a Hann-windowed central square of both planes): above 1 where the wide-open capture holds
+/// detail that no non-negative kernel of sum `s` can produce from the reference. Bands where
+/// the reference holds less than twice its noise power are skipped (no information there).
+/// Returns `(band centre in cycles/px, ratio)`.
+pub fn excess_detail(open: &Plane, reference: &Plane, s: f64, var_open: f64, var_ref: f64) -> Vec<(f64, f64)> {
+    let side = open.width.min(open.height);
+    let n = {
+        let mut n = good_size(side);
+        while n > side {
+            n = good_size(n * 3 / 4);
+            if n <= 8 {
+                break;
+            }
+        }
+        n.min(side)
+    };
+    if n < 16 {
+        return Vec::new();
+    }
+    let (x0, y0) = ((open.width - n) / 2, (open.height - n) / 2);
+    let fft = Fft2::plan(n, n);
+    let hann: Vec<f64> = (0..n).map(|i| 0.5 - 0.5 * (2.0 * std::f64::consts::PI * (i as f64 + 0.5) / n as f64).cos()).collect();
+    let w2: f64 = hann.iter().map(|v| v * v).sum::<f64>().powi(2);
+    let spectrum = |p: &Plane| {
+        let win = Plane::from_fn(n, n, |x, y| p.get(x0 + x, y0 + y));
+        let mean = win.mean();
+        let buf: Vec<f32> = (0..n * n).map(|i| ((win.data[i] as f64 - mean) * hann[i % n] * hann[i / n]) as f32).collect();
+        fft.forward(&buf)
+    };
+    let (so, sp) = (spectrum(open), spectrum(reference));
+    let bands = 8;
+    let mut po = vec![0.0f64; bands];
+    let mut pp = vec![0.0f64; bands];
+    let mut cnt = vec![0usize; bands];
+    for i in 0..so.len() {
+        let (fx, fy) = fft.frequency(i);
+        let f = ((fx * fx + fy * fy) as f64).sqrt();
+        if f < 0.02 || f >= 0.5 {
+            continue;
+        }
+        let b = ((f / 0.5) * bands as f64) as usize;
+        po[b] += so[i].norm_sqr() as f64;
+        pp[b] += sp[i].norm_sqr() as f64;
+        cnt[b] += 1;
+    }
+    // white noise of variance v has expected windowed power v·Σhann² per bin
+    let nw = w2.sqrt();
+    (0..bands)
+        .filter(|&b| cnt[b] > 0)
+        .filter_map(|b| {
+            let (mo, mp) = (po[b] / cnt[b] as f64, pp[b] / cnt[b] as f64);
+            let (so_, sp_) = (mo - var_open * nw, mp - var_ref * nw);
+            (mp > 2.0 * var_ref * nw && sp_ > 0.0).then(|| ((b as f64 + 0.5) * 0.5 / bands as f64, so_.max(0.0) / (s * s * sp_)))
+        })
+        .collect()
+}
+
+/// `K * D` cropped to the kernel's support, clamped non-negative and rescaled to `K`'s sum: the
+/// wide-open kernel that a kernel fitted against the unrestored reference (`K_base ≈ K * D⁻¹`)
+/// implies, the warm start of the refit once the reference is restored.
+pub fn blur_kernel(kernel: &Plane, radius_px: f64) -> Plane {
+    let (kw, kh) = (kernel.width, kernel.height);
+    let n = good_size(2 * kw.max(kh) + 16);
+    let fft = Fft2::plan(n, n);
+    let padded = crate::solve::conv::kernel_to_origin(kernel, n, n);
+    let mut spec = fft.forward(&padded);
+    for (i, s) in spec.iter_mut().enumerate() {
+        let (fx, fy) = fft.frequency(i);
+        *s *= transfer(fx as f64, fy as f64, radius_px) as f32;
+    }
+    let full = fft.inverse(spec);
+    let mut out = crate::solve::conv::kernel_from_origin(&full, n, n, kw, kh);
+    out.data.iter_mut().for_each(|v| *v = v.max(0.0));
+    let (s0, s1) = (kernel.sum(), out.sum());
+    if s1 > 0.0 {
+        out.scale((s0 / s1) as f32);
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rng::Rng;
+
+    #[test]
+    fn otf_is_one_at_dc_zero_at_cutoff_and_decreasing() {
+        assert!((circular_otf(0.0) - 1.0).abs() < 1e-12);
+        assert_eq!(circular_otf(1.0), 0.0);
+        let mut last = 1.0;
+        for i in 1..100 {
+            let v = circular_otf(i as f64 / 100.0);
+            assert!(v < last && v > 0.0);
+            last = v;
+        }
+        // a known value: OTF(0.5) = (2/π)(π/3 − 0.5·√0.75) ≈ 0.391
+        assert!((circular_otf(0.5) - 0.3910).abs() < 1e-3);
+    }
+
+    /// The Airy pattern's OTF against a direct numerical transform of the Airy intensity
+    /// `(2 J1(v)/v)²`: the first dark ring at `r = 1.22 λN` gives the cut-off `f_c = 1.22/r`.
+    #[test]
+    fn transfer_matches_the_airy_intensity_transform() {
+        // J1 by its series (fine for v < 25)
+        fn j1(v: f64) -> f64 {
+            let mut term = v / 2.0;
+            let mut sum = term;
+            for k in 1..60 {
+                term *= -(v * v / 4.0) / (k as f64 * (k as f64 + 1.0));
+                sum += term;
+            }
+            sum
+        }
+        let r = 3.0; // px
+        let scale = 3.8317 / r; // first zero of J1 at v = 3.8317
+        let n = 96;
+        let mut p = vec![0.0f64; n * n];
+        let ss = 4;
+        for y in 0..n {
+            for x in 0..n {
+                let mut acc = 0.0;
+                for j in 0..ss {
+                    for i in 0..ss {
+                        let dx = x as f64 + (i as f64 + 0.5) / ss as f64 - 0.5 - (n / 2) as f64;
+                        let dy = y as f64 + (j as f64 + 0.5) / ss as f64 - 0.5 - (n / 2) as f64;
+                        let v = scale * (dx * dx + dy * dy).sqrt();
+                        let a = if v < 1e-9 { 1.0 } else if v > 24.0 { 0.0 } else { 2.0 * j1(v) / v };
+                        acc += a * a;
+                    }
+                }
+                p[y * n + x] = acc;
+            }
+        }
+        let total: f64 = p.iter().sum();
+        // the transform at a few frequencies along x
+        for f in [0.05, 0.15, 0.25] {
+            let mut re = 0.0;
+            for y in 0..n {
+                for x in 0..n {
+                    re += p[y * n + x] * (2.0 * std::f64::consts::PI * f * (x as f64 - (n / 2) as f64)).cos();
+                }
+            }
+            let got = re / total;
+            let want = transfer(f, 0.0, r);
+            // the truncated Airy tails and the series' precision allow a few percent
+            assert!((got - want).abs() < 0.03, "f {f}: direct {got:.4} vs model {want:.4}");
+        }
+    }
+
+    #[test]
+    fn restore_undoes_the_blur_where_the_otf_is_strong() {
+        let (w, h) = (96, 80);
+        let mut r = Rng::new(5);
+        let sharp = crate::optics::capture::gaussian_blur(&Plane::from_fn(w, h, |_, _| r.uniform() as f32), 1.2);
+        // blur with D by FFT on a large periodic grid (periodic sharp image)
+        let fft = Fft2::plan(w, h);
+        let mut spec = fft.forward(&sharp.data);
+        for (i, s) in spec.iter_mut().enumerate() {
+            let (fx, fy) = fft.frequency(i);
+            *s *= transfer(fx as f64, fy as f64, 2.0) as f32;
+        }
+        let blurred = Plane { width: w, height: h, data: fft.inverse(spec) };
+        let restored = restore(&blurred, 2.0, 1e-4);
+        let err = |a: &Plane| {
+            let mut s = 0.0f64;
+            for y in 16..h - 16 {
+                for x in 16..w - 16 {
+                    s += ((a.get(x, y) - sharp.get(x, y)) as f64).powi(2);
+                }
+            }
+            s.sqrt()
+        };
+        assert!(err(&restored) < 0.25 * err(&blurred), "restored {:.4} vs blurred {:.4}", err(&restored), err(&blurred));
+    }
+
+    #[test]
+    fn noise_gain_grows_as_epsilon_falls_and_matches_a_delta_kernel() {
+        let mut delta = Plane::new(9, 9);
+        delta.set(4, 4, 1.0);
+        let big = noise_gain(&delta, 2.5, 1e-3);
+        let small = noise_gain(&delta, 2.5, 1e-1);
+        assert!(big > small && small > 0.0, "{big} {small}");
+        // a delta kernel: Σ W² = mean over frequencies of Ŵ²
+        let n = good_size(64);
+        let mut acc = 0.0f64;
+        for j in 0..n {
+            for i in 0..n {
+                let fx = if i <= n / 2 { i as f64 } else { i as f64 - n as f64 } / n as f64;
+                let fy = if j <= n / 2 { j as f64 } else { j as f64 - n as f64 } / n as f64;
+                let d = transfer(fx, fy, 2.5);
+                acc += (d / (d * d + 1e-1)).powi(2);
+            }
+        }
+        let want = acc / (n * n) as f64;
+        assert!((small as f64 / want - 1.0).abs() < 1e-3, "{small} vs {want}");
+    }
+}
+
+#[cfg(test)]
+mod simulator_tests {
+    use super::*;
+    use crate::optics::capture::{render, Sensor, Shot};
+    use crate::optics::lens::{mono_band, LensModel};
+    use crate::rng::Rng;
+
+    /// A reference rendered by the lens simulator at f/11 (diffraction, pixel integration, the
+    /// lens's residual aberrations) is brought closer to the ideal one by [`restore`] with the
+    /// nominal Airy radius than with a wrong one.
+    #[test]
+    fn restoring_a_simulated_stopped_down_reference() {
+        let (w, h) = (192, 144);
+        let mut lens = LensModel::demo(w, h);
+        lens.bands = mono_band();
+        let sc = vec![crate::diagnose::proof::scene(w, h, 3)];
+        let sensor = Sensor { noise: false, ..Sensor::default() };
+        let n = 11.0;
+        let ideal = render(&sc, &lens, &Shot::ideal(0.7), &sensor, &mut Rng::new(1));
+        let stopped = render(&sc, &lens, &Shot::lens(n, 0.7, 3, 2, 15), &sensor, &mut Rng::new(1));
+        let (lw, ww) = lens.bands.iter().flat_map(|b| b.wavelengths.iter()).fold((0.0, 0.0), |(a, b), (l, w)| (a + l * w, b + w));
+        let r_true = 1.22 * lw / ww / 1000.0 * n / lens.pixel_pitch_um;
+        let err = |p: &Plane| {
+            let mut s = 0.0f64;
+            for y in 20..h - 20 {
+                for x in 20..w - 20 {
+                    s += ((p.get(x, y) - ideal.clean[0].get(x, y)) as f64).powi(2);
+                }
+            }
+            s.sqrt()
+        };
+        let e0 = err(&stopped.clean[0]);
+        let mut rows = vec![];
+        for r in [0.6 * r_true, r_true, 1.6 * r_true] {
+            rows.push((r, err(&restore(&stopped.clean[0], r, 1e-3))));
+        }
+        eprintln!("unrestored {e0:.4}; {rows:?}");
+        // with a 16-frame average's noise and the measured ε
+        let noisy_sensor = Sensor { full_well_e: 16.0 * 20_000.0, read_noise_e: 24.0, ..Sensor::default() };
+        let noisy = render(&sc, &lens, &Shot::lens(n, 0.7, 3, 2, 15), &noisy_sensor, &mut Rng::new(2));
+        let nv = noisy.variance[0].mean();
+        let mut nrows = vec![];
+        for r in [0.6 * r_true, 0.9 * r_true, r_true, 1.1 * r_true, 1.35 * r_true, 1.6 * r_true] {
+            let e = epsilon(&noisy.image.planes[0], nv, r);
+            nrows.push((r, e, err(&restore(&noisy.image.planes[0], r, e))));
+        }
+        eprintln!("noisy: unrestored {:.4}; {nrows:?}", err(&noisy.image.planes[0]));
+        assert!(rows[1].1 < 0.5 * e0, "{rows:?} vs {e0}");
+        assert!(rows[1].1 < rows[0].1 && rows[1].1 < rows[2].1, "{rows:?}");
+    }
+}

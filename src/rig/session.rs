@@ -546,6 +546,8 @@ fn run_pairs(rig: &mut Rig, cfg: &RigConfig, out: &Path, pairs: &[PairPlan], rec
             let _ = d.sync_all();
         }
         rec.pairs.push(pair_record(p, dark));
+        // in plan order, also when a damaged pair was captured again after later ones
+        rec.pairs.sort_by_key(|r| r.index);
         save_record(out, rec)?;
         if o.progress {
             eprintln!("  open {} µs, pinhole {} µs, {} frame(s) each: saved", open.meta.exposure_us, pin.meta.exposure_us, n);

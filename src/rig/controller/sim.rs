@@ -1489,6 +1489,28 @@ mod tests {
     }
 
     #[test]
+    fn soft_reset_flushes_the_receive_buffer_and_the_line_buffer_is_bounded() {
+        let mut b = Bench::new(SimOptions::default());
+        b.fw.take_output();
+        // half a line, then ^X: the half line is gone (the newline after it is an empty line)
+        assert_eq!(b.send(b"G0 X-5"), "");
+        assert_eq!(b.send(b"\x18"), "\r\nGrbl 1.1h ['$' for help]\r\n");
+        assert_eq!(b.send(b"\n"), "ok\r\n");
+        b.advance(0.5);
+        assert_eq!(b.fw.position(), Position::ZERO);
+        // the 128-byte RX buffer drops what overflows it while a line waits for the planner:
+        // fill the planner with 15 blocks, then a 16th waits, then overflow the buffer
+        for i in 0..16 {
+            b.send(format!("G0 X-{}\n", i + 1).as_bytes());
+        }
+        let flood = "G0X-1\n".repeat(40); // 240 bytes
+        b.send(flood.as_bytes());
+        let r = b.send(b"?");
+        assert!(r.starts_with("<Run|"), "{r}");
+        assert_eq!(b.fw.rx.len(), RX_BUFFER_SIZE, "the RX buffer holds at most 128 bytes");
+    }
+
+    #[test]
     fn reset_during_homing_raises_alarm_6() {
         let mut b = Bench::new(SimOptions::default().with(22, 1.0));
         b.fw.take_output();

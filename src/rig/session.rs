@@ -5,7 +5,9 @@
 //! For each stage position: move the stage; then for the aperture in `[open, pinhole]`: move
 //! the aperture, settle, set the exposure and capture `frames_to_average` frames. The open
 //! exposure starts at `camera.exposure_us`; with `plan.auto_bracket` a single test frame is
-//! taken and the exposure scaled down until the 99.9th percentile is below 0.95 full scale.
+//! taken and the exposure scaled down until the 99.9th percentile is below 0.95 full scale
+//! (after [`MAX_BRACKET_STEPS`] reductions, or at 1 µs, the capture stops with
+//! [`SessionError::Saturated`] rather than record a clipped frame).
 //! The pinhole exposure is the open exposure × `plan.pinhole_exposure_scale` (capped at 10 s).
 //! With `plan.dark_frames > 0` a **bias/dark frame** is recorded after the pinhole: the
 //! average of that many frames at the shortest exposure (1 µs), aperture at pinhole — the
@@ -67,6 +69,9 @@ pub enum SessionError {
         #[source]
         source: io::Error,
     },
+    /// Auto-bracketing gave up: the open frame still clips.
+    #[error("pair {pair}: the open frame still clips at {exposure_us} µs (99.9th percentile {p999:.3} of full scale) after {MAX_BRACKET_STEPS} exposure reductions; reduce the light or the gain")]
+    Saturated { pair: String, exposure_us: u32, p999: f32 },
     #[error("{0}")]
     Setup(String),
     #[error("session {0} already exists; pass --resume to continue it, or choose another --out (sessions are never overwritten)")]
@@ -74,6 +79,9 @@ pub enum SessionError {
     #[error("{0}")]
     Resume(String),
 }
+
+/// Exposure reductions auto-bracketing tries before [`SessionError::Saturated`].
+pub const MAX_BRACKET_STEPS: usize = 12;
 
 fn io_err(path: &Path) -> impl FnOnce(io::Error) -> SessionError + '_ {
     move |source| file_error(path.to_path_buf(), source)
@@ -512,11 +520,14 @@ fn run_pairs(rig: &mut Rig, cfg: &RigConfig, out: &Path, pairs: &[PairPlan], rec
         let mut exp = cfg.camera.exposure_us;
         rig.camera.set_exposure(exp)?;
         if cfg.plan.auto_bracket {
-            for _ in 0..12 {
+            for attempt in 0.. {
                 let f = rig.camera.capture(1)?;
                 let p999 = percentile(&f, 0.999);
                 if p999 < 0.95 {
                     break;
+                }
+                if attempt == MAX_BRACKET_STEPS || exp <= 1 {
+                    return Err(SessionError::Saturated { pair: p.key.clone(), exposure_us: exp, p999 });
                 }
                 let factor = if p999 >= 0.999 { 0.5 } else { 0.9 / p999 as f64 };
                 exp = ((exp as f64 * factor) as u32).max(1);

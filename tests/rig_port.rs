@@ -90,3 +90,18 @@ fn missing_busy_and_silent_ports_fail_clearly() {
     assert!(!o.status.success() && e.contains(&path) && e.contains("within"), "{e}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn the_real_rig_example_checks_and_dry_runs_without_touching_a_device() {
+    let dir = tmp("example");
+    let cfg = Path::new(env!("CARGO_MANIFEST_DIR")).join("rig-configs/example-real.toml");
+    let o = Command::new(env!("CARGO_BIN_EXE_lensrig")).args(["check-config", cfg.to_str().unwrap()]).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let out = dir.join("never");
+    let o = Command::new(env!("CARGO_BIN_EXE_lensrig")).args(["capture", "--rig", cfg.to_str().unwrap(), "--out", out.to_str().unwrap(), "--dry-run"]).output().unwrap();
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(text.contains("/dev/serial/by-id/") && text.contains("move stage X to -110.000 mm") && text.contains("move aperture Z to -14.500 mm (pinhole)"), "{text}");
+    assert!(!out.exists());
+    let _ = std::fs::remove_dir_all(&dir);
+}

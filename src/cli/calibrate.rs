@@ -51,7 +51,10 @@ pub fn truth_error(optics: &MockOptics, g: &PsfGrid) -> (f64, f64) {
         }
     }
     e.sort_by(f64::total_cmp);
-    (e[e.len() / 2], e[e.len() - 1])
+    match e.last() {
+        Some(&max) => (e[e.len() / 2], max),
+        None => (f64::NAN, f64::NAN),
+    }
 }
 
 fn ee_map(p: &Profile, c: usize) -> String {

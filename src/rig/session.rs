@@ -5,7 +5,9 @@
 //! For each stage position: move the stage; then for the aperture in `[open, pinhole]`: move
 //! the aperture, settle, set the exposure and capture `frames_to_average` frames. The open
 //! exposure starts at `camera.exposure_us`; with `plan.auto_bracket` a single test frame is
-//! taken and the exposure scaled down until the 99.9th percentile is below 0.95 full scale.
+//! taken and the exposure scaled down until the 99.9th percentile is below 0.95 full scale
+//! (after [`MAX_BRACKET_STEPS`] reductions, or at 1 µs, the capture stops with
+//! [`SessionError::Saturated`] rather than record a clipped frame).
 //! The pinhole exposure is the open exposure × `plan.pinhole_exposure_scale` (capped at 10 s).
 //! With `plan.dark_frames > 0` a **bias/dark frame** is recorded after the pinhole: the
 //! average of that many frames at the shortest exposure (1 µs), aperture at pinhole — the
@@ -59,6 +61,17 @@ pub enum SessionError {
         #[source]
         source: io::Error,
     },
+    /// The disk (or the process's file-size limit) is full: finished pairs are intact, the
+    /// unfinished one stays in its `.partial` directory and `--resume` redoes it.
+    #[error("{path}: no space to write the capture ({source}); the pairs finished so far are intact: free some space, then run the same capture with --resume")]
+    DiskFull {
+        path: PathBuf,
+        #[source]
+        source: io::Error,
+    },
+    /// Auto-bracketing gave up: the open frame still clips.
+    #[error("pair {pair}: the open frame still clips at {exposure_us} µs (99.9th percentile {p999:.3} of full scale) after {MAX_BRACKET_STEPS} exposure reductions; reduce the light or the gain")]
+    Saturated { pair: String, exposure_us: u32, p999: f32 },
     #[error("{0}")]
     Setup(String),
     #[error("session {0} already exists; pass --resume to continue it, or choose another --out (sessions are never overwritten)")]
@@ -67,8 +80,24 @@ pub enum SessionError {
     Resume(String),
 }
 
+/// Exposure reductions auto-bracketing tries before [`SessionError::Saturated`].
+pub const MAX_BRACKET_STEPS: usize = 12;
+
 fn io_err(path: &Path) -> impl FnOnce(io::Error) -> SessionError + '_ {
-    move |source| SessionError::Io { path: path.to_path_buf(), source }
+    move |source| file_error(path.to_path_buf(), source)
+}
+
+/// `ENOSPC`, `EFBIG` (a file-size limit), `EDQUOT`: the disk cannot take more data.
+fn is_disk_full(e: &io::Error) -> bool {
+    matches!(e.raw_os_error(), Some(27 | 28 | 122))
+}
+
+fn file_error(path: PathBuf, source: io::Error) -> SessionError {
+    if is_disk_full(&source) {
+        SessionError::DiskFull { path, source }
+    } else {
+        SessionError::Io { path, source }
+    }
 }
 
 /// A camera and a controller, injected, plus what the simulated parts expose to tests.
@@ -347,20 +376,12 @@ pub fn capture(rig: &mut Rig, cfg: &RigConfig, config_path: &Path, out: &Path, o
     };
     rec.status = "running".into();
     rec.finished = None;
-    // pairs on disk: finished ones are kept, unfinished ones removed
+    let pairs = plan(cfg);
     let pairs_dir = out.join("pairs");
     fs::create_dir_all(&pairs_dir).map_err(io_err(&pairs_dir))?;
-    for e in fs::read_dir(&pairs_dir).map_err(io_err(&pairs_dir))? {
-        let p = e.map_err(io_err(&pairs_dir))?.path();
-        if p.extension().is_some_and(|x| x == "partial") {
-            if o.progress {
-                eprintln!("removing unfinished pair {}", p.display());
-            }
-            fs::remove_dir_all(&p).map_err(io_err(&p))?;
-        }
+    if o.resume {
+        recover(out, cfg, &pairs, &mut rec, o.progress)?;
     }
-    let pairs = plan(cfg);
-    rec.pairs.retain(|r| pairs_dir.join(&r.key).is_dir());
     save_record(out, &rec)?;
     let result = run_pairs(rig, cfg, out, &pairs, &mut rec, o);
     rec.finished = Some(crate::timestamp_utc());
@@ -368,8 +389,110 @@ pub fn capture(rig: &mut Rig, cfg: &RigConfig, config_path: &Path, out: &Path, o
         Ok(()) => "complete".into(),
         Err(e) => format!("failed: {e}"),
     };
-    save_record(out, &rec)?;
-    result.map(|()| rec)
+    match (result, save_record(out, &rec)) {
+        (Ok(()), Ok(())) => Ok(rec),
+        // the capture's own error matters more than a status that could not be written
+        // (a full disk fails both)
+        (Err(e), _) | (Ok(()), Err(e)) => Err(e),
+    }
+}
+
+/// The files a finished pair directory holds under `cfg`.
+fn pair_files(cfg: &RigConfig) -> Vec<&'static str> {
+    let mut v = vec!["open.png", "open.toml", "pinhole.png", "pinhole.toml"];
+    if cfg.plan.dark_frames > 0 {
+        v.extend(["dark.png", "dark.toml"]);
+    }
+    v
+}
+
+/// Checks that a finished pair directory holds every frame and sidecar, that the sidecars
+/// parse and that the PNGs decode to the session's frame size.
+///
+/// # Errors
+/// [`SessionError::Resume`] naming the first missing or unreadable file.
+pub fn verify_pair(dir: &Path, cfg: &RigConfig) -> Result<(), SessionError> {
+    for f in pair_files(cfg) {
+        let p = dir.join(f);
+        if !p.is_file() {
+            return Err(SessionError::Resume(format!("{} is missing", p.display())));
+        }
+        if f.ends_with(".toml") {
+            load_frame_record(&p)?;
+        } else {
+            let img = crate::image::io::read_image(&p).map_err(|e| SessionError::Resume(format!("{}: unreadable frame: {e}", p.display())))?;
+            let (w, h) = (img.width() as u32, img.height() as u32);
+            if w == 0 || h == 0 {
+                return Err(SessionError::Resume(format!("{}: empty frame", p.display())));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Brings a resumed session's directory back to "finished pairs only": removes unfinished
+/// `.partial` pairs and temporary files a kill left behind, verifies every finished pair
+/// (a damaged one is moved aside to `KEY.damaged[-N]`, never deleted, and captured again),
+/// and records finished pairs the session file missed (a kill between the pair's rename
+/// and the `session.toml` update).
+fn recover(out: &Path, cfg: &RigConfig, pairs: &[PairPlan], rec: &mut SessionRecord, progress: bool) -> Result<(), SessionError> {
+    let pairs_dir = out.join("pairs");
+    for dir in [out, pairs_dir.as_path()] {
+        for e in fs::read_dir(dir).map_err(io_err(dir))? {
+            let p = e.map_err(io_err(dir))?.path();
+            let name = p.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+            let stray_tmp = name.starts_with('.') && name.contains(".tmp-") && p.is_file();
+            let partial = p.extension().is_some_and(|x| x == "partial") && p.is_dir();
+            if stray_tmp || partial {
+                if progress {
+                    eprintln!("removing {} left by an interrupted capture", p.display());
+                }
+                if partial {
+                    fs::remove_dir_all(&p).map_err(io_err(&p))?;
+                } else {
+                    fs::remove_file(&p).map_err(io_err(&p))?;
+                }
+            }
+        }
+    }
+    for p in pairs {
+        let dir = pairs_dir.join(&p.key);
+        if !dir.is_dir() {
+            continue;
+        }
+        if let Err(e) = verify_pair(&dir, cfg) {
+            let aside = (0..)
+                .map(|n| pairs_dir.join(if n == 0 { format!("{}.damaged", p.key) } else { format!("{}.damaged-{n}", p.key) }))
+                .find(|d| !d.exists())
+                .unwrap_or_else(|| pairs_dir.join(format!("{}.damaged", p.key)));
+            if progress {
+                eprintln!("pair {} is damaged ({e}); moved to {} and captured again", p.key, aside.display());
+            }
+            fs::rename(&dir, &aside).map_err(io_err(&aside))?;
+            continue;
+        }
+        if !rec.pairs.iter().any(|r| r.key == p.key) {
+            if progress {
+                eprintln!("pair {} finished but was not yet recorded in session.toml: recorded", p.key);
+            }
+            rec.pairs.push(pair_record(p, cfg.plan.dark_frames > 0));
+        }
+    }
+    rec.pairs.retain(|r| pairs_dir.join(&r.key).is_dir());
+    rec.pairs.sort_by_key(|r| r.index);
+    Ok(())
+}
+
+fn pair_record(p: &PairPlan, dark: bool) -> PairRecord {
+    PairRecord {
+        index: p.index,
+        key: p.key.clone(),
+        stage_mm: p.stage_mm,
+        dir: format!("pairs/{}", p.key),
+        open: "open.png".into(),
+        pinhole: "pinhole.png".into(),
+        dark: dark.then(|| "dark.png".to_string()),
+    }
 }
 
 fn run_pairs(rig: &mut Rig, cfg: &RigConfig, out: &Path, pairs: &[PairPlan], rec: &mut SessionRecord, o: &CaptureOptions) -> Result<(), SessionError> {
@@ -397,11 +520,14 @@ fn run_pairs(rig: &mut Rig, cfg: &RigConfig, out: &Path, pairs: &[PairPlan], rec
         let mut exp = cfg.camera.exposure_us;
         rig.camera.set_exposure(exp)?;
         if cfg.plan.auto_bracket {
-            for _ in 0..12 {
+            for attempt in 0.. {
                 let f = rig.camera.capture(1)?;
                 let p999 = percentile(&f, 0.999);
                 if p999 < 0.95 {
                     break;
+                }
+                if attempt == MAX_BRACKET_STEPS || exp <= 1 {
+                    return Err(SessionError::Saturated { pair: p.key.clone(), exposure_us: exp, p999 });
                 }
                 let factor = if p999 >= 0.999 { 0.5 } else { 0.9 / p999 as f64 };
                 exp = ((exp as f64 * factor) as u32).max(1);
@@ -420,27 +546,19 @@ fn run_pairs(rig: &mut Rig, cfg: &RigConfig, out: &Path, pairs: &[PairPlan], rec
         rig.camera.set_exposure(pexp)?;
         let pin = rig.camera.capture(n)?;
         write_frame(&tmp, "pinhole", &pin, rig, &a, &s)?;
-        let dark = if cfg.plan.dark_frames > 0 {
+        let dark = cfg.plan.dark_frames > 0;
+        if dark {
             rig.camera.set_exposure(1)?;
             let d = rig.camera.capture(cfg.plan.dark_frames as usize)?;
             write_frame(&tmp, "dark", &d, rig, &a, &s)?;
-            Some("dark.png".to_string())
-        } else {
-            None
-        };
+        }
         fs::rename(&tmp, &final_dir).map_err(io_err(&final_dir))?;
         if let Ok(d) = fs::File::open(out.join("pairs")) {
             let _ = d.sync_all();
         }
-        rec.pairs.push(PairRecord {
-            index: p.index,
-            key: p.key.clone(),
-            stage_mm: p.stage_mm,
-            dir: format!("pairs/{}", p.key),
-            open: "open.png".into(),
-            pinhole: "pinhole.png".into(),
-            dark,
-        });
+        rec.pairs.push(pair_record(p, dark));
+        // in plan order, also when a damaged pair was captured again after later ones
+        rec.pairs.sort_by_key(|r| r.index);
         save_record(out, rec)?;
         if o.progress {
             eprintln!("  open {} µs, pinhole {} µs, {} frame(s) each: saved", open.meta.exposure_us, pin.meta.exposure_us, n);
@@ -452,12 +570,16 @@ fn run_pairs(rig: &mut Rig, cfg: &RigConfig, out: &Path, pairs: &[PairPlan], rec
 fn percentile(f: &Frame, q: f64) -> f32 {
     let mut v: Vec<f32> = f.image.planes.iter().flat_map(|p| p.data.iter().map(|&x| f.image.transfer.decode(x))).collect();
     v.sort_by(f32::total_cmp);
-    v[((v.len() - 1) as f64 * q) as usize]
+    // an empty frame cannot clip
+    v.get((v.len().saturating_sub(1) as f64 * q) as usize).copied().unwrap_or(0.0)
 }
 
 fn write_frame(dir: &Path, role: &str, f: &Frame, rig: &Rig, a: &super::config::ApertureAxis, s: &super::config::StageAxis) -> Result<(), SessionError> {
     let pos = *rig.position.lock().unwrap_or_else(|e| e.into_inner());
-    write_png16(&dir.join(format!("{role}.png")), &f.image, Overwrite::Never)?;
+    write_png16(&dir.join(format!("{role}.png")), &f.image, Overwrite::Never).map_err(|e| match e {
+        ImageError::Write { path, source } if is_disk_full(&source) => SessionError::DiskFull { path, source },
+        e => SessionError::Image(e),
+    })?;
     let m = &f.meta;
     let r = FrameRecord {
         role: role.into(),

@@ -303,6 +303,40 @@ mod tests {
     }
 
     #[test]
+    fn every_bayer_layout_puts_each_colour_where_its_name_says() {
+        // V4L2 names: BA81 = SBGGR8, BYR2 = SBGGR16, the rest spell their 2×2 cell.
+        let (r, g, b) = (0.2f32, 0.6f32, 1.0f32);
+        for (fourcc, cell) in [("BA81", "BGGR"), ("GBRG", "GBRG"), ("GRBG", "GRBG"), ("RGGB", "RGGB"), ("BYR2", "BGGR"), ("GB16", "GBRG"), ("GR16", "GRBG"), ("RG16", "RGGB")] {
+            let wide = matches!(fourcc, "BYR2" | "GB16" | "GR16" | "RG16");
+            let cell = cell.as_bytes();
+            let (w, h) = (6, 4);
+            let mut data = Vec::new();
+            for y in 0..h {
+                for x in 0..w {
+                    let v = match cell[(y % 2) * 2 + x % 2] {
+                        b'R' => r,
+                        b'G' => g,
+                        _ => b,
+                    };
+                    if wide {
+                        data.extend_from_slice(&((v * 65535.0).round() as u16).to_le_bytes());
+                    } else {
+                        data.push((v * 255.0).round() as u8);
+                    }
+                }
+            }
+            let img = decode(FourCc::from_str_padded(fourcc), w, h, 0, &data, ColorMode::Rgb).unwrap();
+            assert_eq!(img.format, if wide { SampleFormat::U16 } else { SampleFormat::U8 }, "{fourcc}");
+            assert_eq!(img.transfer, Transfer::Linear);
+            for (c, want) in [r, g, b].into_iter().enumerate() {
+                assert!(img.planes[c].data.iter().all(|&v| (v - want).abs() < 1e-4), "{fourcc} channel {c}: {:?}", img.planes[c].data);
+            }
+            // every supported format is in the table the camera checks against
+            assert!(SUPPORTED.contains(&FourCc::from_str_padded(fourcc)));
+        }
+    }
+
+    #[test]
     fn mjpg_round_trip() {
         let mut buf = std::io::Cursor::new(Vec::new());
         let src = image::GrayImage::from_pixel(8, 8, image::Luma([200u8]));

@@ -1,10 +1,15 @@
-//! [`V4lCamera`]: a Linux V4L2 capture device through `v4l` 0.14 (cargo feature `v4l2`).
+//! [`V4lCamera`]: a Linux V4L2 capture device.
 //!
 //! Opens the device, negotiates the configured pixel format and size (recording what the
 //! driver actually chose), switches automatic exposure, gain and white balance off, sets
 //! exposure and gain **by control ID**, streams through mmap buffers with a poll timeout,
 //! drops the frames owed after control or scene changes, averages, and decodes with
 //! [`super::decode`].
+//!
+//! The camera logic talks to the device only through [`V4lDevice`], the handful of V4L2 calls
+//! it makes. With cargo feature `v4l2`, [`V4lCamera::open`] runs them as ioctls through `v4l`
+//! 0.14; without it (and in the unit tests, which use a fake device that behaves like a UVC
+//! camera) the logic still builds and is tested: [`V4lCamera::with_device`].
 //!
 //! # Quirks
 //! - Exposure can only be written after `V4L2_CID_EXPOSURE_AUTO` is set to manual (1);
@@ -27,24 +32,64 @@ use std::io;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, SystemTime};
 
-use v4l::buffer::Type;
-use v4l::control::{Control, Value};
-use v4l::io::mmap::Stream as MmapStream;
-use v4l::io::traits::CaptureStream;
-use v4l::video::Capture;
-use v4l::{Device, FourCC};
-
 use super::decode::{self, ColorMode};
 use super::{Averager, Camera, CameraError, Frame, FrameFormat, FrameMeta, FourCc};
 
 /// `V4L2_CID_EXPOSURE_AUTO` (camera class); 1 = `V4L2_EXPOSURE_MANUAL`.
-const CID_EXPOSURE_AUTO: u32 = 0x009a_0901;
-const CID_EXPOSURE_ABSOLUTE: u32 = 0x009a_0902;
-const CID_EXPOSURE: u32 = 0x0098_0911;
-const CID_AUTO_WHITE_BALANCE: u32 = 0x0098_090c;
-const CID_AUTOGAIN: u32 = 0x0098_0912;
-const CID_GAIN: u32 = 0x0098_0913;
-const BUFFERS: u32 = 4;
+pub const CID_EXPOSURE_AUTO: u32 = 0x009a_0901;
+/// `V4L2_CID_EXPOSURE_ABSOLUTE` (camera class), 100 µs units.
+pub const CID_EXPOSURE_ABSOLUTE: u32 = 0x009a_0902;
+/// `V4L2_CID_EXPOSURE` (user class), driver units.
+pub const CID_EXPOSURE: u32 = 0x0098_0911;
+pub const CID_AUTO_WHITE_BALANCE: u32 = 0x0098_090c;
+pub const CID_AUTOGAIN: u32 = 0x0098_0912;
+pub const CID_GAIN: u32 = 0x0098_0913;
+/// mmap buffers in the stream (frames that can be queued before a capture reads them).
+pub const BUFFERS: u32 = 4;
+
+/// A pixel format as set or applied (`VIDIOC_S_FMT`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct DeviceFormat {
+    pub width: u32,
+    pub height: u32,
+    pub fourcc: FourCc,
+    /// Bytes per line (0 = packed).
+    pub stride: u32,
+}
+
+/// A control the device has and its range (`VIDIOC_QUERYCTRL`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ControlRange {
+    pub id: u32,
+    pub minimum: i64,
+    pub maximum: i64,
+}
+
+/// A control value.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ControlValue {
+    Integer(i64),
+    Boolean(bool),
+}
+
+/// The V4L2 calls [`V4lCamera`] makes. Errors are the driver's `errno` as [`io::Error`]
+/// (`EBUSY`, `EACCES` for an inactive control, `TimedOut` when no frame arrives).
+pub trait V4lDevice {
+    /// Card and driver names (`VIDIOC_QUERYCAP`).
+    fn identify(&self) -> io::Result<(String, String)>;
+    /// The pixel formats offered (`VIDIOC_ENUM_FMT`).
+    fn formats(&self) -> io::Result<Vec<FourCc>>;
+    /// Asks for a format; returns what the driver applied (it may differ).
+    fn set_format(&mut self, want: DeviceFormat) -> io::Result<DeviceFormat>;
+    /// The controls the device has.
+    fn controls(&self) -> io::Result<Vec<ControlRange>>;
+    /// Sets one control (one per call: a batch must not mix control classes).
+    fn set_control(&mut self, id: u32, value: ControlValue) -> io::Result<()>;
+    /// Reads one integer control.
+    fn control(&self, id: u32) -> io::Result<i64>;
+    /// The next frame (bytes used, sequence number); starts streaming on the first call.
+    fn next_frame(&mut self, timeout: Duration) -> io::Result<(Vec<u8>, u32)>;
+}
 
 /// How to open a [`V4lCamera`].
 #[derive(Clone, Debug, PartialEq)]
@@ -66,8 +111,7 @@ pub struct V4lSettings {
 /// A V4L2 camera. See the module docs for its quirks.
 pub struct V4lCamera {
     device: PathBuf,
-    dev: Device,
-    stream: Option<MmapStream<'static>>,
+    dev: Box<dyn V4lDevice>,
     format: FrameFormat,
     stride: usize,
     color: ColorMode,
@@ -81,32 +125,42 @@ pub struct V4lCamera {
 }
 
 impl V4lCamera {
-    /// Opens and configures the device.
+    /// Opens and configures the device at `s.device` (feature `v4l2`).
     ///
     /// # Errors
-    /// [`CameraError::Open`] naming the path (missing, busy, not a capture device),
-    /// [`CameraError::UnsupportedFormat`] listing what the device offers,
-    /// [`CameraError::Control`] when manual exposure cannot be set.
+    /// [`CameraError::Open`] naming the path (missing, busy, not a capture device), and the
+    /// errors of [`V4lCamera::with_device`].
+    #[cfg(feature = "v4l2")]
     pub fn open(s: &V4lSettings) -> Result<Self, CameraError> {
+        let dev = real::RealDevice::open(&s.device).map_err(|e| open_err(&s.device, e))?;
+        Self::with_device(Box::new(dev), s)
+    }
+
+    /// Configures an opened device: negotiates the format, switches the automatic controls
+    /// off, then sets exposure and gain.
+    ///
+    /// # Errors
+    /// [`CameraError::UnsupportedFormat`] listing what the device offers (the wanted format is
+    /// not offered, or the driver substituted one lensrig cannot decode),
+    /// [`CameraError::Control`] when manual exposure cannot be set, [`CameraError::Open`] for
+    /// a busy device.
+    pub fn with_device(mut dev: Box<dyn V4lDevice>, s: &V4lSettings) -> Result<Self, CameraError> {
         let path = s.device.clone();
-        let dev = Device::with_path(&path).map_err(|e| open_err(&path, e))?;
-        let caps = dev.query_caps().map_err(|e| open_err(&path, e))?;
-        let offered: Vec<FourCc> = dev.enum_formats().map_err(|e| open_err(&path, e))?.into_iter().map(|d| FourCc(d.fourcc.repr)).collect();
+        let (card, driver) = dev.identify().map_err(|e| open_err(&path, e))?;
+        let offered = dev.formats().map_err(|e| open_err(&path, e))?;
         if !offered.contains(&s.fourcc) || !decode::SUPPORTED.contains(&s.fourcc) {
             return Err(CameraError::UnsupportedFormat { device: path, wanted: s.fourcc, offered });
         }
-        let mut fmt = dev.format().map_err(|e| io_err(&path, e))?;
-        fmt.width = s.width;
-        fmt.height = s.height;
-        fmt.fourcc = FourCC::new(&s.fourcc.0);
-        let applied = dev.set_format(&fmt).map_err(|e| io_err(&path, e))?;
-        let got = FourCc(applied.fourcc.repr);
-        let transfer = decode::transfer_of(got).ok_or_else(|| CameraError::UnsupportedFormat { device: path.clone(), wanted: got, offered: offered.clone() })?;
+        let applied = dev.set_format(DeviceFormat { width: s.width, height: s.height, fourcc: s.fourcc, stride: 0 }).map_err(|e| io_err(&path, e))?;
+        let got = applied.fourcc;
+        // a substitute the driver picked is accepted only when lensrig can decode it
+        let Some(transfer) = decode::transfer_of(got) else {
+            return Err(CameraError::UnsupportedFormat { device: path, wanted: got, offered });
+        };
         let format = FrameFormat { width: applied.width, height: applied.height, fourcc: got, transfer };
         let mut cam = Self {
             device: path,
             dev,
-            stream: None,
             format,
             stride: applied.stride as usize,
             color: s.color,
@@ -115,8 +169,8 @@ impl V4lCamera {
             discard_after_change: s.discard_after_change,
             owed: 0,
             timeout: s.frame_timeout,
-            card: caps.card,
-            driver: caps.driver,
+            card,
+            driver,
         };
         cam.manual_mode()?;
         cam.set_exposure(s.exposure_us)?;
@@ -126,61 +180,38 @@ impl V4lCamera {
 
     /// Turns auto exposure, auto gain and auto white balance off where the device has them.
     fn manual_mode(&mut self) -> Result<(), CameraError> {
-        let ids: Vec<u32> = self.dev.query_controls().map_err(|e| io_err(&self.device, e))?.iter().map(|d| d.id).collect();
+        let ids: Vec<u32> = self.dev.controls().map_err(|e| io_err(&self.device, e))?.iter().map(|d| d.id).collect();
         if ids.contains(&CID_EXPOSURE_AUTO) {
-            self.set(CID_EXPOSURE_AUTO, "exposure_auto", Value::Integer(1))?;
+            self.set(CID_EXPOSURE_AUTO, "exposure_auto", ControlValue::Integer(1))?;
         }
         if ids.contains(&CID_AUTOGAIN) {
-            self.set(CID_AUTOGAIN, "autogain", Value::Boolean(false))?;
+            self.set(CID_AUTOGAIN, "autogain", ControlValue::Boolean(false))?;
         }
         if ids.contains(&CID_AUTO_WHITE_BALANCE) {
-            self.set(CID_AUTO_WHITE_BALANCE, "white_balance_automatic", Value::Boolean(false))?;
+            self.set(CID_AUTO_WHITE_BALANCE, "white_balance_automatic", ControlValue::Boolean(false))?;
         }
         Ok(())
     }
 
-    fn set(&self, id: u32, name: &str, value: Value) -> Result<(), CameraError> {
-        // One control per call: a batch must not mix control classes.
-        self.dev.set_control(Control { id, value }).map_err(|e| {
+    fn set(&mut self, id: u32, name: &str, value: ControlValue) -> Result<(), CameraError> {
+        let device = self.device.clone();
+        self.dev.set_control(id, value).map_err(|e| {
             let detail = if e.kind() == io::ErrorKind::PermissionDenied { "rejected (inactive: is auto mode still on?)" } else { "rejected" };
-            CameraError::Control { device: self.device.clone(), control: name.into(), detail: detail.into(), source: Some(e) }
+            CameraError::Control { device, control: name.into(), detail: detail.into(), source: Some(e) }
         })
     }
 
-    fn read_int(&self, id: u32) -> Option<i64> {
-        match self.dev.control(id).ok()?.value {
-            Value::Integer(v) => Some(v),
-            _ => None,
-        }
-    }
-
     fn control_range(&self, id: u32) -> Option<(i64, i64)> {
-        let d = self.dev.query_controls().ok()?.into_iter().find(|d| d.id == id)?;
+        let d = self.dev.controls().ok()?.into_iter().find(|d| d.id == id)?;
         Some((d.minimum, d.maximum))
     }
 
-    fn stream(&mut self) -> Result<&mut MmapStream<'static>, CameraError> {
-        if self.stream.is_none() {
-            let mut s = MmapStream::with_buffers(&self.dev, Type::VideoCapture, BUFFERS).map_err(|e| io_err(&self.device, e))?;
-            s.set_timeout(self.timeout);
-            self.stream = Some(s);
-        }
-        self.stream.as_mut().ok_or_else(|| CameraError::InvalidArgument { device: self.device.clone(), what: "stream not available".into() })
-    }
-
-    /// The next raw frame: bytes (copied) and sequence number.
+    /// The next raw frame: bytes and sequence number.
     fn next_raw(&mut self) -> Result<(Vec<u8>, u32), CameraError> {
-        let device = self.device.clone();
-        let timeout = self.timeout;
-        let stream = self.stream()?;
-        match stream.next() {
-            Ok((buf, meta)) => {
-                let used = (meta.bytesused as usize).min(buf.len());
-                let used = if used == 0 { buf.len() } else { used };
-                Ok((buf[..used].to_vec(), meta.sequence))
-            }
-            Err(e) if matches!(e.kind(), io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock) => Err(CameraError::Timeout { device, after: timeout }),
-            Err(e) => Err(io_err(&device, e)),
+        match self.dev.next_frame(self.timeout) {
+            Ok(f) => Ok(f),
+            Err(e) if matches!(e.kind(), io::ErrorKind::TimedOut | io::ErrorKind::WouldBlock) => Err(CameraError::Timeout { device: self.device.clone(), after: self.timeout }),
+            Err(e) => Err(io_err(&self.device, e)),
         }
     }
 }
@@ -224,8 +255,8 @@ impl Camera for V4lCamera {
                 source: None,
             });
         }
-        self.set(id, name, Value::Integer(units))?;
-        let applied = self.read_int(id).unwrap_or(units);
+        self.set(id, name, ControlValue::Integer(units))?;
+        let applied = self.dev.control(id).unwrap_or(units);
         self.exposure_us = (applied.max(0) * 100) as u32;
         self.owed = self.owed.max(self.discard_after_change);
         Ok(self.exposure_us)
@@ -243,8 +274,8 @@ impl Camera for V4lCamera {
         if v < lo || v > hi {
             return Err(CameraError::Control { device: self.device.clone(), control: "gain".into(), detail: format!("{gain} is outside [{lo}, {hi}]"), source: None });
         }
-        self.set(CID_GAIN, "gain", Value::Integer(v))?;
-        self.gain = self.read_int(CID_GAIN).unwrap_or(v) as f64;
+        self.set(CID_GAIN, "gain", ControlValue::Integer(v))?;
+        self.gain = self.dev.control(CID_GAIN).unwrap_or(v) as f64;
         self.owed = self.owed.max(self.discard_after_change);
         Ok(self.gain)
     }
@@ -297,11 +328,364 @@ impl Camera for V4lCamera {
     }
 }
 
+/// [`V4lDevice`] on a real device through `v4l` 0.14.
+#[cfg(feature = "v4l2")]
+mod real {
+    use std::io;
+    use std::path::Path;
+    use std::time::Duration;
+
+    use ::v4l::buffer::Type;
+    use ::v4l::control::{Control, Value};
+    use ::v4l::io::mmap::Stream as MmapStream;
+    use ::v4l::io::traits::CaptureStream;
+    use ::v4l::video::Capture;
+    use ::v4l::{Device, FourCC};
+
+    use super::{ControlRange, ControlValue, DeviceFormat, V4lDevice, BUFFERS};
+    use crate::rig::camera::FourCc;
+
+    pub struct RealDevice {
+        dev: Device,
+        stream: Option<MmapStream<'static>>,
+    }
+
+    impl RealDevice {
+        pub fn open(path: &Path) -> io::Result<Self> {
+            Ok(Self { dev: Device::with_path(path)?, stream: None })
+        }
+    }
+
+    impl V4lDevice for RealDevice {
+        fn identify(&self) -> io::Result<(String, String)> {
+            let caps = self.dev.query_caps()?;
+            Ok((caps.card, caps.driver))
+        }
+
+        fn formats(&self) -> io::Result<Vec<FourCc>> {
+            Ok(self.dev.enum_formats()?.into_iter().map(|d| FourCc(d.fourcc.repr)).collect())
+        }
+
+        fn set_format(&mut self, want: DeviceFormat) -> io::Result<DeviceFormat> {
+            let mut fmt = self.dev.format()?;
+            fmt.width = want.width;
+            fmt.height = want.height;
+            fmt.fourcc = FourCC::new(&want.fourcc.0);
+            let a = self.dev.set_format(&fmt)?;
+            Ok(DeviceFormat { width: a.width, height: a.height, fourcc: FourCc(a.fourcc.repr), stride: a.stride })
+        }
+
+        fn controls(&self) -> io::Result<Vec<ControlRange>> {
+            Ok(self.dev.query_controls()?.into_iter().map(|d| ControlRange { id: d.id, minimum: d.minimum, maximum: d.maximum }).collect())
+        }
+
+        fn set_control(&mut self, id: u32, value: ControlValue) -> io::Result<()> {
+            let value = match value {
+                ControlValue::Integer(v) => Value::Integer(v),
+                ControlValue::Boolean(b) => Value::Boolean(b),
+            };
+            self.dev.set_control(Control { id, value })
+        }
+
+        fn control(&self, id: u32) -> io::Result<i64> {
+            match self.dev.control(id)?.value {
+                Value::Integer(v) => Ok(v),
+                Value::Boolean(b) => Ok(i64::from(b)),
+                _ => Err(io::Error::new(io::ErrorKind::InvalidData, format!("control {id:#x} is not an integer"))),
+            }
+        }
+
+        fn next_frame(&mut self, timeout: Duration) -> io::Result<(Vec<u8>, u32)> {
+            if self.stream.is_none() {
+                let mut s = MmapStream::with_buffers(&self.dev, Type::VideoCapture, BUFFERS)?;
+                s.set_timeout(timeout);
+                self.stream = Some(s);
+            }
+            let Some(stream) = self.stream.as_mut() else { return Err(io::Error::other("stream not available")) };
+            let (buf, meta) = stream.next()?;
+            let used = (meta.bytesused as usize).min(buf.len());
+            let used = if used == 0 { buf.len() } else { used };
+            Ok((buf[..used].to_vec(), meta.sequence))
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::collections::{BTreeMap, VecDeque};
+    use std::sync::{Arc, Mutex};
+
+    /// A fake UVC-like camera: it logs every call; exposure can only be written once auto
+    /// exposure is manual (`EACCES` before, like UVC drivers); the driver snaps the frame size
+    /// to a size it supports; and frames leave the sensor `lag` frames after the exposure they
+    /// were taken with (the pipeline and queued buffers), so the first frames after a change
+    /// still carry the old exposure. Each GREY pixel is the exposure in 100 µs units (≤ 255).
+    struct FakeUvc {
+        log: Arc<Mutex<Vec<String>>>,
+        offered: Vec<FourCc>,
+        /// (fourcc asked, fourcc applied): a driver substituting another format.
+        substitute: Option<(FourCc, FourCc)>,
+        sizes: Vec<(u32, u32)>,
+        controls: Vec<ControlRange>,
+        values: BTreeMap<u32, i64>,
+        format: DeviceFormat,
+        lag: usize,
+        pipeline: VecDeque<i64>,
+        sequence: u32,
+        /// `next_frame` fails with this errno-like kind.
+        fail_frames: Option<io::ErrorKind>,
+        busy: bool,
+    }
+
+    fn uvc() -> (FakeUvc, Arc<Mutex<Vec<String>>>) {
+        let log = Arc::new(Mutex::new(Vec::new()));
+        let controls = vec![
+            ControlRange { id: CID_EXPOSURE_AUTO, minimum: 0, maximum: 3 },
+            ControlRange { id: CID_EXPOSURE_ABSOLUTE, minimum: 1, maximum: 5000 },
+            ControlRange { id: CID_GAIN, minimum: 0, maximum: 255 },
+            ControlRange { id: CID_AUTO_WHITE_BALANCE, minimum: 0, maximum: 1 },
+        ];
+        let mut values = BTreeMap::new();
+        values.insert(CID_EXPOSURE_AUTO, 3); // aperture priority, the UVC default
+        values.insert(CID_EXPOSURE_ABSOLUTE, 156);
+        values.insert(CID_GAIN, 64);
+        values.insert(CID_AUTO_WHITE_BALANCE, 1);
+        let f = FakeUvc {
+            log: log.clone(),
+            offered: vec![FourCc(*b"YUYV"), FourCc(*b"MJPG"), FourCc(*b"GREY")],
+            substitute: None,
+            sizes: vec![(640, 480), (320, 240), (8, 4)],
+            controls,
+            values,
+            format: DeviceFormat { width: 640, height: 480, fourcc: FourCc(*b"YUYV"), stride: 1280 },
+            lag: 3,
+            pipeline: VecDeque::new(),
+            sequence: 0,
+            fail_frames: None,
+            busy: false,
+        };
+        (f, log)
+    }
+
+    impl FakeUvc {
+        fn note(&self, s: String) {
+            self.log.lock().unwrap().push(s);
+        }
+    }
+
+    impl V4lDevice for FakeUvc {
+        fn identify(&self) -> io::Result<(String, String)> {
+            Ok(("Fake UVC".into(), "uvcvideo".into()))
+        }
+        fn formats(&self) -> io::Result<Vec<FourCc>> {
+            Ok(self.offered.clone())
+        }
+        fn set_format(&mut self, want: DeviceFormat) -> io::Result<DeviceFormat> {
+            if self.busy {
+                return Err(io::Error::from_raw_os_error(16));
+            }
+            self.note(format!("set_format {} {}x{}", want.fourcc, want.width, want.height));
+            // the largest supported size not above the request (or the smallest)
+            let (w, h) = self.sizes.iter().copied().filter(|&(w, h)| w <= want.width && h <= want.height).max().unwrap_or((8, 4));
+            let fourcc = match self.substitute {
+                Some((asked, got)) if asked == want.fourcc => got,
+                _ => want.fourcc,
+            };
+            let bpp = if fourcc == FourCc(*b"GREY") { 1 } else { 2 };
+            self.format = DeviceFormat { width: w, height: h, fourcc, stride: w * bpp + 4 }; // padded lines
+            Ok(self.format)
+        }
+        fn controls(&self) -> io::Result<Vec<ControlRange>> {
+            Ok(self.controls.clone())
+        }
+        fn set_control(&mut self, id: u32, value: ControlValue) -> io::Result<()> {
+            self.note(format!("set {id:#x} {value:?}"));
+            let v = match value {
+                ControlValue::Integer(v) => v,
+                ControlValue::Boolean(b) => i64::from(b),
+            };
+            if id == CID_EXPOSURE_ABSOLUTE && self.values.get(&CID_EXPOSURE_AUTO) != Some(&1) {
+                return Err(io::Error::from_raw_os_error(13)); // EACCES: inactive
+            }
+            let r = self.controls.iter().find(|c| c.id == id).ok_or_else(|| io::Error::from_raw_os_error(22))?;
+            // drivers clamp (and exposure snaps to even units on this one)
+            let v = v.clamp(r.minimum, r.maximum);
+            let v = if id == CID_EXPOSURE_ABSOLUTE { v - v % 2 } else { v };
+            self.values.insert(id, v);
+            Ok(())
+        }
+        fn control(&self, id: u32) -> io::Result<i64> {
+            self.values.get(&id).copied().ok_or_else(|| io::Error::from_raw_os_error(22))
+        }
+        fn next_frame(&mut self, _timeout: Duration) -> io::Result<(Vec<u8>, u32)> {
+            if let Some(k) = self.fail_frames {
+                return Err(io::Error::new(k, "fake"));
+            }
+            let now = self.values.get(&CID_EXPOSURE_ABSOLUTE).copied().unwrap_or(0);
+            if self.pipeline.is_empty() {
+                for _ in 0..self.lag {
+                    self.pipeline.push_back(now);
+                }
+            }
+            self.pipeline.push_back(now);
+            let exposure = self.pipeline.pop_front().unwrap_or(now);
+            let f = self.format;
+            let bpp = if f.fourcc == FourCc(*b"GREY") { 1 } else { 2 };
+            let mut bytes = vec![0u8; (f.stride * f.height) as usize];
+            for y in 0..f.height as usize {
+                for x in 0..(f.width * bpp) as usize {
+                    // YUYV: Y bytes carry the value, chroma bytes neutral
+                    bytes[y * f.stride as usize + x] = if bpp == 2 && x % 2 == 1 { 128 } else { exposure.min(255) as u8 };
+                }
+            }
+            self.sequence += 1;
+            self.note(format!("frame {}", self.sequence));
+            Ok((bytes, self.sequence))
+        }
+    }
+
+    fn settings(fourcc: &[u8; 4]) -> V4lSettings {
+        V4lSettings {
+            device: "/dev/video-fake".into(),
+            fourcc: FourCc(*fourcc),
+            width: 10,
+            height: 5,
+            exposure_us: 10_000,
+            gain: 0.0,
+            discard_after_change: 3,
+            color: ColorMode::Luma,
+            frame_timeout: Duration::from_secs(1),
+        }
+    }
+
+    fn sets(log: &Arc<Mutex<Vec<String>>>) -> Vec<String> {
+        log.lock().unwrap().iter().filter(|l| l.starts_with("set ")).cloned().collect()
+    }
+
+    #[test]
+    fn auto_modes_go_off_before_exposure_is_written_one_control_per_call() {
+        let (dev, log) = uvc();
+        let cam = V4lCamera::with_device(Box::new(dev), &settings(b"GREY")).unwrap();
+        assert_eq!(
+            sets(&log),
+            vec![
+                format!("set {CID_EXPOSURE_AUTO:#x} Integer(1)"),
+                format!("set {CID_AUTO_WHITE_BALANCE:#x} Boolean(false)"),
+                format!("set {CID_EXPOSURE_ABSOLUTE:#x} Integer(100)"),
+                format!("set {CID_GAIN:#x} Integer(0)"),
+            ]
+        );
+        // the format is set before any control
+        assert!(log.lock().unwrap()[0].starts_with("set_format 'GREY'"));
+        assert_eq!(cam.exposure_us, 10_000);
+    }
+
+    #[test]
+    fn the_negotiated_format_is_what_the_driver_applied() {
+        let (dev, _) = uvc();
+        let cam = V4lCamera::with_device(Box::new(dev), &settings(b"GREY")).unwrap();
+        // asked 10×5, the driver snapped to 8×4 with padded lines
+        assert_eq!(cam.format(), FrameFormat { width: 8, height: 4, fourcc: FourCc(*b"GREY"), transfer: crate::image::Transfer::Linear });
+        assert!(cam.describe().contains("'GREY' 8x4 linear") && cam.describe().contains("/dev/video-fake"), "{}", cam.describe());
+        // a format the device does not offer: the error lists what it does
+        let (dev, _) = uvc();
+        let e = V4lCamera::with_device(Box::new(dev), &settings(b"Y16 ")).err().unwrap().to_string();
+        assert!(e.contains("Y16") && e.contains("'YUYV', 'MJPG', 'GREY'") && e.contains("/dev/video-fake"), "{e}");
+        // the driver substitutes a decodable format: recorded as applied (sRGB for YUYV)
+        let (mut dev, _) = uvc();
+        dev.substitute = Some((FourCc(*b"GREY"), FourCc(*b"YUYV")));
+        let mut cam = V4lCamera::with_device(Box::new(dev), &settings(b"GREY")).unwrap();
+        assert_eq!((cam.format().fourcc, cam.format().transfer), (FourCc(*b"YUYV"), crate::image::Transfer::Srgb));
+        let f = cam.capture(1).unwrap();
+        assert_eq!((f.image.width(), f.image.height(), f.meta.fourcc), (8, 4, FourCc(*b"YUYV")));
+        // ... or one lensrig cannot decode: refused
+        let (mut dev, _) = uvc();
+        dev.offered.push(FourCc(*b"H264"));
+        dev.substitute = Some((FourCc(*b"GREY"), FourCc(*b"H264")));
+        let e = V4lCamera::with_device(Box::new(dev), &settings(b"GREY")).err().unwrap().to_string();
+        assert!(e.contains("'H264' is not supported"), "{e}");
+    }
+
+    #[test]
+    fn frames_after_a_control_or_scene_change_are_dropped() {
+        let (dev, log) = uvc();
+        let mut cam = V4lCamera::with_device(Box::new(dev), &settings(b"GREY")).unwrap();
+        let level = |f: &Frame| (f.image.planes[0].data[0] * 255.0).round() as i64;
+        // the exposure set at open is owed 3 frames: the first recorded frame already has it
+        let f = cam.capture(1).unwrap();
+        assert_eq!((level(&f), f.meta.frames_discarded, f.meta.exposure_us), (100, 3, 10_000));
+        // the applied (snapped) value is recorded, not the one asked
+        assert_eq!(cam.set_exposure(15_100).unwrap(), 15_000);
+        let f = cam.capture(2).unwrap();
+        assert_eq!((level(&f), f.meta.frames_discarded, f.meta.exposure_us, f.meta.frames_averaged), (150, 3, 15_000, 2));
+        // no change since: nothing dropped
+        let f = cam.capture(1).unwrap();
+        assert_eq!(f.meta.frames_discarded, 0);
+        // a move: every queued buffer is stale
+        cam.invalidate();
+        assert_eq!(cam.capture(1).unwrap().meta.frames_discarded, BUFFERS as usize);
+        // sequence numbers advance by what was read, dropped frames included
+        let frames = log.lock().unwrap().iter().filter(|l| l.starts_with("frame ")).count();
+        assert_eq!(frames, (3 + 1) + (3 + 2) + 1 + (4 + 1));
+    }
+
+    #[test]
+    fn without_dropping_the_first_frames_would_carry_the_old_exposure() {
+        // the oracle behind the test above: the fake really lags
+        let (dev, _) = uvc();
+        let mut s = settings(b"GREY");
+        s.discard_after_change = 0;
+        let mut cam = V4lCamera::with_device(Box::new(dev), &s).unwrap();
+        cam.capture(5).unwrap();
+        cam.set_exposure(20_000).unwrap();
+        let f = cam.capture(1).unwrap();
+        assert_eq!((f.image.planes[0].data[0] * 255.0).round() as i64, 100);
+    }
+
+    #[test]
+    fn control_errors_name_the_control_and_range() {
+        let (dev, _) = uvc();
+        let mut cam = V4lCamera::with_device(Box::new(dev), &settings(b"GREY")).unwrap();
+        let e = cam.set_exposure(600_000).unwrap_err().to_string();
+        assert!(e.contains("exposure_time_absolute") && e.contains("[100 µs, 500000 µs]"), "{e}");
+        let e = cam.set_gain(300.0).unwrap_err().to_string();
+        assert!(e.contains("gain") && e.contains("[0, 255]"), "{e}");
+        // a camera without the camera-class exposure (PS3 Eye) uses the user-class one
+        let (mut dev, log) = uvc();
+        dev.controls.retain(|c| c.id != CID_EXPOSURE_ABSOLUTE && c.id != CID_EXPOSURE_AUTO && c.id != CID_GAIN);
+        dev.controls.push(ControlRange { id: CID_EXPOSURE, minimum: 0, maximum: 255 });
+        let mut cam = V4lCamera::with_device(Box::new(dev), &settings(b"GREY")).unwrap();
+        assert!(sets(&log).contains(&format!("set {CID_EXPOSURE:#x} Integer(100)")), "{:?}", sets(&log));
+        // no gain control: gain 0 is fine, anything else is refused
+        assert_eq!(cam.set_gain(0.0).unwrap(), 0.0);
+        assert!(cam.set_gain(2.0).unwrap_err().to_string().contains("no gain control"));
+        // the exposure auto control stuck in aperture priority: EACCES explained
+        let (mut dev, _) = uvc();
+        dev.controls.retain(|c| c.id != CID_EXPOSURE_AUTO);
+        let e = V4lCamera::with_device(Box::new(dev), &settings(b"GREY")).err().unwrap().to_string();
+        assert!(e.contains("exposure_time_absolute") && e.contains("inactive"), "{e}");
+    }
+
+    #[test]
+    fn timeouts_and_busy_devices_are_typed_errors() {
+        let (mut dev, _) = uvc();
+        dev.fail_frames = Some(io::ErrorKind::TimedOut);
+        let mut cam = V4lCamera::with_device(Box::new(dev), &settings(b"GREY")).unwrap();
+        let e = cam.capture(1).unwrap_err();
+        assert!(matches!(e, CameraError::Timeout { .. }), "{e}");
+        assert!(e.to_string().contains("/dev/video-fake") && e.to_string().contains("no frame within 1s"), "{e}");
+        let (mut dev, _) = uvc();
+        dev.busy = true;
+        let e = V4lCamera::with_device(Box::new(dev), &settings(b"GREY")).err().unwrap().to_string();
+        assert!(e.contains("busy"), "{e}");
+        let (dev, _) = uvc();
+        let mut cam = V4lCamera::with_device(Box::new(dev), &settings(b"GREY")).unwrap();
+        assert!(matches!(cam.capture(0), Err(CameraError::InvalidArgument { .. })));
+    }
 
     /// Opt-in: `LENSRIG_V4L2_DEVICE=/dev/video0 cargo test --features v4l2 v4l2_device`.
+    #[cfg(feature = "v4l2")]
     #[test]
     fn v4l2_device_captures_when_configured() {
         let Ok(dev) = std::env::var("LENSRIG_V4L2_DEVICE") else {
@@ -328,19 +712,11 @@ mod tests {
         assert_eq!((f.image.width(), f.image.height()), (cam.format().width as usize, cam.format().height as usize));
     }
 
+    #[cfg(feature = "v4l2")]
     #[test]
     fn missing_device_names_the_path() {
-        let s = V4lSettings {
-            device: "/dev/video-lensrig-missing".into(),
-            fourcc: FourCc(*b"YUYV"),
-            width: 640,
-            height: 480,
-            exposure_us: 1000,
-            gain: 0.0,
-            discard_after_change: 3,
-            color: ColorMode::Luma,
-            frame_timeout: Duration::from_secs(1),
-        };
+        let mut s = settings(b"YUYV");
+        s.device = "/dev/video-lensrig-missing".into();
         let e = V4lCamera::open(&s).err().unwrap().to_string();
         assert!(e.contains("/dev/video-lensrig-missing") && e.contains("no such device"), "{e}");
     }

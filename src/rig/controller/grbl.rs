@@ -665,6 +665,27 @@ mod tests {
     }
 
     #[test]
+    fn homing_without_switches_is_a_clear_alarm() {
+        let sim = SimOptions::fast().with(22, 1.0).with(130, 20.0).with(131, 20.0).with(132, 20.0);
+        let (h, path) = spawn_pty(sim).unwrap();
+        h.faults.homing_switch_missing.store(true, Ordering::SeqCst);
+        let mut c = SerialController::open(&path, 115_200, quick_opts()).unwrap();
+        let e = c.home().unwrap_err();
+        assert!(matches!(e, ControllerError::Alarm { alarm: Alarm::HomingFailApproach, .. }), "{e}");
+        let msg = e.to_string();
+        assert!(msg.contains(&path) && msg.contains("ALARM:9") && msg.contains("limit switch"), "{msg}");
+        assert!(!h.state().realtime_received.iter().any(|&(b, s)| b == b'?' && s == MachineState::Home));
+    }
+
+    #[test]
+    fn first_boot_with_a_blank_eeprom_connects() {
+        let (_h, path) = spawn_pty(SimOptions { blank_eeprom: true, ..SimOptions::fast() }).unwrap();
+        let mut c = SerialController::open(&path, 115_200, quick_opts()).unwrap();
+        assert_eq!(c.status().unwrap().state, MachineState::Idle);
+        assert_eq!(c.move_to(&[(Axis::X, -1.0)]).unwrap().mpos.get(Axis::X), -1.0);
+    }
+
+    #[test]
     fn no_banner_triggers_one_soft_reset() {
         let (h, path) = spawn_pty(SimOptions::fast()).unwrap();
         // Consume the power-up banner with a first client, then connect a second one.

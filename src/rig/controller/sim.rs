@@ -26,14 +26,24 @@
 //!   then `Alarm` until `$X`/`$H`. A reset while moving raises `ALARM:3` (`ALARM:6` while homing).
 //! - Feed hold `!` (`Hold:1` while decelerating, then `Hold:0`) and resume `~`.
 //!
+//! - Check mode `$C` (`[MSG:Enabled]`; G-code is parsed and limit-checked but nothing moves;
+//!   a soft-limit target still raises `ALARM:2`; `$C` again prints `[MSG:Disabled]`, `ok` and
+//!   resets). `$$` is refused (`error:8`) only in `Run`/`Hold`; `$#`, `$I`, `$H` and setting
+//!   writes need `Idle` or `Alarm` (`error:8`, checked before `error:5`); `$X` outside `Alarm`
+//!   has no effect and answers `ok`.
+//! - [`SimOptions::blank_eeprom`]: first boot prints `error:7` and the `$$` dump before the
+//!   banner.
+//!
 //! # Not simulated
-//! Check mode `$C` (answers `error:3`), inches `G20`, arcs, probing, spindle/coolant, overrides,
-//! the EEPROM startup lines, the safety door, the serial timing of 115200 baud.
+//! Inches `G20`, arcs, probing, spindle/coolant, overrides, the EEPROM startup lines `$N`,
+//! `$RST`, `$SLP`, the safety door, the input-pin field `Pn:` (no switch is ever pressed while
+//! a report can be read), the serial timing of 115200 baud.
 //!
 //! # Faults
 //! [`Faults`] can be flipped by a test while the firmware runs: stop answering (as if hung),
 //! turn every transmitted line into noise, drop the port (disconnect), raise a hard-limit
-//! `ALARM:1` during the next (or current) move.
+//! `ALARM:1` during the next (or current) move, unplug the limit switches (homing ends in
+//! `ALARM:9`, then `ok`, banner and `Alarm`).
 
 use std::collections::{BTreeMap, VecDeque};
 use std::io::{self, Read, Write};
@@ -55,6 +65,9 @@ pub struct Faults {
     pub disconnect: AtomicBool,
     /// One-shot: trigger a hard limit (`ALARM:1`) as soon as the machine is in `Run` or `Jog`.
     pub hard_limit_on_move: AtomicBool,
+    /// The limit switches never trigger (unplugged): a homing cycle searches 1.5 × max
+    /// travel, then fails with `ALARM:9`.
+    pub homing_switch_missing: AtomicBool,
 }
 
 /// What the test harness can observe of the firmware (the truth, not what was reported).
@@ -84,11 +97,13 @@ pub struct SimOptions {
     pub home_seek_mm: f64,
     /// Initial true machine position.
     pub initial_position: Position,
+    /// First boot with a blank EEPROM: `error:7` and the `$$` dump before the banner.
+    pub blank_eeprom: bool,
 }
 
 impl Default for SimOptions {
     fn default() -> Self {
-        Self { settings: Vec::new(), home_seek_mm: 5.0, initial_position: Position::ZERO }
+        Self { settings: Vec::new(), home_seek_mm: 5.0, initial_position: Position::ZERO, blank_eeprom: false }
     }
 }
 
@@ -227,6 +242,8 @@ pub struct Firmware {
     log_lines: Vec<String>,
     log_realtime: Vec<(u8, MachineState)>,
     reports_sent: usize,
+    /// [`Faults::homing_switch_missing`], as of the last tick.
+    switches_missing: bool,
 }
 
 impl Firmware {
@@ -263,9 +280,15 @@ impl Firmware {
             log_lines: Vec::new(),
             log_realtime: Vec::new(),
             reports_sent: 0,
+            switches_missing: false,
         };
         if fw.setting(22) != 0.0 {
             fw.state = MachineState::Alarm;
+        }
+        if options.blank_eeprom {
+            // settings_init(): report the read failure, restore defaults, dump them (no `ok`).
+            fw.error(GrblError::EepromReadFail);
+            fw.settings_dump();
         }
         fw.boot_messages();
         fw
@@ -475,19 +498,31 @@ impl Firmware {
                 self.ok()
             }
             "$" => {
-                if !self.idle_or_alarm() {
+                // grbl blocks the dump only during a cycle or hold (it takes too long to print)
+                if matches!(self.state, MachineState::Run | MachineState::Hold(_)) {
                     return self.error(GrblError::NotIdle);
                 }
-                let lines: Vec<String> = self
-                    .settings
-                    .iter()
-                    .map(|(&n, &v)| if is_integer_setting(n) { format!("${n}={}", v as i64) } else { format!("${n}={}", fmt_num(v)) })
-                    .collect();
-                for l in lines {
-                    self.line(&l);
-                }
+                self.settings_dump();
                 self.ok()
             }
+            "C" => {
+                if self.state == MachineState::Check {
+                    // leaving check mode resets grbl (mc_reset): ok, then the banner
+                    self.line("[MSG:Disabled]");
+                    self.ok();
+                    self.state = MachineState::Idle;
+                    self.soft_reset();
+                    return;
+                }
+                if self.state != MachineState::Idle {
+                    return self.error(GrblError::NotIdle);
+                }
+                self.state = MachineState::Check;
+                self.line("[MSG:Enabled]");
+                self.ok()
+            }
+            // `$#`, `$I`, `$H` and setting writes need Idle or Alarm (grbl checks that first)
+            "#" | "I" | "H" if !self.idle_or_alarm() => self.error(GrblError::NotIdle),
             "I" => {
                 self.line("[VER:1.1h.20190830:]");
                 self.line("[OPT:V,15,128]");
@@ -522,9 +557,7 @@ impl Firmware {
                 self.ok()
             }
             "X" => {
-                if !self.idle_or_alarm() {
-                    return self.error(GrblError::NotIdle);
-                }
+                // outside Alarm `$X` has no effect (and still answers ok)
                 if self.state == MachineState::Alarm {
                     self.line("[MSG:Caution: Unlocked]");
                     self.state = MachineState::Idle;
@@ -534,9 +567,6 @@ impl Firmware {
             "H" => {
                 if self.setting(22) == 0.0 {
                     return self.error(GrblError::HomingDisabled);
-                }
-                if !self.idle_or_alarm() {
-                    return self.error(GrblError::NotIdle);
                 }
                 self.start_homing(now);
             }
@@ -561,6 +591,29 @@ impl Firmware {
                 self.error(GrblError::InvalidStatement)
             }
         }
+    }
+
+    fn settings_dump(&mut self) {
+        let lines: Vec<String> = self
+            .settings
+            .iter()
+            .map(|(&n, &v)| if is_integer_setting(n) { format!("${n}={}", v as i64) } else { format!("${n}={}", fmt_num(v)) })
+            .collect();
+        for l in lines {
+            self.line(&l);
+        }
+    }
+
+    /// A failed homing cycle (not critical): `ALARM:N`, the `$H` line's `ok`, then grbl resets
+    /// into `Alarm` (banner and unlock message).
+    fn homing_alarm(&mut self, alarm: Alarm) {
+        self.homing = None;
+        self.pending = None;
+        self.planned = self.pos;
+        self.line(&format!("ALARM:{}", alarm.code()));
+        self.ok();
+        self.state = MachineState::Alarm;
+        self.soft_reset();
     }
 
     fn set_setting(&mut self, n: &str, v: &str) -> Result<(), GrblError> {
@@ -719,6 +772,10 @@ impl Firmware {
             if let Some(d) = distance {
                 self.absolute = d;
             }
+            if self.state == MachineState::Check {
+                self.ok(); // check mode skips dwells
+                return Ok(());
+            }
             self.pending = Some(Pending::Dwell { secs, until: None });
             return Ok(());
         }
@@ -748,6 +805,12 @@ impl Firmware {
         let target = self.target(&axes, self.absolute, group0 == Some(53));
         if self.setting(20) != 0.0 && !self.within_travel(&target) {
             self.critical_alarm(Alarm::SoftLimit);
+            return Ok(());
+        }
+        if self.state == MachineState::Check {
+            // check mode: parsed and checked, nothing moves
+            self.planned = target;
+            self.ok();
             return Ok(());
         }
         let feed = if self.motion_g1 { Some(self.feed) } else { None };
@@ -802,7 +865,7 @@ impl Firmware {
             Some(Pending::Homing) => {
                 let Some(h) = self.homing.clone() else { return };
                 let t = now.saturating_duration_since(h.start);
-                if t >= h.duration {
+                if t >= h.duration && !self.switches_missing {
                     self.pos = h.to;
                     self.planned = h.to;
                     self.homing = None;
@@ -810,7 +873,7 @@ impl Firmware {
                     self.state = MachineState::Idle;
                     self.ok();
                 } else {
-                    let f = t.as_secs_f64() / h.duration.as_secs_f64().max(1e-9);
+                    let f = (t.as_secs_f64() / h.duration.as_secs_f64().max(1e-9)).min(1.0);
                     // Towards the switches (+), then back to −pull-off; good enough for reports
                     // nobody can read (no `?` during homing).
                     for i in 0..3 {
@@ -854,6 +917,17 @@ impl Firmware {
         let mut dt = now.saturating_duration_since(last).as_secs_f64().min(0.5);
         if !self.critical && matches!(self.state, MachineState::Run | MachineState::Jog | MachineState::Hold(1)) && faults.hard_limit_on_move.swap(false, Ordering::SeqCst) {
             self.critical_alarm(Alarm::HardLimit);
+        }
+        self.switches_missing = faults.homing_switch_missing.load(Ordering::SeqCst);
+        if let Some(h) = &self.homing {
+            if self.switches_missing {
+                // grbl searches 1.5 × the largest max travel at the seek rate
+                let travel = (0..3).map(|i| self.setting(130 + i)).fold(0.0, f64::max);
+                let search = Duration::from_secs_f64(1.5 * travel / (self.setting(25).max(1e-3) / 60.0));
+                if now.saturating_duration_since(h.start) >= search {
+                    self.homing_alarm(Alarm::HomingFailApproach);
+                }
+            }
         }
         while dt > 0.0 && !self.critical {
             let h = dt.min(0.0005);
@@ -1324,6 +1398,154 @@ mod tests {
         b.faults.hard_limit_on_move.store(true, Ordering::SeqCst);
         assert_eq!(b.advance(0.01), "ALARM:1\r\n[MSG:Reset to continue]\r\n");
         assert_eq!(b.send(b"?"), "");
+    }
+
+    #[test]
+    fn system_commands_follow_grbls_state_rules() {
+        let mut b = Bench::new(SimOptions::default()); // homing disabled
+        b.fw.take_output();
+        assert_eq!(b.send(b"$X\n"), "ok\r\n", "$X outside Alarm has no effect");
+        assert_eq!(b.send(b"$XY\n"), "error:3\r\n");
+        b.send(b"G0 X-10\n");
+        b.advance(0.2);
+        assert_eq!(b.fw.state(), MachineState::Run);
+        // grbl checks Idle/Alarm before it looks at the homing setting: error:8, not error:5
+        assert_eq!(b.send(b"$H\n"), "error:8\r\n");
+        assert_eq!(b.send(b"$#\n"), "error:8\r\n");
+        assert_eq!(b.send(b"$I\n"), "error:8\r\n");
+        assert_eq!(b.send(b"$$\n"), "error:8\r\n");
+        assert_eq!(b.send(b"$27=2\n"), "error:8\r\n");
+        assert_eq!(b.send(b"$C\n"), "error:8\r\n");
+        assert_eq!(b.send(b"$X\n"), "ok\r\n");
+        assert_eq!(b.send(b"$G\n"), "[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]\r\nok\r\n");
+        b.send(b"!");
+        assert_eq!(b.send(b"$$\n"), "error:8\r\n", "blocked in Hold too");
+        b.send(b"~");
+        b.advance(5.0);
+        assert_eq!(b.fw.state(), MachineState::Idle);
+        // during a jog the settings dump is allowed (jog is neither cycle nor hold)
+        assert_eq!(b.send(b"$J=G91 X-5 F300\n"), "ok\r\n");
+        assert_eq!(b.fw.state(), MachineState::Jog);
+        let dump = b.send(b"$$\n");
+        assert!(dump.starts_with("$0=10\r\n") && dump.ends_with("$132=200.000\r\nok\r\n"), "{dump}");
+        assert_eq!(b.send(b"$#\n"), "error:8\r\n");
+        // the status mask: $10=0 reports WPos, $10=2 adds Bf: (planner blocks, RX bytes free)
+        b.send(&[0x85]);
+        b.advance(0.5);
+        assert_eq!(b.send(b"$10=2\n"), "ok\r\n");
+        let r = b.send(b"?");
+        assert!(r.starts_with("<Idle|WPos:") && r.contains("|Bf:15,128|FS:0,0"), "{r}");
+    }
+
+    #[test]
+    fn settings_dump_format_is_one_per_line_in_order() {
+        let mut b = Bench::new(SimOptions::default());
+        b.fw.take_output();
+        let dump = b.send(b"$$\n");
+        let want = "$0=10 $1=25 $2=0 $3=0 $4=0 $5=0 $6=0 $10=1 $11=0.010 $12=0.002 $13=0 $20=0 $21=0 $22=0 \
+                    $23=0 $24=25.000 $25=500.000 $26=250 $27=1.000 $30=1000 $31=0 $32=0 \
+                    $100=250.000 $101=250.000 $102=250.000 $110=500.000 $111=500.000 $112=500.000 \
+                    $120=10.000 $121=10.000 $122=10.000 $130=200.000 $131=200.000 $132=200.000 ok";
+        let want: String = want.split_whitespace().map(|l| format!("{l}\r\n")).collect();
+        assert_eq!(dump, want);
+    }
+
+    #[test]
+    fn check_mode_parses_without_moving_and_leaving_resets() {
+        let mut b = Bench::new(SimOptions::fast().with(22, 1.0).with(20, 1.0).with(130, 20.0));
+        b.fw.take_output();
+        assert_eq!(b.send(b"$C\n"), "error:8\r\n", "not from Alarm");
+        b.send(b"$X\n");
+        assert_eq!(b.send(b"$C\n"), "[MSG:Enabled]\r\nok\r\n");
+        assert!(b.send(b"?").starts_with("<Check|MPos:0.000,0.000,0.000|"));
+        assert_eq!(b.send(b"G0 X-5\n"), "ok\r\n");
+        assert_eq!(b.send(b"G4 P5\n"), "ok\r\n", "dwells are skipped");
+        assert_eq!(b.send(b"foo\n"), "error:2\r\n");
+        b.advance(0.5);
+        assert_eq!(b.fw.position(), Position::ZERO, "nothing moves in check mode");
+        assert_eq!(b.send(b"$C\n"), "[MSG:Disabled]\r\nok\r\n\r\nGrbl 1.1h ['$' for help]\r\n");
+        assert!(b.send(b"?").starts_with("<Idle|"));
+        // a soft-limit target is still a critical alarm in check mode
+        b.send(b"$C\n");
+        assert_eq!(b.send(b"G0 X1\n"), "ALARM:2\r\n[MSG:Reset to continue]\r\n");
+        assert_eq!(b.send(b"?"), "");
+        assert_eq!(b.send(b"\x18"), "\r\nGrbl 1.1h ['$' for help]\r\n[MSG:'$H'|'$X' to unlock]\r\n");
+    }
+
+    #[test]
+    fn homing_without_switches_ends_in_alarm_9_then_reset_into_alarm() {
+        let mut b = Bench::new(SimOptions::fast().with(22, 1.0).with(130, 20.0).with(131, 20.0).with(132, 20.0));
+        b.fw.take_output();
+        b.faults.homing_switch_missing.store(true, Ordering::SeqCst);
+        assert_eq!(b.send(b"$H\n"), "");
+        // searches 1.5 × 20 mm at 6000 mm/min = 0.3 s, answering no `?` meanwhile
+        assert_eq!(b.advance(0.25), "");
+        assert_eq!(b.send(b"?"), "");
+        assert_eq!(b.advance(0.1), "ALARM:9\r\nok\r\n\r\nGrbl 1.1h ['$' for help]\r\n[MSG:'$H'|'$X' to unlock]\r\n");
+        assert_eq!(b.fw.state(), MachineState::Alarm);
+        assert!(b.send(b"?").starts_with("<Alarm|"));
+        assert_eq!(b.send(b"G0 X-1\n"), "error:9\r\n");
+        assert_eq!(b.send(b"$X\n"), "[MSG:Caution: Unlocked]\r\nok\r\n");
+    }
+
+    #[test]
+    fn soft_reset_flushes_the_receive_buffer_and_the_line_buffer_is_bounded() {
+        let mut b = Bench::new(SimOptions::default());
+        b.fw.take_output();
+        // half a line, then ^X: the half line is gone (the newline after it is an empty line)
+        assert_eq!(b.send(b"G0 X-5"), "");
+        assert_eq!(b.send(b"\x18"), "\r\nGrbl 1.1h ['$' for help]\r\n");
+        assert_eq!(b.send(b"\n"), "ok\r\n");
+        b.advance(0.5);
+        assert_eq!(b.fw.position(), Position::ZERO);
+        // the 128-byte RX buffer drops what overflows it while a line waits for the planner:
+        // fill the planner with 15 blocks, then a 16th waits, then overflow the buffer
+        for i in 0..16 {
+            b.send(format!("G0 X-{}\n", i + 1).as_bytes());
+        }
+        let flood = "G0X-1\n".repeat(40); // 240 bytes
+        b.send(flood.as_bytes());
+        let r = b.send(b"?");
+        assert!(r.starts_with("<Run|"), "{r}");
+        assert_eq!(b.fw.rx.len(), RX_BUFFER_SIZE, "the RX buffer holds at most 128 bytes");
+    }
+
+    #[test]
+    fn reset_during_homing_raises_alarm_6() {
+        let mut b = Bench::new(SimOptions::default().with(22, 1.0));
+        b.fw.take_output();
+        b.send(b"$H\n");
+        b.advance(0.1);
+        assert_eq!(b.send(b"\x18"), "ALARM:6\r\n\r\nGrbl 1.1h ['$' for help]\r\n[MSG:'$H'|'$X' to unlock]\r\n");
+        assert!(b.send(b"?").starts_with("<Alarm|"));
+    }
+
+    #[test]
+    fn blank_eeprom_first_boot_reports_error_7_and_the_defaults_before_the_banner() {
+        let mut b = Bench::new(SimOptions { blank_eeprom: true, ..SimOptions::default() });
+        let boot = String::from_utf8(b.fw.take_output()).unwrap();
+        assert!(boot.starts_with("error:7\r\n$0=10\r\n$1=25\r\n"), "{boot}");
+        assert!(boot.ends_with("$132=200.000\r\n\r\nGrbl 1.1h ['$' for help]\r\n"), "{boot}");
+        assert!(!boot.contains("ok"));
+    }
+
+    #[test]
+    fn duplicate_status_queries_are_merged_and_reports_carry_wco_and_ov_periodically() {
+        let mut b = Bench::new(SimOptions::default());
+        b.fw.take_output();
+        assert_eq!(b.send(b"???").matches('<').count(), 1);
+        // idle: WCO every 10 reports, Ov every 10 (on the report after WCO)
+        let reports: Vec<String> = (0..20).map(|_| b.send(b"?")).collect();
+        let wco: Vec<usize> = reports.iter().enumerate().filter(|(_, r)| r.contains("|WCO:")).map(|(i, _)| i).collect();
+        let ov: Vec<usize> = reports.iter().enumerate().filter(|(_, r)| r.contains("|Ov:")).map(|(i, _)| i).collect();
+        // (the first report, answering `???`, carried WCO; the one after it Ov)
+        assert_eq!(wco, vec![9, 19]);
+        assert_eq!(ov, vec![0, 10]);
+        // busy: `Run` reports carry the feed and, with a planner block, no WCO for 30 reports
+        b.send(b"G0 X-50\n");
+        b.advance(0.5);
+        let r = b.send(b"?");
+        assert!(r.starts_with("<Run|MPos:-") && !r.contains("|FS:0,"), "{r}");
     }
 
     #[test]

@@ -224,6 +224,11 @@ pub fn predict(profile: &Profile, sharp: &Image, sharp_path: &Path) -> Result<Im
     if sharp.channel_count() != profile.grid.channels.len() {
         bail!("{}: image has {} channel(s), the profile {}", sharp_path.display(), sharp.channel_count(), profile.grid.channels.len());
     }
+    if !profile.meta.corrections.is_empty() {
+        // a profile refitted by `lensrig diagnose`: its physics applies (module docs of
+        // `diagnose::model`)
+        return lensrig::diagnose::model::apply_corrections(profile, sharp).with_context(|| format!("{}: applying the profile's [corrections]", sharp_path.display()));
+    }
     let black = &src.black_level;
     let planes: Vec<_> = sharp
         .planes

@@ -355,6 +355,10 @@ pub fn diagnose(open: &Image, pinhole: &Image, profile: Option<&Profile>, opts: 
     out_profile.meta.psf.centers = current.model.grid.centers.clone();
     out_profile.meta.psf.tile_size = Some([open.width() / current.model.grid.columns, open.height() / current.model.grid.rows]);
     out_profile.meta.corrections = current.model.corrections.to_table()?;
+    if let Some(t) = current.model.corrections.tone_curve {
+        // the captures are encoded: `deblur` and `simulate` decode with the found curve
+        out_profile.meta.source.transfer = t.transfer;
+    }
     out_profile.meta.note = format!("refitted by `lensrig diagnose`: {verdict}");
     Ok(Diagnosis { noise, base, base_analysis, final_fit: current, final_analysis, effects, rounds, verdict, cross_validation, profile: out_profile, open: open.clone() })
 }

@@ -47,13 +47,16 @@ pub enum EstimateError {
 #[derive(Clone, Debug)]
 pub struct EstimateOptions {
     pub kernel_size: Option<usize>,
-    /// Tile side in pixels.
+    /// Spacing of the PSF centres in pixels (the "tile" side: one kernel per tile).
     pub tile: Option<usize>,
+    /// Side of the square fit window around each centre (clipped to the image); may be larger
+    /// than the spacing (overlapping windows) or smaller (a subset of the tile's data).
+    pub window: Option<usize>,
     pub lambda_scale: f64,
     pub mu_relative: f64,
     pub max_iterations: usize,
+    /// Relative step `‖Δb‖ / ‖b‖` at which a window's iterations stop.
     pub tolerance: f64,
-    pub sigma: f32,
     pub registration: RegistrationModel,
     /// Stored values at or above this fraction of full scale count as saturated.
     pub saturation: f32,
@@ -67,11 +70,11 @@ impl Default for EstimateOptions {
         Self {
             kernel_size: None,
             tile: None,
+            window: None,
             lambda_scale: 1.0,
             mu_relative: 1.0,
             max_iterations: 150,
-            tolerance: 0.1,
-            sigma: 300.0,
+            tolerance: 1e-3,
             registration: RegistrationModel::Translation,
             saturation: 0.995,
             black_level: vec![],
@@ -154,9 +157,27 @@ pub fn tile_grid(w: usize, h: usize, tile: usize) -> (usize, usize) {
     (((w as f64 / tile as f64).round() as usize).max(1), ((h as f64 / tile as f64).round() as usize).max(1))
 }
 
-/// Default tile side for a kernel size: large enough for a well-posed fit (≥ 4 kernels).
+/// Default spacing of the PSF centres for a kernel size.
 pub fn default_tile(k: usize, w: usize, h: usize) -> usize {
     (4 * k).max(96).min(w.min(h))
+}
+
+/// Default fit window for a kernel size: enough data for a well-posed fit (≥ 4 kernels across).
+pub fn default_window(k: usize, w: usize, h: usize) -> usize {
+    (4 * k).max(96).min(w.max(h))
+}
+
+/// The fit window `[x0, x1) × [y0, y1)` of side `window` centred on `center`, clipped to the
+/// image.
+pub fn fit_window(center: [f64; 2], window: usize, w: usize, h: usize) -> (usize, usize, usize, usize) {
+    let span = |c: f64, n: usize| {
+        let lo = (c + 0.5 - window as f64 / 2.0).round().max(0.0) as usize;
+        let hi = ((lo + window) as f64).min(n as f64) as usize;
+        (lo.min(n.saturating_sub(1)), hi.max(lo + 1).min(n))
+    };
+    let (x0, x1) = span(center[0], w);
+    let (y0, y1) = span(center[1], h);
+    (x0, x1, y0, y1)
 }
 
 /// Estimates a profile from a wide-open and a pinhole capture of the same target.
@@ -221,6 +242,10 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
         return Err(EstimateError::Option(format!("tile {tile} is smaller than the kernel {k}; use a larger --tile or a smaller --kernel")));
     }
     let (cols, rows) = tile_grid(w, h, tile);
+    let window = opts.window.unwrap_or_else(|| default_window(k, w, h));
+    if window < k {
+        return Err(EstimateError::Option(format!("fit window {window} is smaller than the kernel {k}")));
+    }
     let r = k / 2;
 
     // valid data masks and exposure ratios
@@ -257,10 +282,8 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
     let results: Vec<_> = jobs
         .par_iter()
         .map(|&(c, t)| {
-            let (tc, tr) = (t % cols, t / cols);
-            let (x0, x1) = (tc * w / cols, (tc + 1) * w / cols);
-            let (y0, y1) = (tr * h / rows, (tr + 1) * h / rows);
-            let data = tile_data(&open_lin[c], &pin_reg[c], &valid_masks[c], ratio[c] as f32, (x0, x1, y0, y1), k);
+            let win = fit_window(centers[t], window, w, h);
+            let data = tile_data(&open_lin[c], &pin_reg[c], &valid_masks[c], ratio[c] as f32, win, k);
             let settings = TileSettings {
                 kernel_size: k,
                 lambda: None,
@@ -268,7 +291,6 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
                 mu_relative: opts.mu_relative as f32,
                 max_iterations: opts.max_iterations,
                 tolerance: opts.tolerance,
-                sigma: opts.sigma,
             };
             let res = solve_tile(&data, &settings, |_, _| !cancelled.load(Ordering::Relaxed));
             bar.inc(1);
@@ -366,7 +388,7 @@ fn choose_kernel_size(open: &[Plane], pin: &[Plane], opts: &EstimateOptions) -> 
     let mut radius: f64 = 1.0;
     for &(x0, y0) in &spots {
         let data = tile_data(&open[c], &pin[c], &all, s, (x0, x0 + tsz, y0, y0 + tsz), probe_k);
-        let st = TileSettings { kernel_size: probe_k, lambda: None, lambda_scale: opts.lambda_scale as f32, mu_relative: 1.0, max_iterations: 150, tolerance: 1e-3, sigma: opts.sigma };
+        let st = TileSettings { kernel_size: probe_k, lambda: None, lambda_scale: opts.lambda_scale as f32, mu_relative: 1.0, max_iterations: 150, tolerance: 1e-3 };
         let res = solve_tile(&data, &st, |_, _| true);
         radius = radius.max(energy_radius(&res.kernel, 0.99));
     }

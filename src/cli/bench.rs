@@ -21,6 +21,15 @@ pub struct BenchArgs {
     pub large: bool,
     #[arg(long, default_value_t = 150)]
     pub max_iterations: usize,
+    /// Relative step at which a window's iterations stop.
+    #[arg(long, default_value_t = 1e-3)]
+    pub tolerance: f64,
+    /// Iterations of the joint refinement with the interpolated forward model (0: off).
+    #[arg(long, default_value_t = 60)]
+    pub joint_iterations: usize,
+    /// Fit window side around each PSF centre; default: chosen by `estimate`.
+    #[arg(long)]
+    pub window: Option<usize>,
 }
 
 struct Case {
@@ -52,7 +61,7 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         let open = render(&scene, &lens, &shot, &Sensor::default(), &mut Rng::new(1));
         let pin = render(&scene, &lens, &Shot::ideal(0.75), &Sensor::default(), &mut Rng::new(2));
         let tile = c.width / c.columns;
-        let opts = EstimateOptions { kernel_size: Some(c.kernel), tile: Some(tile), max_iterations: a.max_iterations, ..Default::default() };
+        let opts = EstimateOptions { kernel_size: Some(c.kernel), tile: Some(tile), max_iterations: a.max_iterations, tolerance: a.tolerance, window: a.window, joint_iterations: a.joint_iterations, ..Default::default() };
         let t = std::time::Instant::now();
         let est = estimate(&open.image, &pin.image, &opts)?;
         let secs = t.elapsed().as_secs_f64();

@@ -19,6 +19,7 @@
 //! ([`crate::solve::conv`]). `s` is stored per channel in the profile.
 
 pub mod register;
+pub mod joint;
 pub mod solver;
 
 use crate::image::{Image, Plane};
@@ -55,6 +56,9 @@ pub struct EstimateOptions {
     pub lambda_scale: f64,
     pub mu_relative: f64,
     pub max_iterations: usize,
+    /// Iterations of the joint refinement of all kernels of a channel with the interpolated
+    /// forward model ([`joint`]); 0 skips it.
+    pub joint_iterations: usize,
     /// Relative step `‖Δb‖ / ‖b‖` at which a window's iterations stop.
     pub tolerance: f64,
     pub registration: RegistrationModel,
@@ -74,6 +78,7 @@ impl Default for EstimateOptions {
             lambda_scale: 1.0,
             mu_relative: 1.0,
             max_iterations: 150,
+            joint_iterations: 60,
             tolerance: 1e-3,
             registration: RegistrationModel::Translation,
             saturation: 0.995,
@@ -108,6 +113,29 @@ pub fn noise_sigma(p: &Plane) -> f64 {
     }
     if v.is_empty() {
         return 0.0;
+    }
+    let mid = v.len() / 2;
+    let (_, m, _) = v.select_nth_unstable_by(mid, |a, b| a.total_cmp(b));
+    1.4826 * *m as f64
+}
+
+/// [`noise_sigma`] of a window's wide-open data, over pixels whose whole 3×3 cross is in the
+/// mask (every pixel when too few are).
+pub fn masked_noise_sigma(d: &TileData) -> f64 {
+    let (w, h) = (d.pw, d.ph);
+    let mut v = Vec::with_capacity(w * h / 4);
+    let p = |x: usize, y: usize| d.blurred[y * w + x];
+    for y in 1..h.saturating_sub(1) {
+        for x in 1..w.saturating_sub(1) {
+            let i = y * w + x;
+            if d.mask[i] && d.mask[i - 1] && d.mask[i + 1] && d.mask[i - w] && d.mask[i + w] {
+                let dd = 4.0 * p(x, y) - p(x - 1, y) - p(x + 1, y) - p(x, y - 1) - p(x, y + 1);
+                v.push((dd / 20f32.sqrt()).abs());
+            }
+        }
+    }
+    if v.len() < 64 {
+        return noise_sigma(&Plane { width: w, height: h, data: d.blurred.clone() });
     }
     let mid = v.len() / 2;
     let (_, m, _) = v.select_nth_unstable_by(mid, |a, b| a.total_cmp(b));
@@ -171,9 +199,9 @@ pub fn default_window(k: usize, w: usize, h: usize) -> usize {
 /// image.
 pub fn fit_window(center: [f64; 2], window: usize, w: usize, h: usize) -> (usize, usize, usize, usize) {
     let span = |c: f64, n: usize| {
-        let lo = (c + 0.5 - window as f64 / 2.0).round().max(0.0) as usize;
-        let hi = ((lo + window) as f64).min(n as f64) as usize;
-        (lo.min(n.saturating_sub(1)), hi.max(lo + 1).min(n))
+        let lo = (c + 0.5 - window as f64 / 2.0).round().clamp(0.0, n as f64 - 1.0) as usize;
+        let hi = (c + 0.5 + window as f64 / 2.0).round().clamp(lo as f64 + 1.0, n as f64) as usize;
+        (lo, hi)
     };
     let (x0, x1) = span(center[0], w);
     let (y0, y1) = span(center[1], h);
@@ -288,11 +316,15 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
                 kernel_size: k,
                 lambda: None,
                 lambda_scale: opts.lambda_scale as f32,
+                noise_sigma: None,
                 mu_relative: opts.mu_relative as f32,
                 max_iterations: opts.max_iterations,
                 tolerance: opts.tolerance,
             };
             let res = solve_tile(&data, &settings, |_, _| !cancelled.load(Ordering::Relaxed));
+            if std::env::var_os("LENSRIG_DEBUG").is_some() {
+                eprintln!("c{c} t{t} sum {:.4} its {} crit {:.2e} lam {:.3e} sig {:.4e} res {:.4e} px {}", res.kernel.sum(), res.stats.iterations, res.stats.criterion, res.lambda, res.noise_sigma, res.residual_rms, res.data_pixels);
+            }
             bar.inc(1);
             (c, t, res)
         })
@@ -312,7 +344,9 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
     };
     let mut lam_sum = 0.0;
     let mut tile_noise = vec![Vec::new(); nch];
+    let mut tile_lambda = vec![vec![(0.0f32, 0usize); cols * rows]; nch];
     for (c, t, res) in results {
+        tile_lambda[c][t] = (res.lambda, res.data_pixels);
         tile_noise[c].push(res.noise_sigma);
         let lambda = res.lambda;
         kernels[c][t] = res.kernel;
@@ -322,6 +356,18 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
         lam_sum += lambda as f64;
     }
     info.lambda = lam_sum / jobs.len() as f64;
+    if opts.joint_iterations > 0 {
+        let shape = PsfGrid { kernel_size: k, columns: cols, rows, centers: centers.clone(), channels: open.channels.clone(), kernels: vec![] };
+        let o = crate::solve::primal_dual::SplitOptions { max_iterations: opts.joint_iterations, min_iterations: 5, tolerance: opts.tolerance };
+        for c in 0..nch {
+            let mut sharp = pin_reg[c].clone();
+            sharp.scale(ratio[c] as f32);
+            let (st, rms) = joint::refine_channel(&open_lin[c], &sharp, &valid_masks[c], &shape, &mut kernels[c], &tile_lambda[c], &o);
+            if std::env::var_os("LENSRIG_DEBUG").is_some() {
+                eprintln!("joint c{c}: {} its, crit {:.2e}, residual rms {rms:.4e}", st.iterations, st.criterion);
+            }
+        }
+    }
     // the noise level per channel: median over tiles of the least-squares residual level
     let noise: Vec<f64> = tile_noise
         .into_iter()
@@ -388,7 +434,7 @@ fn choose_kernel_size(open: &[Plane], pin: &[Plane], opts: &EstimateOptions) -> 
     let mut radius: f64 = 1.0;
     for &(x0, y0) in &spots {
         let data = tile_data(&open[c], &pin[c], &all, s, (x0, x0 + tsz, y0, y0 + tsz), probe_k);
-        let st = TileSettings { kernel_size: probe_k, lambda: None, lambda_scale: opts.lambda_scale as f32, mu_relative: 1.0, max_iterations: 150, tolerance: 1e-3 };
+        let st = TileSettings { kernel_size: probe_k, lambda: None, lambda_scale: opts.lambda_scale as f32, noise_sigma: None, mu_relative: 1.0, max_iterations: 150, tolerance: 1e-3 };
         let res = solve_tile(&data, &st, |_, _| true);
         radius = radius.max(energy_radius(&res.kernel, 0.99));
     }

@@ -61,6 +61,9 @@ pub struct TileSettings {
     /// measured after phase 1.
     pub lambda: Option<f32>,
     pub lambda_scale: f32,
+    /// Noise level of the wide-open data (full scale) that sets `λ`; `None`: measured from the
+    /// masked residual after phase 1 (which also counts model mismatch, so it overestimates).
+    pub noise_sigma: Option<f64>,
     /// Weight of the sum-to-one prior relative to the data term's curvature along the kernel sum.
     pub mu_relative: f32,
     pub max_iterations: usize,
@@ -320,9 +323,10 @@ pub fn solve_tile(data: &TileData, s: &TileSettings, mut on_check: impl FnMut(us
     let warm_rms = rms(p.normal(&x, &mut g, true));
     let mut done = 0usize;
     let mut cancelled = false;
-    let noise_sigma = match s.lambda {
-        Some(_) => warm_rms * dof_factor,
-        None => {
+    let noise_sigma = match (s.lambda, s.noise_sigma) {
+        (Some(_), _) => warm_rms * dof_factor,
+        (None, Some(sigma)) => sigma,
+        (None, None) => {
             // phase 1: a provisional λ from the warm start's residual (which overestimates σ)
             p.lambda = weight(warm_rms * dof_factor * 0.5);
             let o1 = SplitOptions { max_iterations: PHASE1_ITERATIONS.min(s.max_iterations), min_iterations: usize::MAX, tolerance: 0.0 };
@@ -430,7 +434,7 @@ mod tests {
         let blurred = Plane::from_fn(w, h, |x, y| blurred.get(x, y) + 0.0025 * r.normal() as f32);
         let valid = vec![true; w * h];
         let data = crate::estimate::tile_data(&blurred, &sharp, &valid, 1.0, (20, 76, 20, 76), k);
-        let st = TileSettings { kernel_size: k, lambda: None, lambda_scale: 1.0, mu_relative: 1.0, max_iterations: 300, tolerance: 1e-4 };
+        let st = TileSettings { kernel_size: k, lambda: None, lambda_scale: 1.0, noise_sigma: None, mu_relative: 1.0, max_iterations: 300, tolerance: 1e-4 };
         let res = solve_tile(&data, &st, |_, _| true);
         let err = crate::estimate::relative_error(&res.kernel, &truth);
         assert!(err < 0.03, "relative error {err}");

@@ -8,18 +8,21 @@
 //! 3. The pinhole capture is registered to the wide-open one ([`register`]).
 //! 4. The exposure ratio `s_c = Σ open / Σ pinhole` per channel over valid pixels (kernels sum
 //!    to one, so blur preserves the mean).
-//! 5. The noise level `σ_c` of the wide-open capture from the median absolute deviation of a
-//!    high-pass (blur removes the signal there); it sets the TV weight
-//!    `λ = c_λ · σ_c · std(s·I) · √N_data` (the weight at which the prior's bias and the noise's
-//!    variance on a kernel coefficient are of the same order; `c_λ` defaults to 1).
-//! 6. Per tile and channel, in parallel, the TV-regularised PSF ([`solver`]).
+//! 5. PSF centres on a regular grid ([`default_tile`] spacing); each centre is fitted on its own
+//!    window ([`default_window`], [`fit_window`]), windows in parallel ([`solver`]). The TV
+//!    weight `λ = c_λ · σ̂ · std(s·I) · √N_data` uses the noise level `σ̂` measured from the
+//!    window's residual after a short first phase (`c_λ` defaults to 1).
+//! 6. Per channel, all kernels are refined jointly with the interpolated forward model
+//!    ([`joint`]), `σ̂` re-measured from the joint residual.
 //!
 //! # Units
-//! Kernels are `k × k` on the sensor's pixel grid, sum 1, centre = zero displacement
-//! ([`crate::solve::conv`]). `s` is stored per channel in the profile.
+//! Kernels are `k × k` on the sensor's pixel grid, sum ≈ 1, centre = zero displacement, true
+//! convolution ([`crate::solve::conv`]); values linear on the full-scale axis; image axes
+//! row-major `(x, y)` with `x` to the right. `s` is stored per channel in the profile; centres
+//! are `[x, y]` pixel coordinates (pixel centres at integers).
 
-pub mod register;
 pub mod joint;
+pub mod register;
 pub mod solver;
 
 use crate::image::{Image, Plane};
@@ -113,29 +116,6 @@ pub fn noise_sigma(p: &Plane) -> f64 {
     }
     if v.is_empty() {
         return 0.0;
-    }
-    let mid = v.len() / 2;
-    let (_, m, _) = v.select_nth_unstable_by(mid, |a, b| a.total_cmp(b));
-    1.4826 * *m as f64
-}
-
-/// [`noise_sigma`] of a window's wide-open data, over pixels whose whole 3×3 cross is in the
-/// mask (every pixel when too few are).
-pub fn masked_noise_sigma(d: &TileData) -> f64 {
-    let (w, h) = (d.pw, d.ph);
-    let mut v = Vec::with_capacity(w * h / 4);
-    let p = |x: usize, y: usize| d.blurred[y * w + x];
-    for y in 1..h.saturating_sub(1) {
-        for x in 1..w.saturating_sub(1) {
-            let i = y * w + x;
-            if d.mask[i] && d.mask[i - 1] && d.mask[i + 1] && d.mask[i - w] && d.mask[i + w] {
-                let dd = 4.0 * p(x, y) - p(x - 1, y) - p(x + 1, y) - p(x, y - 1) - p(x, y + 1);
-                v.push((dd / 20f32.sqrt()).abs());
-            }
-        }
-    }
-    if v.len() < 64 {
-        return noise_sigma(&Plane { width: w, height: h, data: d.blurred.clone() });
     }
     let mid = v.len() / 2;
     let (_, m, _) = v.select_nth_unstable_by(mid, |a, b| a.total_cmp(b));
@@ -324,9 +304,6 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
                 tolerance: opts.tolerance,
             };
             let res = solve_tile(&data, &settings, |_, _| !cancelled.load(Ordering::Relaxed));
-            if std::env::var_os("LENSRIG_DEBUG").is_some() {
-                eprintln!("c{c} t{t} sum {:.4} its {} crit {:.2e} lam {:.3e} sig {:.4e} res {:.4e} px {}", res.kernel.sum(), res.stats.iterations, res.stats.criterion, res.lambda, res.noise_sigma, res.residual_rms, res.data_pixels);
-            }
             bar.inc(1);
             (c, t, res)
         })
@@ -365,8 +342,10 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
             let mut sharp = pin_reg[c].clone();
             sharp.scale(ratio[c] as f32);
             let (st, rms) = joint::refine_channel(&open_lin[c], &sharp, &valid_masks[c], &shape, &mut kernels[c], &tile_lambda[c], &o);
-            if std::env::var_os("LENSRIG_DEBUG").is_some() {
-                eprintln!("joint c{c}: {} its, crit {:.2e}, residual rms {rms:.4e}", st.iterations, st.criterion);
+            // the profile's per-tile figures then describe the refined kernels
+            for t in 0..cols * rows {
+                info.iterations[c][t] += st.iterations;
+                info.residual_rms[c][t] = rms;
             }
         }
     }

@@ -3,7 +3,10 @@
 //! Cases from the core issue: a 1024×768 RGB pair with 63-pixel kernels on 12 tiles, and
 //! (with `--large`) a 4000×3000 RGB pair with 48 tiles. Pairs are rendered with the lens
 //! simulator's PSFs on a coarse field grid (rendering is not what is timed), with an ideal
-//! pinhole reference; only `estimate` is timed, on all cores rayon sees.
+//! pinhole reference; only `estimate` is timed, on all cores rayon sees. Each case is timed with
+//! the per-window fits alone (`--joint-iterations 0`); the 1-megapixel case also with the joint
+//! refinement ([`lensrig::estimate::joint`]), which costs about sixteen image-sized FFT sets per
+//! iteration and is therefore not run on the 12-megapixel case.
 
 use anyhow::Result;
 use clap::Args;
@@ -21,6 +24,15 @@ pub struct BenchArgs {
     pub large: bool,
     #[arg(long, default_value_t = 150)]
     pub max_iterations: usize,
+    /// Relative step at which a window's iterations stop.
+    #[arg(long, default_value_t = 1e-3)]
+    pub tolerance: f64,
+    /// Iterations of the joint refinement with the interpolated forward model (0: off).
+    #[arg(long, default_value_t = 150)]
+    pub joint_iterations: usize,
+    /// Fit window side around each PSF centre; default: chosen by `estimate`.
+    #[arg(long)]
+    pub window: Option<usize>,
 }
 
 struct Case {
@@ -38,8 +50,8 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         cases.push(Case { name: "4000x3000 RGB, 63 px, 48 tiles", width: 4000, height: 3000, kernel: 63, columns: 8, rows: 6 });
     }
     println!("machine: {} logical cores (rayon), {}", rayon::current_num_threads(), std::env::consts::ARCH);
-    println!("| case | seconds | median kernel error | iterations (median) |");
-    println!("| --- | --- | --- | --- |");
+    println!("| case | stage | seconds (wall) | median kernel error | iterations (median) |");
+    println!("| --- | --- | --- | --- | --- |");
     for c in cases {
         let mut lens = LensModel::demo(c.width, c.height);
         // scale the blur so the PSFs fill a 63-px kernel at f/4 on this sensor
@@ -52,7 +64,9 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         let open = render(&scene, &lens, &shot, &Sensor::default(), &mut Rng::new(1));
         let pin = render(&scene, &lens, &Shot::ideal(0.75), &Sensor::default(), &mut Rng::new(2));
         let tile = c.width / c.columns;
-        let opts = EstimateOptions { kernel_size: Some(c.kernel), tile: Some(tile), max_iterations: a.max_iterations, ..Default::default() };
+        let joint_runs: Vec<usize> = if c.width <= 1024 && a.joint_iterations > 0 { vec![0, a.joint_iterations] } else { vec![0] };
+        for joint in joint_runs {
+        let opts = EstimateOptions { kernel_size: Some(c.kernel), tile: Some(tile), max_iterations: a.max_iterations, tolerance: a.tolerance, window: a.window, joint_iterations: joint, ..Default::default() };
         let t = std::time::Instant::now();
         let est = estimate(&open.image, &pin.image, &opts)?;
         let secs = t.elapsed().as_secs_f64();
@@ -67,7 +81,9 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         errs.sort_by(|x, y| x.total_cmp(y));
         let mut its: Vec<usize> = est.profile.meta.estimation.iterations.iter().flatten().copied().collect();
         its.sort_unstable();
-        println!("| {} | {:.1} | {:.1}% | {} |", c.name, secs, errs[errs.len() / 2] * 100.0, its[its.len() / 2]);
+        let stage = if joint > 0 { format!("window fits + joint refinement (≤ {joint} its)") } else { "window fits".to_string() };
+        println!("| {} | {stage} | {:.1} | {:.1}% | {} |", c.name, secs, errs[errs.len() / 2] * 100.0, its[its.len() / 2]);
+        }
     }
     Ok(())
 }

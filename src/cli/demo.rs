@@ -46,6 +46,18 @@ pub struct DemoArgs {
     pub tile: Option<usize>,
     #[arg(long, default_value_t = 150)]
     pub max_iterations: usize,
+    /// Relative step at which a window's iterations stop.
+    #[arg(long, default_value_t = 1e-3)]
+    pub tolerance: f64,
+    /// Iterations of the joint refinement with the interpolated forward model (0: off).
+    #[arg(long, default_value_t = 150)]
+    pub joint_iterations: usize,
+    /// Fit window side around each PSF centre; default: chosen by `estimate`.
+    #[arg(long)]
+    pub window: Option<usize>,
+    /// Scale of the TV weight.
+    #[arg(long, default_value_t = 1.0)]
+    pub lambda_scale: f64,
     #[arg(long)]
     pub quiet: bool,
 }
@@ -95,7 +107,7 @@ pub fn run(a: &DemoArgs) -> Result<()> {
     write_png16(&p("open2.png"), &open2.image, Overwrite::Replace)?;
     write_png16(&p("pinhole2.png"), &pin2.image, Overwrite::Replace)?;
 
-    let opts = EstimateOptions { kernel_size: Some(k), tile: a.tile, max_iterations: a.max_iterations, progress: !a.quiet, ..Default::default() };
+    let opts = EstimateOptions { kernel_size: Some(k), tile: a.tile, max_iterations: a.max_iterations, tolerance: a.tolerance, window: a.window, joint_iterations: a.joint_iterations, lambda_scale: a.lambda_scale, progress: !a.quiet, ..Default::default() };
     let mut est = estimate(&open.image, &pin.image, &opts)?;
     est.profile.meta.source.open = Some("open.png".into());
     est.profile.meta.source.pinhole = Some("pinhole.png".into());

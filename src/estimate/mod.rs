@@ -8,16 +8,20 @@
 //! 3. The pinhole capture is registered to the wide-open one ([`register`]).
 //! 4. The exposure ratio `s_c = Σ open / Σ pinhole` per channel over valid pixels (kernels sum
 //!    to one, so blur preserves the mean).
-//! 5. The noise level `σ_c` of the wide-open capture from the median absolute deviation of a
-//!    high-pass (blur removes the signal there); it sets the TV weight
-//!    `λ = c_λ · σ_c · std(s·I) · √N_data` (the weight at which the prior's bias and the noise's
-//!    variance on a kernel coefficient are of the same order; `c_λ` defaults to 1).
-//! 6. Per tile and channel, in parallel, the TV-regularised PSF ([`solver`]).
+//! 5. PSF centres on a regular grid ([`default_tile`] spacing); each centre is fitted on its own
+//!    window ([`default_window`], [`fit_window`]), windows in parallel ([`solver`]). The TV
+//!    weight `λ = c_λ · σ̂ · std(s·I) · √N_data` uses the noise level `σ̂` measured from the
+//!    window's residual after a short first phase (`c_λ` defaults to 1).
+//! 6. Per channel, all kernels are refined jointly with the interpolated forward model
+//!    ([`joint`]), `σ̂` re-measured from the joint residual.
 //!
 //! # Units
-//! Kernels are `k × k` on the sensor's pixel grid, sum 1, centre = zero displacement
-//! ([`crate::solve::conv`]). `s` is stored per channel in the profile.
+//! Kernels are `k × k` on the sensor's pixel grid, sum ≈ 1, centre = zero displacement, true
+//! convolution ([`crate::solve::conv`]); values linear on the full-scale axis; image axes
+//! row-major `(x, y)` with `x` to the right. `s` is stored per channel in the profile; centres
+//! are `[x, y]` pixel coordinates (pixel centres at integers).
 
+pub mod joint;
 pub mod register;
 pub mod solver;
 
@@ -47,13 +51,19 @@ pub enum EstimateError {
 #[derive(Clone, Debug)]
 pub struct EstimateOptions {
     pub kernel_size: Option<usize>,
-    /// Tile side in pixels.
+    /// Spacing of the PSF centres in pixels (the "tile" side: one kernel per tile).
     pub tile: Option<usize>,
+    /// Side of the square fit window around each centre (clipped to the image); may be larger
+    /// than the spacing (overlapping windows) or smaller (a subset of the tile's data).
+    pub window: Option<usize>,
     pub lambda_scale: f64,
     pub mu_relative: f64,
     pub max_iterations: usize,
+    /// Iterations of the joint refinement of all kernels of a channel with the interpolated
+    /// forward model ([`joint`]); 0 skips it. It stops at a relative step of `tolerance / 10`.
+    pub joint_iterations: usize,
+    /// Relative step `‖Δb‖ / ‖b‖` at which a window's iterations stop.
     pub tolerance: f64,
-    pub sigma: f32,
     pub registration: RegistrationModel,
     /// Stored values at or above this fraction of full scale count as saturated.
     pub saturation: f32,
@@ -67,11 +77,12 @@ impl Default for EstimateOptions {
         Self {
             kernel_size: None,
             tile: None,
+            window: None,
             lambda_scale: 1.0,
             mu_relative: 1.0,
             max_iterations: 150,
-            tolerance: 0.1,
-            sigma: 300.0,
+            joint_iterations: 150,
+            tolerance: 1e-3,
             registration: RegistrationModel::Translation,
             saturation: 0.995,
             black_level: vec![],
@@ -154,9 +165,29 @@ pub fn tile_grid(w: usize, h: usize, tile: usize) -> (usize, usize) {
     (((w as f64 / tile as f64).round() as usize).max(1), ((h as f64 / tile as f64).round() as usize).max(1))
 }
 
-/// Default tile side for a kernel size: large enough for a well-posed fit (≥ 4 kernels).
+/// Default spacing of the PSF centres for a kernel size: about 1.8 kernels, so the
+/// Catmull–Rom blend follows a quickly varying field; each centre is still fitted on a
+/// [`default_window`] of 4 kernels, and the joint refinement makes the dense grid consistent.
 pub fn default_tile(k: usize, w: usize, h: usize) -> usize {
-    (4 * k).max(96).min(w.min(h))
+    (9 * k / 5).max(32).min(w.min(h))
+}
+
+/// Default fit window for a kernel size: enough data for a well-posed fit (≥ 4 kernels across).
+pub fn default_window(k: usize, w: usize, h: usize) -> usize {
+    (4 * k).max(96).min(w.max(h))
+}
+
+/// The fit window `[x0, x1) × [y0, y1)` of side `window` centred on `center`, clipped to the
+/// image.
+pub fn fit_window(center: [f64; 2], window: usize, w: usize, h: usize) -> (usize, usize, usize, usize) {
+    let span = |c: f64, n: usize| {
+        let lo = (c + 0.5 - window as f64 / 2.0).round().clamp(0.0, n as f64 - 1.0) as usize;
+        let hi = (c + 0.5 + window as f64 / 2.0).round().clamp(lo as f64 + 1.0, n as f64) as usize;
+        (lo, hi)
+    };
+    let (x0, x1) = span(center[0], w);
+    let (y0, y1) = span(center[1], h);
+    (x0, x1, y0, y1)
 }
 
 /// Estimates a profile from a wide-open and a pinhole capture of the same target.
@@ -221,6 +252,10 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
         return Err(EstimateError::Option(format!("tile {tile} is smaller than the kernel {k}; use a larger --tile or a smaller --kernel")));
     }
     let (cols, rows) = tile_grid(w, h, tile);
+    let window = opts.window.unwrap_or_else(|| default_window(k, w, h));
+    if window < k {
+        return Err(EstimateError::Option(format!("fit window {window} is smaller than the kernel {k}")));
+    }
     let r = k / 2;
 
     // valid data masks and exposure ratios
@@ -257,18 +292,16 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
     let results: Vec<_> = jobs
         .par_iter()
         .map(|&(c, t)| {
-            let (tc, tr) = (t % cols, t / cols);
-            let (x0, x1) = (tc * w / cols, (tc + 1) * w / cols);
-            let (y0, y1) = (tr * h / rows, (tr + 1) * h / rows);
-            let data = tile_data(&open_lin[c], &pin_reg[c], &valid_masks[c], ratio[c] as f32, (x0, x1, y0, y1), k);
+            let win = fit_window(centers[t], window, w, h);
+            let data = tile_data(&open_lin[c], &pin_reg[c], &valid_masks[c], ratio[c] as f32, win, k);
             let settings = TileSettings {
                 kernel_size: k,
                 lambda: None,
                 lambda_scale: opts.lambda_scale as f32,
+                noise_sigma: None,
                 mu_relative: opts.mu_relative as f32,
                 max_iterations: opts.max_iterations,
                 tolerance: opts.tolerance,
-                sigma: opts.sigma,
             };
             let res = solve_tile(&data, &settings, |_, _| !cancelled.load(Ordering::Relaxed));
             bar.inc(1);
@@ -290,7 +323,9 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
     };
     let mut lam_sum = 0.0;
     let mut tile_noise = vec![Vec::new(); nch];
+    let mut tile_lambda = vec![vec![(0.0f32, 0usize, 0.0f64); cols * rows]; nch];
     for (c, t, res) in results {
+        tile_lambda[c][t] = (res.lambda, res.data_pixels, res.noise_sigma);
         tile_noise[c].push(res.noise_sigma);
         let lambda = res.lambda;
         kernels[c][t] = res.kernel;
@@ -300,6 +335,20 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
         lam_sum += lambda as f64;
     }
     info.lambda = lam_sum / jobs.len() as f64;
+    if opts.joint_iterations > 0 {
+        let shape = PsfGrid { kernel_size: k, columns: cols, rows, centers: centers.clone(), channels: open.channels.clone(), kernels: vec![] };
+        let o = crate::solve::primal_dual::SplitOptions { max_iterations: opts.joint_iterations, min_iterations: 5, tolerance: opts.tolerance * 0.1 };
+        for c in 0..nch {
+            let mut sharp = pin_reg[c].clone();
+            sharp.scale(ratio[c] as f32);
+            let (st, rms) = joint::refine_channel(&open_lin[c], &sharp, &valid_masks[c], &shape, &mut kernels[c], &tile_lambda[c], &o);
+            // the profile's per-tile figures then describe the refined kernels
+            for t in 0..cols * rows {
+                info.iterations[c][t] += st.iterations;
+                info.residual_rms[c][t] = rms;
+            }
+        }
+    }
     // the noise level per channel: median over tiles of the least-squares residual level
     let noise: Vec<f64> = tile_noise
         .into_iter()
@@ -366,7 +415,7 @@ fn choose_kernel_size(open: &[Plane], pin: &[Plane], opts: &EstimateOptions) -> 
     let mut radius: f64 = 1.0;
     for &(x0, y0) in &spots {
         let data = tile_data(&open[c], &pin[c], &all, s, (x0, x0 + tsz, y0, y0 + tsz), probe_k);
-        let st = TileSettings { kernel_size: probe_k, lambda: None, lambda_scale: opts.lambda_scale as f32, mu_relative: 1.0, max_iterations: 150, tolerance: 1e-3, sigma: opts.sigma };
+        let st = TileSettings { kernel_size: probe_k, lambda: None, lambda_scale: opts.lambda_scale as f32, noise_sigma: None, mu_relative: 1.0, max_iterations: 150, tolerance: 1e-3 };
         let res = solve_tile(&data, &st, |_, _| true);
         radius = radius.max(energy_radius(&res.kernel, 0.99));
     }

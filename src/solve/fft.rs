@@ -7,6 +7,8 @@
 //!   pointwise products of spectra of the same plan are meaningful, so the layout never leaks.
 //! - [`Fft2::forward`] is unnormalised; [`Fft2::inverse`] divides by `width * height`, so
 //!   `inverse(forward(x)) == x`.
+//! - Scratch: the `*_with` methods take caller-owned [`FftScratch`]; the plain methods use a
+//!   per-thread cached scratch, so no transform allocates after warm-up.
 //! - Plans come from a process-wide cache ([`Fft2::plan`]); sizes are best chosen with
 //!   [`good_size`] (even, of the form 2^a·3^b).
 
@@ -68,6 +70,43 @@ impl Fft2 {
         self.half_width * self.height
     }
 
+    /// Caller-owned scratch buffers for the `*_with` transforms of this plan.
+    pub fn make_scratch(&self) -> FftScratch {
+        FftScratch {
+            size: (self.width, self.height),
+            row_real: self.r2c.make_input_vec(),
+            row_spec: self.r2c.make_output_vec(),
+            r2c: self.r2c.make_scratch_vec(),
+            c2r: self.c2r.make_scratch_vec(),
+            col: vec![Complex32::new(0.0, 0.0); self.col_fwd.get_inplace_scratch_len().max(self.col_inv.get_inplace_scratch_len())],
+        }
+    }
+
+    /// Runs `f` with this thread's cached scratch for this plan (no allocation after the first
+    /// call on a thread).
+    fn with_cached_scratch<R>(&self, f: impl FnOnce(&mut FftScratch) -> R) -> R {
+        thread_local! {
+            static SCRATCH: std::cell::RefCell<Vec<FftScratch>> = const { std::cell::RefCell::new(Vec::new()) };
+        }
+        let key = (self.width, self.height);
+        let mut s = SCRATCH.with(|c| {
+            let mut v = c.borrow_mut();
+            match v.iter().position(|s| s.size == key) {
+                Some(i) => v.swap_remove(i),
+                None => self.make_scratch(),
+            }
+        });
+        let r = f(&mut s);
+        SCRATCH.with(|c| {
+            let mut v = c.borrow_mut();
+            if v.len() >= 8 {
+                v.remove(0);
+            }
+            v.push(s);
+        });
+        r
+    }
+
     /// Forward transform of a row-major real array of `width * height` values.
     pub fn forward(&self, input: &[f32]) -> Vec<Complex32> {
         let mut spec = vec![Complex32::new(0.0, 0.0); self.spectrum_len()];
@@ -77,22 +116,33 @@ impl Fft2 {
 
     /// Forward transform into a caller-owned spectrum buffer.
     pub fn forward_into(&self, input: &[f32], spec: &mut [Complex32]) {
+        self.with_cached_scratch(|s| self.forward_with(input, spec, s));
+    }
+
+    /// Forward transform with caller-owned scratch. Rows that are entirely zero skip their row
+    /// transform (cheap for a small kernel placed in a large domain).
+    pub fn forward_with(&self, input: &[f32], spec: &mut [Complex32], s: &mut FftScratch) {
         assert_eq!(input.len(), self.width * self.height, "FFT input size");
         assert_eq!(spec.len(), self.spectrum_len(), "FFT spectrum size");
+        assert_eq!(s.size, (self.width, self.height), "FFT scratch size");
         let (w, h, hw) = (self.width, self.height, self.half_width);
-        let mut row = self.r2c.make_input_vec();
-        let mut out = self.r2c.make_output_vec();
-        let mut scratch = self.r2c.make_scratch_vec();
+        let zero = Complex32::new(0.0, 0.0);
         for y in 0..h {
-            row.copy_from_slice(&input[y * w..(y + 1) * w]);
+            let src = &input[y * w..(y + 1) * w];
+            if src.iter().all(|&v| v == 0.0) {
+                for kx in 0..hw {
+                    spec[kx * h + y] = zero;
+                }
+                continue;
+            }
+            s.row_real.copy_from_slice(src);
             // Lengths are right by construction; realfft only errs on wrong lengths.
-            let _ = self.r2c.process_with_scratch(&mut row, &mut out, &mut scratch);
+            let _ = self.r2c.process_with_scratch(&mut s.row_real, &mut s.row_spec, &mut s.r2c);
             for kx in 0..hw {
-                spec[kx * h + y] = out[kx];
+                spec[kx * h + y] = s.row_spec[kx];
             }
         }
-        let mut cs = vec![Complex32::new(0.0, 0.0); self.col_fwd.get_inplace_scratch_len()];
-        self.col_fwd.process_with_scratch(spec, &mut cs);
+        self.col_fwd.process_with_scratch(spec, &mut s.col);
     }
 
     /// Inverse transform (normalised by `1 / (width * height)`); consumes the spectrum.
@@ -104,29 +154,35 @@ impl Fft2 {
 
     /// Inverse transform into `out`; `spec` is used as scratch and left modified.
     pub fn inverse_into(&self, spec: &mut [Complex32], out: &mut [f32]) {
+        self.with_cached_scratch(|s| self.inverse_rows_with(spec, out, |_| true, s));
+    }
+
+    /// Inverse transform with caller-owned scratch, computing only the output rows `y` for
+    /// which `rows(y)` is true (the other rows of `out` are left untouched); `spec` is used as
+    /// scratch and left modified.
+    pub fn inverse_rows_with(&self, spec: &mut [Complex32], out: &mut [f32], rows: impl Fn(usize) -> bool, s: &mut FftScratch) {
         assert_eq!(out.len(), self.width * self.height, "FFT output size");
         assert_eq!(spec.len(), self.spectrum_len(), "FFT spectrum size");
+        assert_eq!(s.size, (self.width, self.height), "FFT scratch size");
         let (w, h, hw) = (self.width, self.height, self.half_width);
-        let mut cs = vec![Complex32::new(0.0, 0.0); self.col_inv.get_inplace_scratch_len()];
-        self.col_inv.process_with_scratch(spec, &mut cs);
-        let mut row = self.c2r.make_input_vec();
-        let mut res = self.c2r.make_output_vec();
-        let mut scratch = self.c2r.make_scratch_vec();
+        self.col_inv.process_with_scratch(spec, &mut s.col);
         let norm = 1.0 / (w * h) as f32;
-        for y in 0..h {
+        let mut res = std::mem::take(&mut s.row_real);
+        for y in (0..h).filter(|&y| rows(y)) {
             for kx in 0..hw {
-                row[kx] = spec[kx * h + y];
+                s.row_spec[kx] = spec[kx * h + y];
             }
             // DC and (for even widths) Nyquist bins of a real signal's row transform are real.
-            row[0].im = 0.0;
+            s.row_spec[0].im = 0.0;
             if w % 2 == 0 {
-                row[hw - 1].im = 0.0;
+                s.row_spec[hw - 1].im = 0.0;
             }
-            let _ = self.c2r.process_with_scratch(&mut row, &mut res, &mut scratch);
+            let _ = self.c2r.process_with_scratch(&mut s.row_spec, &mut res, &mut s.c2r);
             for (o, r) in out[y * w..(y + 1) * w].iter_mut().zip(&res) {
                 *o = r * norm;
             }
         }
+        s.row_real = res;
     }
 
     /// Spatial frequencies (cycles per pixel) of bin `i` of a spectrum: `(fx, fy)`.
@@ -136,6 +192,16 @@ impl Fft2 {
         let fy = if ky <= self.height / 2 { ky as f32 } else { ky as f32 - self.height as f32 };
         (kx as f32 / self.width as f32, fy / self.height as f32)
     }
+}
+
+/// Scratch buffers for one plan size ([`Fft2::make_scratch`]); reuse it across calls.
+pub struct FftScratch {
+    size: (usize, usize),
+    row_real: Vec<f32>,
+    row_spec: Vec<Complex32>,
+    r2c: Vec<Complex32>,
+    c2r: Vec<Complex32>,
+    col: Vec<Complex32>,
 }
 
 /// The smallest even `m >= n` of the form 2^a·3^b (fast for rustfft and realfft).
@@ -182,7 +248,9 @@ mod tests {
     #[test]
     fn round_trip_and_dft_oracle() {
         let (w, h) = (6, 5);
-        let x: Vec<f32> = (0..w * h).map(|i| ((i * 37 % 11) as f32) - 3.0).collect();
+        let mut x: Vec<f32> = (0..w * h).map(|i| ((i * 37 % 11) as f32) - 3.0).collect();
+        // one all-zero row exercises the skipped row transform
+        x[2 * w..3 * w].iter_mut().for_each(|v| *v = 0.0);
         let f = Fft2::plan(w, h);
         let spec = f.forward(&x);
         // compare against a direct DFT
@@ -198,9 +266,23 @@ mod tests {
             }
             assert!((acc - spec[i]).norm() < 1e-3, "bin {kx},{ky}: {acc} vs {}", spec[i]);
         }
-        let back = f.inverse(spec);
+        let back = f.inverse(spec.clone());
         for (a, b) in x.iter().zip(&back) {
             assert!((a - b).abs() < 1e-4);
+        }
+        // partial inverse: only the requested rows, identical to the full one
+        let mut s = f.make_scratch();
+        let mut part = vec![f32::NAN; w * h];
+        f.inverse_rows_with(&mut spec.clone(), &mut part, |y| y % 2 == 1, &mut s);
+        for y in 0..h {
+            for xx in 0..w {
+                let v = part[y * w + xx];
+                if y % 2 == 1 {
+                    assert!((v - back[y * w + xx]).abs() < 1e-6);
+                } else {
+                    assert!(v.is_nan());
+                }
+            }
         }
     }
 }

@@ -57,7 +57,7 @@ pub struct DiagnoseArgs {
 
 fn options(a: &DiagnoseArgs) -> DiagnoseOptions {
     DiagnoseOptions {
-        estimate: EstimateOptions { kernel_size: a.kernel, tile: a.tile, max_iterations: a.max_iterations, ..Default::default() },
+        estimate: EstimateOptions { kernel_size: a.kernel, tile: a.tile, max_iterations: a.max_iterations, joint_iterations: 0, ..Default::default() },
         max_effects: a.max_effects,
         ..Default::default()
     }
@@ -145,7 +145,7 @@ pub fn bench_case(effect: Option<&str>, seed: u64, spec: &CaseSpec, opts: &Diagn
 
 /// Options the proof suite uses (small kernels, few iterations).
 pub fn proof_options(spec: &CaseSpec) -> DiagnoseOptions {
-    DiagnoseOptions { estimate: EstimateOptions { kernel_size: Some(spec.kernel_size), tile: Some(96), max_iterations: 150, ..Default::default() }, ..Default::default() }
+    DiagnoseOptions { estimate: EstimateOptions { kernel_size: Some(spec.kernel_size), tile: Some(96), max_iterations: 150, joint_iterations: 0, ..Default::default() }, ..Default::default() }
 }
 
 fn bench(a: &DiagnoseArgs, seeds: u64) -> Result<()> {

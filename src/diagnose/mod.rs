@@ -81,7 +81,7 @@ pub struct DiagnoseOptions {
 impl Default for DiagnoseOptions {
     fn default() -> Self {
         Self {
-            estimate: EstimateOptions { max_iterations: 150, ..Default::default() },
+            estimate: EstimateOptions { max_iterations: 150, joint_iterations: 0, ..Default::default() },
             base_fit: FitSettings { rounds: 3, kernel_iterations: 80 },
             candidate_fit: FitSettings { rounds: 2, kernel_iterations: 40 },
             max_effects: 4,

@@ -39,7 +39,15 @@ fn prepare(out: &Path, scene: &Path) -> anyhow::Result<()> {
     let lin = img.to_linear();
     let (w, h) = (lin.width(), lin.height());
     let lens = SyntheticLens::new(KERNEL, 3);
-    let grid = lens.grid(w, h, 3, GRID, GRID);
+    let mut grid = lens.grid(w, h, 3, GRID, GRID);
+    // LR_UNIFORM=1: one PSF per channel (the centre's) over the whole field, to separate solver
+    // quality from the field variation (diagnosis runs only)
+    if std::env::var("LR_UNIFORM").is_ok_and(|v| v == "1") {
+        for (c, ks) in grid.kernels.iter_mut().enumerate() {
+            let k0 = lens.kernel(c, (w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0, w, h);
+            ks.iter_mut().for_each(|k| *k = k0.clone());
+        }
+    }
     let mut noise = GaussianNoise::new(2013);
     let blurred: Vec<_> = lin
         .planes
@@ -107,6 +115,56 @@ fn prepare(out: &Path, scene: &Path) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// `run OUT SCENE...`: restores an already prepared scene with options from `LR_*` environment
+/// variables (tuning runs; the benchmark itself uses `prepare`), prints PSNR against the sharp
+/// scene and the peers' PSNR.
+fn experiment(out: &Path, scene: &Path) -> anyhow::Result<()> {
+    let dir = out.join(scene_name(scene));
+    let profile = Profile::load(&dir.join("profile"))?;
+    let mut img = read_image(&dir.join("blurred.png"))?;
+    img.transfer = Transfer::Srgb;
+    let lin = img.to_linear();
+    let env = |k: &str| std::env::var(k).ok().and_then(|v| v.parse::<f64>().ok());
+    let d = lensrig::deconv::DeconvOptions::default();
+    let opts = lensrig::deconv::DeconvOptions {
+        lambda: env("LR_LAMBDA").map(|v| vec![v as f32]),
+        lambda_per_variance: env("LR_KAPPA").map_or(d.lambda_per_variance, |v| v as f32),
+        cross_weight: env("LR_CROSS").map_or(d.cross_weight, |v| v as f32),
+        dark_weight: env("LR_DARK").map_or(d.dark_weight, |v| v as f32),
+        residual_steps: env("LR_RES").map_or(d.residual_steps, |v| v as usize),
+        field_passes: env("LR_FIELD").map_or(d.field_passes, |v| v as usize),
+        max_levels: env("LR_LEVELS").map_or(d.max_levels, |v| v as usize),
+        max_iterations: env("LR_ITERS").map_or(d.max_iterations, |v| v as usize),
+        tolerance: env("LR_TOL").unwrap_or(d.tolerance),
+        step_balance: env("LR_BAL").map_or(d.step_balance, |v| v as f32),
+        tile_core: env("LR_TILE").map(|v| v as usize),
+        overlap: env("LR_OVERLAP").map_or(d.overlap, |v| v as usize),
+        ..d
+    };
+    let t = Instant::now();
+    let (planes, rep) = lensrig::deconv::deblur(&lin.planes, &profile.grid, &opts, &|_, _| {})?;
+    let secs = t.elapsed().as_secs_f64();
+    let mut res = Image::new(planes);
+    res.transfer = Transfer::Linear;
+    let enc = res.encoded(Transfer::Srgb);
+    write_png16(&dir.join("experiment.png"), &enc, Overwrite::Replace)?;
+    let sharp = read_image(scene)?;
+    let peer = |m: &str| read_image(&dir.join(format!("{m}.tiff"))).map(|i| psnr(&i, &sharp)).unwrap_or(f64::NAN);
+    println!(
+        "{:<18} lensrig {:.2} dB  RL {:.2}  Wiener {:.2}  blurred {:.2} | {secs:.2} s | tiles {} window {:?} cp {} λ {:?}",
+        scene_name(scene),
+        psnr(&enc, &sharp),
+        peer("richardson_lucy"),
+        peer("wiener"),
+        psnr(&img, &sharp),
+        rep.tiles,
+        rep.window,
+        rep.cp_iterations,
+        rep.lambda
+    );
+    Ok(())
+}
+
 fn psnr(a: &Image, b: &Image) -> f64 {
     let mut se = 0.0f64;
     let mut n = 0usize;
@@ -144,7 +202,7 @@ fn report(out: &Path, scenes: &[PathBuf]) -> anyhow::Result<()> {
 
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
-    let usage = "usage: deblur_peers prepare|report OUT_DIR SCENE.png...";
+    let usage = "usage: deblur_peers prepare|report|run OUT_DIR SCENE.png...";
     let (cmd, out) = match (args.first(), args.get(1)) {
         (Some(c), Some(o)) => (c.as_str(), PathBuf::from(o)),
         _ => anyhow::bail!(usage),
@@ -158,6 +216,12 @@ fn main() -> anyhow::Result<()> {
             Ok(())
         }
         "report" => report(&out, &scenes),
+        "run" => {
+            for s in &scenes {
+                experiment(&out, s)?;
+            }
+            Ok(())
+        }
         _ => anyhow::bail!(usage),
     }
 }

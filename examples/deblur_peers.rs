@@ -139,6 +139,8 @@ fn experiment(out: &Path, scene: &Path) -> anyhow::Result<()> {
         step_balance: env("LR_BAL").map_or(d.step_balance, |v| v as f32),
         tile_core: env("LR_TILE").map(|v| v as usize),
         overlap: env("LR_OVERLAP").map_or(d.overlap, |v| v as usize),
+        output_transfer: if env("LR_GAMMA").is_some_and(|g| g > 0.0) { Some(Transfer::Srgb) } else { d.output_transfer },
+        transfer_weight: env("LR_GAMMA").map_or(d.transfer_weight, |v| v as f32),
         ..d
     };
     let t = Instant::now();

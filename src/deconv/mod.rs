@@ -109,6 +109,13 @@ pub struct DeconvOptions {
     pub margin: Option<usize>,
     /// Restore tiles in parallel.
     pub parallel: bool,
+    /// The encoding the result is delivered in. The prior then weighs gradients as they will
+    /// appear after encoding: every ℓ1 term is scaled per pixel by `(g'(v̄) / g'(0.18))^γ`,
+    /// `g` the transfer curve, `v̄` the smoothed local brightness of the capture (the prior
+    /// on `g(x)` linearised about the capture). `None` or linear: uniform weight.
+    pub output_transfer: Option<crate::image::Transfer>,
+    /// `γ` above.
+    pub transfer_weight: f32,
 }
 
 impl Default for DeconvOptions {
@@ -131,6 +138,8 @@ impl Default for DeconvOptions {
             overlap: 32,
             margin: None,
             parallel: true,
+            output_transfer: None,
+            transfer_weight: 1.0,
         }
     }
 }
@@ -369,6 +378,20 @@ fn gaussian_blur_periodic(v: &[f32], w: usize, h: usize, sigma: f32) -> Vec<f32>
     out
 }
 
+/// The per-pixel prior weight `(g'(v̄) / g'(0.18))^γ` for a `w × h` window of linear data
+/// (`None` when the transfer is linear or `γ = 0`).
+pub fn transfer_weight_map(data: &[f32], w: usize, h: usize, transfer: Option<crate::image::Transfer>, gamma: f32, smooth: f32) -> Option<Vec<f32>> {
+    let t = transfer.filter(|t| *t != crate::image::Transfer::Linear && gamma != 0.0)?;
+    let slope = |v: f32| {
+        let v = v.clamp(1e-4, 1.0);
+        let d = 1e-3 * v;
+        (t.encode(v + d) - t.encode(v - d)) / (2.0 * d)
+    };
+    let reference = slope(0.18);
+    let mean = gaussian_blur_periodic(data, w, h, smooth.max(0.5));
+    Some(mean.iter().map(|v| (slope(*v) / reference).powf(gamma)).collect())
+}
+
 /// Circular convolution of `v` with a kernel spectrum.
 fn convolve_spec(fft: &Fft2, v: &[f32], ks: &KernelSpectrum) -> Vec<f32> {
     let mut s = fft.forward(v);
@@ -446,6 +469,7 @@ pub fn restore_tile(windows: &[Vec<f32>], kernels: &[Plane], setup: &TileSetup) 
                     wgt.iter().map(|v| v * v).collect::<Vec<f32>>()
                 })
                 .filter(|w2: &Vec<f32>| w2.iter().any(|v| *v > 1e-4));
+            let weight = transfer_weight_map(&js[z][c], pw, ph, opts.output_transfer, opts.transfer_weight, (2.0 / (1u32 << z) as f32).max(0.75));
             let lam0 = setup.lambda[c];
             let mut lam = lam0;
             let solve = |data: &[f32], warm: Vec<f32>, est: &[f32], lam: f32, stats: &mut TileStats| -> Vec<f32> {
@@ -469,6 +493,7 @@ pub fn restore_tile(windows: &[Vec<f32>], kernels: &[Plane], setup: &TileSetup) 
                     DarkTerm { lambda_b: opts.dark_weight, w2: w2.clone(), others: others.len(), target }
                 });
                 let mut p = ChannelProblem::new(&fft, &ksp, data, ms[z][c].as_deref(), lam, &cross, dark);
+                p.set_weight(weight.as_deref());
                 let mut x = warm;
                 let mut y = vec![0.0; crate::solve::primal_dual::PrimalDual::dual_len(&p)];
                 let l = power_iteration(&p, 15).max(1e-12);

@@ -85,6 +85,8 @@ pub struct ChannelProblem<'a> {
     btmj: Vec<f32>,
     mask: Option<&'a [f32]>,
     lambda: f32,
+    /// Per-pixel factor on every ℓ1 term (`K = D_w [λH; βC]`); `None`: 1.
+    weight: Option<&'a [f32]>,
     cross: &'a [CrossChannel<'a>],
     dark: Option<DarkTerm>,
     /// Previous CG solution (warm start).
@@ -143,6 +145,7 @@ impl<'a> ChannelProblem<'a> {
             btmj,
             mask,
             lambda,
+            weight: None,
             cross,
             dark,
             u_prev: Vec::new(),
@@ -152,6 +155,11 @@ impl<'a> ChannelProblem<'a> {
             cg_max_iterations: 4,
             cg_tolerance: 1e-3,
         }
+    }
+
+    /// Scales every ℓ1 term per pixel (a spatially varying prior weight, all values > 0).
+    pub fn set_weight(&mut self, weight: Option<&'a [f32]>) {
+        self.weight = weight;
     }
 
     fn n(&self) -> usize {
@@ -214,25 +222,39 @@ impl PrimalDual for ChannelProblem<'_> {
                 for i in 0..n {
                     o[i] = cc.beta * (cc.image[i] * hx[i] - g[i] * x[i]);
                 }
+                if let Some(wt) = self.weight {
+                    o.iter_mut().zip(wt).for_each(|(v, w)| *v *= w);
+                }
             }
         }
-        grads.iter_mut().for_each(|v| *v *= self.lambda);
+        match self.weight {
+            Some(wt) => grads.chunks_mut(n).for_each(|g| g.iter_mut().zip(wt).for_each(|(v, w)| *v *= self.lambda * w)),
+            None => grads.iter_mut().for_each(|v| *v *= self.lambda),
+        }
     }
 
     fn apply_kt(&self, y: &[f32], out: &mut [f32]) {
         let n = self.n();
         let (w, h) = (self.w, self.h);
         out.iter_mut().for_each(|v| *v = 0.0);
-        for (a, d) in ALL.iter().enumerate() {
-            filters::add_adjoint(*d, &y[a * n..(a + 1) * n], w, h, self.lambda, out);
-        }
         let mut tmp = self.scratch.borrow_mut();
+        for (a, d) in ALL.iter().enumerate() {
+            let ya = &y[a * n..(a + 1) * n];
+            match self.weight {
+                Some(wt) => {
+                    tmp.iter_mut().zip(ya).zip(wt).for_each(|((t, v), w)| *t = v * w);
+                    filters::add_adjoint(*d, &tmp, w, h, self.lambda, out);
+                }
+                None => filters::add_adjoint(*d, ya, w, h, self.lambda, out),
+            }
+        }
         for (l, cc) in self.cross.iter().enumerate() {
             for (a, d) in FIRST.iter().enumerate() {
                 let yy = &y[(ALL.len() + 2 * l + a) * n..(ALL.len() + 2 * l + a + 1) * n];
                 for i in 0..n {
-                    tmp[i] = cc.image[i] * yy[i];
-                    out[i] -= cc.beta * cc.grad[a][i] * yy[i];
+                    let v = self.weight.map_or(yy[i], |wt| wt[i] * yy[i]);
+                    tmp[i] = cc.image[i] * v;
+                    out[i] -= cc.beta * cc.grad[a][i] * v;
                 }
                 filters::add_adjoint(*d, &tmp, w, h, cc.beta, out);
             }
@@ -326,7 +348,9 @@ mod tests {
         let ks = KernelSpectrum::new(&fft, &kernel_to_origin(&k, w, h));
         let other = field(n, 5);
         let cross = vec![CrossChannel { beta: 0.7, grad: gradients(&other, w, h), image: &other }];
-        let p = ChannelProblem::new(&fft, &ks, &field(n, 1), None, 0.3, &cross, None);
+        let wt: Vec<f32> = field(n, 23).iter().map(|v| 0.2 + v).collect();
+        let mut p = ChannelProblem::new(&fft, &ks, &field(n, 1), None, 0.3, &cross, None);
+        p.set_weight(Some(&wt));
         let x = field(n, 11);
         let y: Vec<f32> = field(p.dual_len(), 17).iter().map(|v| v - 0.5).collect();
         let mut kx = vec![0.0; p.dual_len()];

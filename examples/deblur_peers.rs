@@ -136,6 +136,8 @@ fn experiment(out: &Path, scene: &Path) -> anyhow::Result<()> {
         max_levels: env("LR_LEVELS").map_or(d.max_levels, |v| v as usize),
         max_iterations: env("LR_ITERS").map_or(d.max_iterations, |v| v as usize),
         tolerance: env("LR_TOL").unwrap_or(d.tolerance),
+        admm_rho: env("LR_RHO").map_or(d.admm_rho, |v| v as f32),
+        admm_cg_iterations: env("LR_CG").map_or(d.admm_cg_iterations, |v| v as usize),
         step_balance: env("LR_BAL").map_or(d.step_balance, |v| v as f32),
         tile_core: env("LR_TILE").map(|v| v as usize),
         overlap: env("LR_OVERLAP").map_or(d.overlap, |v| v as usize),

@@ -92,9 +92,18 @@ pub struct DeconvOptions {
     pub field_passes: usize,
     /// Most scale-space levels (1 = no pyramid).
     pub max_levels: usize,
-    /// Chambolle–Pock iteration cap per residual step, and its tolerance.
+    /// ADMM iterations per solve (residual step or defect-correction pass).
     pub max_iterations: usize,
+    /// Chambolle–Pock iteration cap per solve (used with the dark-region term or
+    /// `admm_rho = 0`), and its tolerance.
+    pub cp_max_iterations: usize,
     pub tolerance: f64,
+    /// ADMM penalty relative to `λ` (`ρ = admm_rho · λ`); 0 selects Chambolle–Pock. ADMM is used
+    /// whenever the dark-region term is off.
+    pub admm_rho: f32,
+    /// Conjugate-gradient steps per ADMM `x`-update when it is not a Fourier division
+    /// (cross-channel blocks or saturated pixels present).
+    pub admm_cg_iterations: usize,
     /// Step balance: the dual step is `σ = step_balance / L` and the primal step
     /// `τ = 0.9 / (σ L²)`, with `L = ‖K‖₂` measured per solve (the prior weights live inside `K`,
     /// so a fixed `σ` would be badly scaled for small `λ`).
@@ -122,24 +131,27 @@ impl Default for DeconvOptions {
     fn default() -> Self {
         Self {
             lambda: None,
-            lambda_per_variance: 80.0,
+            lambda_per_variance: 10.0,
             lambda_min: 2e-5,
             cross_weight: 3.0,
             dark_weight: 0.0,
             dark_threshold: 0.05,
             residual_steps: 1,
-            field_passes: 1,
-            max_levels: 3,
-            max_iterations: 100,
+            field_passes: 0,
+            max_levels: 2,
+            max_iterations: 20,
+            cp_max_iterations: 150,
             tolerance: 1e-3,
-            step_balance: 1.0,
+            step_balance: 30.0,
+            admm_rho: 100.0,
+            admm_cg_iterations: 1,
             saturation: Some(0.99),
             tile_core: None,
             overlap: 32,
             margin: None,
             parallel: true,
             output_transfer: None,
-            transfer_weight: 1.0,
+            transfer_weight: 0.5,
         }
     }
 }
@@ -495,10 +507,15 @@ pub fn restore_tile(windows: &[Vec<f32>], kernels: &[Plane], setup: &TileSetup) 
                 let mut p = ChannelProblem::new(&fft, &ksp, data, ms[z][c].as_deref(), lam, &cross, dark);
                 p.set_weight(weight.as_deref());
                 let mut x = warm;
+                if opts.admm_rho > 0.0 && p.admm_applies() {
+                    stats.cg_iterations += p.solve_admm(&mut x, opts.max_iterations, opts.admm_rho * lam, opts.admm_cg_iterations);
+                    stats.cp_iterations += opts.max_iterations;
+                    return x;
+                }
                 let mut y = vec![0.0; crate::solve::primal_dual::PrimalDual::dual_len(&p)];
                 let l = power_iteration(&p, 15).max(1e-12);
                 let cp = Options {
-                    max_iterations: opts.max_iterations,
+                    max_iterations: opts.cp_max_iterations,
                     min_iterations: 10,
                     tolerance: opts.tolerance,
                     check_every: 10,

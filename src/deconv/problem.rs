@@ -198,6 +198,196 @@ impl<'a> ChannelProblem<'a> {
     }
 }
 
+impl ChannelProblem<'_> {
+    /// Whether [`ChannelProblem::solve_admm`] applies (everything but the dark-region term).
+    pub fn admm_applies(&self) -> bool {
+        self.dark.is_none()
+    }
+
+    /// `Σ_a |Ĥ_a|²` on the spectrum layout of the tile's FFT.
+    fn derivative_power(&self) -> Vec<f32> {
+        (0..self.fft.spectrum_len())
+            .map(|i| {
+                let (fx, fy) = self.fft.frequency(i);
+                let x = 4.0 * (std::f32::consts::PI * fx).sin().powi(2);
+                let y = 4.0 * (std::f32::consts::PI * fy).sin().powi(2);
+                x + y + x * x + y * y + x * y
+            })
+            .collect()
+    }
+
+    /// Minimises the same objective as the primal-dual form with ADMM on the splits
+    /// `z_a = H_a x` (and `z = (D_{i_l} H_a − D_{H_a i_l}) x` per cross-channel block), each
+    /// `ℓ1` term's per-pixel weight moved into its shrinkage threshold, so the `x`-update
+    /// `(2BᵀMB + ρ Σ HᵀH + ρ Σ CᵀC) x = 2BᵀM ΔJ + ρ Σ Kᵀ(z − u)` is a Fourier division when
+    /// there is neither a mask nor a cross-channel block, and otherwise a few conjugate-gradient
+    /// steps preconditioned by that division and warm started. `x` is the warm start and the
+    /// result; returns the CG iterations spent. Needs [`ChannelProblem::admm_applies`].
+    pub fn solve_admm(&mut self, x: &mut [f32], iterations: usize, rho: f32, cg_iterations: usize) -> usize {
+        let n = self.n();
+        let nblk = ALL.len() + 2 * self.cross.len();
+        let sh = self.derivative_power();
+        let denom: Vec<f32> = sh.iter().zip(&self.kernel.b2).map(|(s, b2)| 2.0 * b2 + rho * s).collect();
+        // 2 Bᵀ M ΔJ as a spectrum
+        let bj: Vec<Complex32> = if self.mask.is_none() { self.bj.clone() } else { self.fft.forward(&self.btmj) };
+        let direct = self.mask.is_none() && self.cross.is_empty();
+        let mut z = vec![0.0f32; nblk * n];
+        let mut u = vec![0.0f32; nblk * n];
+        let mut kx = vec![0.0f32; nblk * n];
+        let mut spec = vec![Complex32::new(0.0, 0.0); self.fft.spectrum_len()];
+        let mut rhs = vec![0.0f32; n];
+        let mut cg_total = 0;
+        // per-block thresholds: λ w (derivatives), β w (cross)
+        let thr = |blk: usize, i: usize| -> f32 {
+            let wt = self.weight.map_or(1.0, |wt| wt[i]);
+            if blk < ALL.len() {
+                self.lambda * wt
+            } else {
+                self.cross[(blk - ALL.len()) / 2].beta * wt
+            }
+        };
+        for it in 0..iterations {
+            self.apply_split(x, &mut kx);
+            if it == 0 {
+                // start from z = Kx, u = 0 (a consistent split of the warm start)
+                z.copy_from_slice(&kx);
+            }
+            for blk in 0..nblk {
+                for i in blk * n..(blk + 1) * n {
+                    let v = kx[i] + u[i];
+                    let t = thr(blk, i - blk * n) / rho;
+                    z[i] = v.signum() * (v.abs() - t).max(0.0);
+                    u[i] = v - z[i];
+                }
+            }
+            // rhs = ρ Σ Kᵀ(z − u) (+ 2BᵀMΔJ in Fourier)
+            let d: Vec<f32> = z.iter().zip(&u).map(|(a, b)| a - b).collect();
+            self.apply_split_adjoint(&d, &mut rhs);
+            if direct {
+                self.fft.forward_into(&rhs, &mut spec);
+                for ((s, b), den) in spec.iter_mut().zip(&bj).zip(&denom) {
+                    *s = (*s * rho + b * 2.0) / den.max(1e-12);
+                }
+                self.fft.inverse_into(&mut spec, x);
+            } else {
+                rhs.iter_mut().for_each(|v| *v *= rho);
+                let mut bjs = bj.clone();
+                let mut tmp = vec![0.0; n];
+                self.fft.inverse_into(&mut bjs, &mut tmp);
+                rhs.iter_mut().zip(&tmp).for_each(|(r, t)| *r += 2.0 * t);
+                let this = &*self;
+                let mut s1 = spec.clone();
+                let mut s2 = spec.clone();
+                let mut kbuf = vec![0.0; 3 * n];
+                let mut bu = vec![0.0; n];
+                let st = conjugate_gradient(
+                    |v, out| {
+                        // 2BᵀMBv + ρ ΣHᵀH v in Fourier when unmasked, then ρ CᵀC v
+                        this.fft.forward_into(v, &mut s1);
+                        match this.mask {
+                            None => {
+                                for ((s, b2), sh) in s1.iter_mut().zip(&this.kernel.b2).zip(&sh) {
+                                    *s *= 2.0 * b2 + rho * sh;
+                                }
+                                this.fft.inverse_into(&mut s1, out);
+                            }
+                            Some(m) => {
+                                let s0 = s1.clone();
+                                for (s, b) in s1.iter_mut().zip(&this.kernel.b) {
+                                    *s *= b;
+                                }
+                                this.fft.inverse_into(&mut s1, &mut bu);
+                                bu.iter_mut().zip(m).for_each(|(v, m)| *v *= m);
+                                this.fft.forward_into(&bu, &mut s1);
+                                for (((s, b), s0), sh) in s1.iter_mut().zip(&this.kernel.b).zip(&s0).zip(&sh) {
+                                    *s = *s * b.conj() * 2.0 + s0 * (rho * sh);
+                                }
+                                this.fft.inverse_into(&mut s1, out);
+                            }
+                        }
+                        if !this.cross.is_empty() {
+                            this.add_cross_normal(v, rho, &mut kbuf, out);
+                        }
+                    },
+                    |r, out| {
+                        this.fft.forward_into(r, &mut s2);
+                        for (s, d) in s2.iter_mut().zip(&denom) {
+                            *s /= d.max(1e-12);
+                        }
+                        this.fft.inverse_into(&mut s2, out);
+                    },
+                    &rhs,
+                    x,
+                    cg_iterations,
+                    1e-4,
+                );
+                cg_total += st.iterations;
+            }
+        }
+        cg_total
+    }
+
+    /// `out += s Σ_l Σ_a C_{la}ᵀ C_{la} v` for the cross-channel blocks
+    /// `C_{la} = D_{i_l} H_a − D_{H_a i_l}` (`buf`: 3 planes of scratch).
+    fn add_cross_normal(&self, v: &[f32], s: f32, buf: &mut [f32], out: &mut [f32]) {
+        let n = self.n();
+        let (w, h) = (self.w, self.h);
+        let (g, rest) = buf.split_at_mut(n);
+        let (c, t) = rest.split_at_mut(n);
+        for (a, d) in FIRST.iter().enumerate() {
+            filters::apply(*d, v, w, h, g);
+            for cc in self.cross {
+                for i in 0..n {
+                    c[i] = cc.image[i] * g[i] - cc.grad[a][i] * v[i];
+                    t[i] = cc.image[i] * c[i];
+                    out[i] -= s * cc.grad[a][i] * c[i];
+                }
+                filters::add_adjoint(*d, t, w, h, s, out);
+            }
+        }
+    }
+
+    /// The unweighted split `[H_a x; (D_{i_l} H_a − D_{H_a i_l}) x]`.
+    fn apply_split(&self, x: &[f32], out: &mut [f32]) {
+        let n = self.n();
+        let (w, h) = (self.w, self.h);
+        for (a, d) in ALL.iter().enumerate() {
+            filters::apply(*d, x, w, h, &mut out[a * n..(a + 1) * n]);
+        }
+        let (grads, rest) = out.split_at_mut(ALL.len() * n);
+        for (l, cc) in self.cross.iter().enumerate() {
+            for a in 0..2 {
+                let hx = &grads[a * n..(a + 1) * n];
+                let o = &mut rest[(2 * l + a) * n..(2 * l + a + 1) * n];
+                for i in 0..n {
+                    o[i] = cc.image[i] * hx[i] - cc.grad[a][i] * x[i];
+                }
+            }
+        }
+    }
+
+    /// The adjoint of [`Self::apply_split`] (overwrites `out`).
+    fn apply_split_adjoint(&self, y: &[f32], out: &mut [f32]) {
+        let n = self.n();
+        let (w, h) = (self.w, self.h);
+        out.iter_mut().for_each(|v| *v = 0.0);
+        for (a, d) in ALL.iter().enumerate() {
+            filters::add_adjoint(*d, &y[a * n..(a + 1) * n], w, h, 1.0, out);
+        }
+        let mut tmp = self.scratch.borrow_mut();
+        for (l, cc) in self.cross.iter().enumerate() {
+            for (a, d) in FIRST.iter().enumerate() {
+                let yy = &y[(ALL.len() + 2 * l + a) * n..(ALL.len() + 2 * l + a + 1) * n];
+                for i in 0..n {
+                    tmp[i] = cc.image[i] * yy[i];
+                    out[i] -= cc.grad[a][i] * yy[i];
+                }
+                filters::add_adjoint(*d, &tmp, w, h, 1.0, out);
+            }
+        }
+    }
+}
+
 impl PrimalDual for ChannelProblem<'_> {
     fn primal_len(&self) -> usize {
         self.n()

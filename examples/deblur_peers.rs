@@ -9,7 +9,8 @@
 //! record its wall time.
 //!
 //! `report OUT [SCENE.png ...]`: PSNR (dB, sRGB-encoded values in [0, 1], whole image) of every
-//! method's output (`<method>.png`, or `<method>.tiff` from the peers) against the sharp scene, and the recorded seconds, as a table.
+//! method's output (`<method>.png`, or `<method>.tiff` from the peers) against the sharp scene, and the recorded wall
+//! seconds (and lensrig's CPU seconds: user + system over all threads), as a table.
 
 use lensrig::deconv::cli::{run, DeblurArgs};
 use lensrig::deconv::synth::{GaussianNoise, SyntheticLens};
@@ -106,12 +107,13 @@ fn prepare(out: &Path, scene: &Path) -> anyhow::Result<()> {
         tile: env("LR_TILE").map(|v| v as usize),
         quiet: true,
     };
-    let t = Instant::now();
+    let (t, cpu0) = (Instant::now(), cpu_seconds());
     run(&args)?;
-    let secs = t.elapsed().as_secs_f64();
+    let (secs, cpu) = (t.elapsed().as_secs_f64(), cpu_seconds() - cpu0);
     std::fs::write(dir.join("lensrig.time"), format!("{secs:.2}\n"))?;
+    std::fs::write(dir.join("lensrig.cpu"), format!("{cpu:.2}\n"))?;
     std::fs::write(dir.join("blurred.time"), "0\n")?;
-    eprintln!("{}: {w}x{h}, lensrig {secs:.2} s", scene_name(scene));
+    eprintln!("{}: {w}x{h}, lensrig {secs:.2} s wall, {cpu:.2} s CPU", scene_name(scene));
     Ok(())
 }
 
@@ -141,6 +143,7 @@ fn experiment(out: &Path, scene: &Path) -> anyhow::Result<()> {
         step_balance: env("LR_BAL").map_or(d.step_balance, |v| v as f32),
         tile_core: env("LR_TILE").map(|v| v as usize),
         overlap: env("LR_OVERLAP").map_or(d.overlap, |v| v as usize),
+        margin: env("LR_MARGIN").map(|v| v as usize).or(d.margin),
         output_transfer: if env("LR_GAMMA").is_some_and(|g| g > 0.0) { Some(Transfer::Srgb) } else { d.output_transfer },
         transfer_weight: env("LR_GAMMA").map_or(d.transfer_weight, |v| v as f32),
         ..d
@@ -169,6 +172,17 @@ fn experiment(out: &Path, scene: &Path) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// User + system CPU seconds of this process so far (Linux `/proc/self/stat`, clock ticks of
+/// 1/100 s; `NaN` elsewhere).
+fn cpu_seconds() -> f64 {
+    let stat = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
+    let fields: Vec<&str> = stat.rsplit_once(')').map(|(_, r)| r.split_whitespace().collect()).unwrap_or_default();
+    match (fields.get(11).and_then(|v| v.parse::<f64>().ok()), fields.get(12).and_then(|v| v.parse::<f64>().ok())) {
+        (Some(u), Some(s)) => (u + s) / 100.0,
+        _ => f64::NAN,
+    }
+}
+
 fn psnr(a: &Image, b: &Image) -> f64 {
     let mut se = 0.0f64;
     let mut n = 0usize;
@@ -182,8 +196,8 @@ fn psnr(a: &Image, b: &Image) -> f64 {
 }
 
 fn report(out: &Path, scenes: &[PathBuf]) -> anyhow::Result<()> {
-    println!("| scene | size | method | PSNR (dB) | seconds |");
-    println!("| --- | --- | --- | ---: | ---: |");
+    println!("| scene | size | method | PSNR (dB) | seconds (wall) | CPU seconds |");
+    println!("| --- | --- | --- | ---: | ---: | ---: |");
     for scene in scenes {
         let sharp = read_image(scene)?;
         let dir = out.join(scene_name(scene));
@@ -191,12 +205,13 @@ fn report(out: &Path, scenes: &[PathBuf]) -> anyhow::Result<()> {
         for m in METHODS {
             let tiff = dir.join(format!("{m}.tiff"));
             let file = if tiff.exists() && m != "blurred" { tiff } else { dir.join(format!("{m}.png")) };
-            let time = std::fs::read_to_string(dir.join(format!("{m}.time"))).map(|s| s.trim().to_string()).unwrap_or_else(|_| "-".into());
+            let read = |ext: &str| std::fs::read_to_string(dir.join(format!("{m}.{ext}"))).map(|s| s.trim().to_string()).unwrap_or_else(|_| "-".into());
+            let (time, cpu) = (read("time"), read("cpu"));
             match read_image(&file) {
-                Ok(img) => println!("| {} | {size} | {m} | {:.2} | {time} |", scene_name(scene), psnr(&img, &sharp)),
+                Ok(img) => println!("| {} | {size} | {m} | {:.2} | {time} | {cpu} |", scene_name(scene), psnr(&img, &sharp)),
                 Err(_) => {
                     let why = std::fs::read_to_string(dir.join(format!("{m}.error"))).unwrap_or_else(|_| "no output".into());
-                    println!("| {} | {size} | {m} | n/a ({}) | - |", scene_name(scene), why.trim());
+                    println!("| {} | {size} | {m} | n/a ({}) | - | - |", scene_name(scene), why.trim());
                 }
             }
         }

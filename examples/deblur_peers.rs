@@ -9,7 +9,8 @@
 //! record its wall time.
 //!
 //! `report OUT [SCENE.png ...]`: PSNR (dB, sRGB-encoded values in [0, 1], whole image) of every
-//! method's output (`<method>.png`, or `<method>.tiff` from the peers) against the sharp scene, and the recorded seconds, as a table.
+//! method's output (`<method>.png`, or `<method>.tiff` from the peers) against the sharp scene, and the recorded wall
+//! seconds (and lensrig's CPU seconds: user + system over all threads), as a table.
 
 use lensrig::deconv::cli::{run, DeblurArgs};
 use lensrig::deconv::synth::{GaussianNoise, SyntheticLens};
@@ -39,7 +40,15 @@ fn prepare(out: &Path, scene: &Path) -> anyhow::Result<()> {
     let lin = img.to_linear();
     let (w, h) = (lin.width(), lin.height());
     let lens = SyntheticLens::new(KERNEL, 3);
-    let grid = lens.grid(w, h, 3, GRID, GRID);
+    let mut grid = lens.grid(w, h, 3, GRID, GRID);
+    // LR_UNIFORM=1: one PSF per channel (the centre's) over the whole field, to separate solver
+    // quality from the field variation (diagnosis runs only)
+    if std::env::var("LR_UNIFORM").is_ok_and(|v| v == "1") {
+        for (c, ks) in grid.kernels.iter_mut().enumerate() {
+            let k0 = lens.kernel(c, (w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0, w, h);
+            ks.iter_mut().for_each(|k| *k = k0.clone());
+        }
+    }
     let mut noise = GaussianNoise::new(2013);
     let blurred: Vec<_> = lin
         .planes
@@ -98,13 +107,80 @@ fn prepare(out: &Path, scene: &Path) -> anyhow::Result<()> {
         tile: env("LR_TILE").map(|v| v as usize),
         quiet: true,
     };
-    let t = Instant::now();
+    let (t, cpu0) = (Instant::now(), cpu_seconds());
     run(&args)?;
-    let secs = t.elapsed().as_secs_f64();
+    let (secs, cpu) = (t.elapsed().as_secs_f64(), cpu_seconds() - cpu0);
     std::fs::write(dir.join("lensrig.time"), format!("{secs:.2}\n"))?;
+    std::fs::write(dir.join("lensrig.cpu"), format!("{cpu:.2}\n"))?;
     std::fs::write(dir.join("blurred.time"), "0\n")?;
-    eprintln!("{}: {w}x{h}, lensrig {secs:.2} s", scene_name(scene));
+    eprintln!("{}: {w}x{h}, lensrig {secs:.2} s wall, {cpu:.2} s CPU", scene_name(scene));
     Ok(())
+}
+
+/// `run OUT SCENE...`: restores an already prepared scene with options from `LR_*` environment
+/// variables (tuning runs; the benchmark itself uses `prepare`), prints PSNR against the sharp
+/// scene and the peers' PSNR.
+fn experiment(out: &Path, scene: &Path) -> anyhow::Result<()> {
+    let dir = out.join(scene_name(scene));
+    let profile = Profile::load(&dir.join("profile"))?;
+    let mut img = read_image(&dir.join("blurred.png"))?;
+    img.transfer = Transfer::Srgb;
+    let lin = img.to_linear();
+    let env = |k: &str| std::env::var(k).ok().and_then(|v| v.parse::<f64>().ok());
+    let d = lensrig::deconv::DeconvOptions::default();
+    let opts = lensrig::deconv::DeconvOptions {
+        lambda: env("LR_LAMBDA").map(|v| vec![v as f32]),
+        lambda_per_variance: env("LR_KAPPA").map_or(d.lambda_per_variance, |v| v as f32),
+        cross_weight: env("LR_CROSS").map_or(d.cross_weight, |v| v as f32),
+        dark_weight: env("LR_DARK").map_or(d.dark_weight, |v| v as f32),
+        residual_steps: env("LR_RES").map_or(d.residual_steps, |v| v as usize),
+        field_passes: env("LR_FIELD").map_or(d.field_passes, |v| v as usize),
+        max_levels: env("LR_LEVELS").map_or(d.max_levels, |v| v as usize),
+        max_iterations: env("LR_ITERS").map_or(d.max_iterations, |v| v as usize),
+        tolerance: env("LR_TOL").unwrap_or(d.tolerance),
+        admm_rho: env("LR_RHO").map_or(d.admm_rho, |v| v as f32),
+        admm_cg_iterations: env("LR_CG").map_or(d.admm_cg_iterations, |v| v as usize),
+        step_balance: env("LR_BAL").map_or(d.step_balance, |v| v as f32),
+        tile_core: env("LR_TILE").map(|v| v as usize),
+        overlap: env("LR_OVERLAP").map_or(d.overlap, |v| v as usize),
+        margin: env("LR_MARGIN").map(|v| v as usize).or(d.margin),
+        output_transfer: if env("LR_GAMMA").is_some_and(|g| g > 0.0) { Some(Transfer::Srgb) } else { d.output_transfer },
+        transfer_weight: env("LR_GAMMA").map_or(d.transfer_weight, |v| v as f32),
+        ..d
+    };
+    let t = Instant::now();
+    let (planes, rep) = lensrig::deconv::deblur(&lin.planes, &profile.grid, &opts, &|_, _| {})?;
+    let secs = t.elapsed().as_secs_f64();
+    let mut res = Image::new(planes);
+    res.transfer = Transfer::Linear;
+    let enc = res.encoded(Transfer::Srgb);
+    write_png16(&dir.join("experiment.png"), &enc, Overwrite::Replace)?;
+    let sharp = read_image(scene)?;
+    let peer = |m: &str| read_image(&dir.join(format!("{m}.tiff"))).map(|i| psnr(&i, &sharp)).unwrap_or(f64::NAN);
+    println!(
+        "{:<18} lensrig {:.2} dB  RL {:.2}  Wiener {:.2}  blurred {:.2} | {secs:.2} s | tiles {} window {:?} cp {} λ {:?}",
+        scene_name(scene),
+        psnr(&enc, &sharp),
+        peer("richardson_lucy"),
+        peer("wiener"),
+        psnr(&img, &sharp),
+        rep.tiles,
+        rep.window,
+        rep.cp_iterations,
+        rep.lambda
+    );
+    Ok(())
+}
+
+/// User + system CPU seconds of this process so far (Linux `/proc/self/stat`, clock ticks of
+/// 1/100 s; `NaN` elsewhere).
+fn cpu_seconds() -> f64 {
+    let stat = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
+    let fields: Vec<&str> = stat.rsplit_once(')').map(|(_, r)| r.split_whitespace().collect()).unwrap_or_default();
+    match (fields.get(11).and_then(|v| v.parse::<f64>().ok()), fields.get(12).and_then(|v| v.parse::<f64>().ok())) {
+        (Some(u), Some(s)) => (u + s) / 100.0,
+        _ => f64::NAN,
+    }
 }
 
 fn psnr(a: &Image, b: &Image) -> f64 {
@@ -120,8 +196,8 @@ fn psnr(a: &Image, b: &Image) -> f64 {
 }
 
 fn report(out: &Path, scenes: &[PathBuf]) -> anyhow::Result<()> {
-    println!("| scene | size | method | PSNR (dB) | seconds |");
-    println!("| --- | --- | --- | ---: | ---: |");
+    println!("| scene | size | method | PSNR (dB) | seconds (wall) | CPU seconds |");
+    println!("| --- | --- | --- | ---: | ---: | ---: |");
     for scene in scenes {
         let sharp = read_image(scene)?;
         let dir = out.join(scene_name(scene));
@@ -129,12 +205,13 @@ fn report(out: &Path, scenes: &[PathBuf]) -> anyhow::Result<()> {
         for m in METHODS {
             let tiff = dir.join(format!("{m}.tiff"));
             let file = if tiff.exists() && m != "blurred" { tiff } else { dir.join(format!("{m}.png")) };
-            let time = std::fs::read_to_string(dir.join(format!("{m}.time"))).map(|s| s.trim().to_string()).unwrap_or_else(|_| "-".into());
+            let read = |ext: &str| std::fs::read_to_string(dir.join(format!("{m}.{ext}"))).map(|s| s.trim().to_string()).unwrap_or_else(|_| "-".into());
+            let (time, cpu) = (read("time"), read("cpu"));
             match read_image(&file) {
-                Ok(img) => println!("| {} | {size} | {m} | {:.2} | {time} |", scene_name(scene), psnr(&img, &sharp)),
+                Ok(img) => println!("| {} | {size} | {m} | {:.2} | {time} | {cpu} |", scene_name(scene), psnr(&img, &sharp)),
                 Err(_) => {
                     let why = std::fs::read_to_string(dir.join(format!("{m}.error"))).unwrap_or_else(|_| "no output".into());
-                    println!("| {} | {size} | {m} | n/a ({}) | - |", scene_name(scene), why.trim());
+                    println!("| {} | {size} | {m} | n/a ({}) | - | - |", scene_name(scene), why.trim());
                 }
             }
         }
@@ -144,7 +221,7 @@ fn report(out: &Path, scenes: &[PathBuf]) -> anyhow::Result<()> {
 
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
-    let usage = "usage: deblur_peers prepare|report OUT_DIR SCENE.png...";
+    let usage = "usage: deblur_peers prepare|report|run OUT_DIR SCENE.png...";
     let (cmd, out) = match (args.first(), args.get(1)) {
         (Some(c), Some(o)) => (c.as_str(), PathBuf::from(o)),
         _ => anyhow::bail!(usage),
@@ -158,6 +235,12 @@ fn main() -> anyhow::Result<()> {
             Ok(())
         }
         "report" => report(&out, &scenes),
+        "run" => {
+            for s in &scenes {
+                experiment(&out, s)?;
+            }
+            Ok(())
+        }
         _ => anyhow::bail!(usage),
     }
 }

@@ -41,7 +41,7 @@ pub struct DeblurArgs {
     /// Residual deconvolution steps per scale (λ, λ/3, …).
     #[arg(long, default_value_t = DeconvOptions::default().residual_steps)]
     pub residual_steps: usize,
-    /// Chambolle–Pock iteration cap per step.
+    /// ADMM iterations per solve.
     #[arg(long, default_value_t = DeconvOptions::default().max_iterations)]
     pub iterations: usize,
     /// Linear value at or above which pixels count as saturated (values > 1 disable).
@@ -114,7 +114,9 @@ pub fn run(args: &DeblurArgs) -> anyhow::Result<()> {
             p.data.iter_mut().for_each(|v| *v -= b);
         }
     }
-    let opts = args.options();
+    let mut opts = args.options();
+    // the result is re-encoded with `transfer`: weigh the prior as the encoded image will show it
+    opts.output_transfer = Some(transfer);
     let bar = if args.quiet { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new(0) };
     bar.set_style(
         indicatif::ProgressStyle::with_template("deblur {bar:40} {pos}/{len} tiles {elapsed_precise} (eta {eta})")

@@ -236,6 +236,33 @@ fn sharpest_channel_goes_first_and_mismatches_are_errors() {
     assert!(e.contains("2 channel") && e.contains("R,G,B"), "{e}");
 }
 
+#[test]
+fn exact_field_operator_passes_fix_one_kernel_per_large_tile() {
+    // one restoration tile over a strongly field-varying lens: the tile-centre kernel is wrong
+    // towards the corners; defect correction with the exact operator must recover most of it
+    let c = case(112, 112, 3, 13, 0.003, 8);
+    let one = DeconvOptions { tile_core: Some(1000), cross_weight: 0.0, ..DeconvOptions::default() };
+    let (plain, rep) = deblur(&c.blurred, &c.grid, &one, &|_, _| {}).unwrap();
+    let (exact, _) = deblur(&c.blurred, &c.grid, &DeconvOptions { field_passes: 2, ..one }, &|_, _| {}).unwrap();
+    assert_eq!(rep.tiles, 1);
+    // the corners, where the PSF differs most from the centre's
+    let corner = |x: usize, y: usize| !(40..72).contains(&x) && !(40..72).contains(&y);
+    let (pp, pe) = (psnr_where(&plain, &c.sharp, corner), psnr_where(&exact, &c.sharp, corner));
+    assert!(pe > pp + 0.3, "corners: exact operator {pe:.2} dB vs tile kernel {pp:.2} dB");
+}
+
+#[test]
+fn transfer_weight_favours_dark_regions_and_is_off_for_linear_output() {
+    let (w, h) = (32, 16);
+    let data: Vec<f32> = (0..w * h).map(|i| if i % w < w / 2 { 0.01 } else { 0.6 }).collect();
+    assert!(transfer_weight_map(&data, w, h, Some(crate::image::Transfer::Linear), 0.5, 2.0).is_none());
+    assert!(transfer_weight_map(&data, w, h, None, 0.5, 2.0).is_none());
+    let m = transfer_weight_map(&data, w, h, Some(crate::image::Transfer::Srgb), 1.0, 1.0).unwrap();
+    let (dark, bright) = (m[8 * w + 4], m[8 * w + 27]);
+    // sRGB slope ratio between 0.01 and 0.6 is about (0.6 / 0.01)^(1.4/2.4) ≈ 11
+    assert!(dark > 8.0 * bright && bright < 1.0 && dark > 1.0, "dark {dark} bright {bright}");
+}
+
 /// Parameter probe for tuning (not part of the suite): `LR_*` environment variables override
 /// the defaults; prints PSNR, fringe and timing.
 #[test]

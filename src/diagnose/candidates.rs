@@ -192,7 +192,7 @@ pub fn propose(data: &Data, current: &Fit, a: &Analysis) -> Vec<Candidate> {
                 100.0 * lin.iter().sum::<f64>() / lin.len().max(1) as f64,
                 100.0 * srgb.iter().sum::<f64>() / srgb.len().max(1) as f64
             ),
-            init: None,
+            init: linearised_estimate(data, current, Transfer::Srgb),
             location: loc("all intensities, nonlinear"),
         });
     }
@@ -214,7 +214,9 @@ pub fn propose(data: &Data, current: &Fit, a: &Analysis) -> Vec<Candidate> {
         }
         // refine log σ between the neighbours of the best grid value (golden section)
         if let Some((s0, _)) = best {
-            let (mut a, mut b) = ((s0 / 2.0).ln(), (s0 * 2.0).ln());
+            // a halo wider than a quarter of the diagonal is, over a target this size, an
+            // offset plus a gain (`black_level` and the exposure ratio): not searched
+            let (mut a, mut b) = ((s0 / 2.0).ln(), (s0 * 2.0).min(GLARE_SIGMAS[GLARE_SIGMAS.len() - 1] * diag).ln());
             let gr = 0.5 * (5f64.sqrt() - 1.0);
             let (mut x1, mut x2) = (b - gr * (b - a), a + gr * (b - a));
             let (mut f1, mut f2) = (eval(x1.exp()), eval(x2.exp()));
@@ -350,7 +352,7 @@ pub fn parameters_json(name: &str, c: &Corrections) -> serde_json::Value {
 }
 
 /// Airy radii (px, green) screened for `pinhole_diffraction`.
-const AIRY_RADII: [f64; 6] = [0.9, 1.4, 2.0, 2.7, 3.5, 4.5];
+const AIRY_RADII: [f64; 5] = [0.9, 1.3, 1.9, 2.8, 4.0];
 
 /// The `pinhole_diffraction` candidate: the evidence is the wide-open capture's power above
 /// what any non-negative kernel can pass from the reference (`|K̂| ≤ ΣK = s`), per radial
@@ -370,6 +372,10 @@ fn diffraction_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Can
                 worst = (f, ratio);
             }
         }
+    }
+    if worst.1 <= 1.0 {
+        // every band within what a non-negative kernel can pass: nothing for this effect
+        return None;
     }
     let names: Vec<String> = data.open.channels.clone();
     let make = |r: f64| -> Corrections {
@@ -396,23 +402,14 @@ fn diffraction_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Can
         m
     };
     let screen = FitSettings { rounds: 1, kernel_iterations: 30 };
-    let eval = |r: f64| {
-        let f = fit(data, &make(r), &init(r), screen);
-        if std::env::var("LENSRIG_DEBUG").is_ok() {
-            eprintln!("diffraction r {r:.3}: chi2 {:.4} rms {:.3e} noise {:.3e} (eps {:?})", f.reduced_chi2(), f.rms(), f.noise_rms(), make(r).pinhole_diffraction.map(|d| d.epsilon));
-        }
-        f.chi2()
-    };
-    if std::env::var("LENSRIG_DEBUG").is_ok() {
-        eprintln!("excess {worst:?}; null {:.4}", current.reduced_chi2());
-    }
+    let eval = |r: f64| fit(data, &make(r), &init(r), screen).chi2();
     let scores: Vec<(f64, f64)> = AIRY_RADII.iter().map(|&r| (r, eval(r))).collect();
     let (mut best_r, mut best_v) = scores.iter().copied().fold((AIRY_RADII[0], f64::INFINITY), |b, s| if s.1 < b.1 { s } else { b });
     let (mut lo, mut hi) = ((best_r / 1.5).ln(), (best_r * 1.5).ln());
     let gr = 0.5 * (5f64.sqrt() - 1.0);
     let (mut x1, mut x2) = (hi - gr * (hi - lo), lo + gr * (hi - lo));
     let (mut f1, mut f2) = (eval(x1.exp()), eval(x2.exp()));
-    for _ in 0..4 {
+    for _ in 0..3 {
         if f1 < f2 {
             (hi, x2, f2) = (x2, x1, f1);
             x1 = hi - gr * (hi - lo);
@@ -441,4 +438,30 @@ fn diffraction_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Can
         init: Some(init(best_r)),
         location: format!("fine detail everywhere (above {:.2} cycles/px); channels {}; {}", worst.0, channel_list(data), where_text(a)),
     })
+}
+
+/// The warm start of `tone_curve`: kernels and exposure ratios re-estimated ([`crate::estimate`])
+/// from both captures decoded with `transfer`, on the current grid's centres spacing and
+/// kernel size (kernels fitted to encoded values are far from the linear ones, and the
+/// candidate's short refit would not get there). `None` when the estimate fails or its grid
+/// differs from the current one.
+fn linearised_estimate(data: &Data, current: &Fit, transfer: Transfer) -> Option<Model> {
+    let g = &current.model.grid;
+    let (mut o, mut p) = (data.open.clone(), data.pinhole.clone());
+    o.transfer = transfer;
+    p.transfer = transfer;
+    let opts = crate::estimate::EstimateOptions {
+        kernel_size: Some(g.kernel_size),
+        tile: Some(data.open.width() / g.columns.max(1)),
+        joint_iterations: 0,
+        saturation: f32::INFINITY,
+        ..Default::default()
+    };
+    let est = crate::estimate::estimate(&o, &p, &opts).ok()?;
+    let grid = if est.profile.grid.columns == g.columns && est.profile.grid.rows == g.rows {
+        est.profile.grid
+    } else {
+        super::fit::regrid(&est.profile.grid, data.open.width(), data.open.height(), g.columns, g.rows)
+    };
+    Some(Model { corrections: current.model.corrections.clone(), grid, exposure: est.profile.meta.exposure_ratio })
 }

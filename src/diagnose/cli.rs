@@ -15,11 +15,19 @@ use std::path::PathBuf;
 #[derive(clap::Args, Debug, Clone)]
 pub struct DiagnoseArgs {
     /// Wide-open capture (PNG/TIFF).
-    #[arg(long, required_unless_present = "bench_seeds")]
+    #[arg(long, required_unless_present_any = ["bench_seeds", "session"], conflicts_with = "session")]
     pub open: Option<PathBuf>,
     /// Pinhole-aperture capture of the same target.
-    #[arg(long, required_unless_present = "bench_seeds")]
+    #[arg(long, required_unless_present_any = ["bench_seeds", "session"], conflicts_with = "session")]
     pub pinhole: Option<PathBuf>,
+    /// A capture session (from `lensrig capture`): every finished pair is diagnosed into
+    /// OUT/<pair key>/, with the transfer curve, dark level and frame counts from its metadata.
+    #[arg(long)]
+    pub session: Option<PathBuf>,
+    /// Frames averaged in the wide-open and the pinhole capture (`--frames 1,16`): the
+    /// reference's noise relative to the wide-open capture's. A session's metadata gives them.
+    #[arg(long, value_delimiter = ',', num_args = 2)]
+    pub frames: Option<Vec<usize>>,
     /// Profile to diagnose; default: estimate a base profile from the pair.
     #[arg(long)]
     pub profile: Option<PathBuf>,
@@ -72,8 +80,11 @@ pub fn run(a: &DiagnoseArgs) -> Result<()> {
     if let Some(n) = a.bench_seeds {
         return bench(a, n);
     }
+    if let (Some(session), Some(out)) = (&a.session, &a.out) {
+        return run_session(a, session, out);
+    }
     let (Some(open), Some(pinhole), Some(out)) = (&a.open, &a.pinhole, &a.out) else {
-        bail!("--open, --pinhole and --out are required");
+        bail!("--open, --pinhole and --out are required (or --session and --out)");
     };
     if let Some(k) = a.kernel {
         if k % 2 == 0 || k < 3 {
@@ -87,8 +98,20 @@ pub fn run(a: &DiagnoseArgs) -> Result<()> {
         Some(dir) => Some(Profile::load(dir)?),
         None => None,
     };
-    let d = diagnose(&o, &p, profile.as_ref(), &options(a)).with_context(|| format!("diagnosing {} against {}", open.display(), pinhole.display()))?;
-    let src = Sources { open: open.display().to_string(), pinhole: pinhole.display().to_string(), profile: a.profile.as_ref().map(|p| p.display().to_string()) };
+    let mut opts = options(a);
+    if let Some(f) = &a.frames {
+        if f.len() != 2 || f.contains(&0) {
+            bail!("--frames takes two positive counts, wide-open then pinhole, e.g. --frames 1,16");
+        }
+        opts.pinhole_variance_scale = f[0] as f64 / f[1] as f64;
+    }
+    diagnose_files(&o, &p, profile.as_ref(), &opts, open, pinhole, a.profile.as_deref(), out)
+}
+
+#[allow(clippy::too_many_arguments)]
+fn diagnose_files(o: &crate::image::Image, p: &crate::image::Image, profile: Option<&Profile>, opts: &DiagnoseOptions, open: &std::path::Path, pinhole: &std::path::Path, profile_dir: Option<&std::path::Path>, out: &std::path::Path) -> Result<()> {
+    let d = diagnose(o, p, profile, opts).with_context(|| format!("diagnosing {} against {}", open.display(), pinhole.display()))?;
+    let src = Sources { open: open.display().to_string(), pinhole: pinhole.display().to_string(), profile: profile_dir.map(|p| p.display().to_string()) };
     write_report(&d, out, &src)?;
     let names: Vec<&str> = d.effects.iter().map(|e| e.name.as_str()).collect();
     println!(
@@ -99,6 +122,46 @@ pub fn run(a: &DiagnoseArgs) -> Result<()> {
         if names.is_empty() { "none".to_string() } else { names.join(", ") },
         out.join("index.html").display()
     );
+    Ok(())
+}
+
+/// `--session`: every finished pair of a capture session, each into `out/<pair key>/`. The
+/// transfer curve and the frame counts come from the frames' sidecars; a dark frame's mean is
+/// subtracted from both captures (linear data only) so that the sensor's own black level is
+/// not reported as a mismatch.
+fn run_session(a: &DiagnoseArgs, session: &std::path::Path, out: &std::path::Path) -> Result<()> {
+    use crate::rig::session::{load_frame_record, load_session};
+    let rec = load_session(session)?;
+    if rec.pairs.is_empty() {
+        bail!("session {} has no finished pairs (status: {})", session.display(), rec.status);
+    }
+    for pair in &rec.pairs {
+        let pd = session.join(&pair.dir);
+        let (open_p, pin_p) = (pd.join(&pair.open), pd.join(&pair.pinhole));
+        let (mut o, mut p) = read_pair(&open_p, &pin_p)?;
+        let om = load_frame_record(&pd.join("open.toml"))?;
+        let pm = load_frame_record(&pd.join("pinhole.toml"))?;
+        let transfer: Transfer = om.transfer.parse().map_err(|e| anyhow::anyhow!("{}: transfer: {e}", pd.join("open.toml").display()))?;
+        o.transfer = transfer;
+        p.transfer = transfer;
+        if let (Some(dark), Transfer::Linear) = (&pair.dark, transfer) {
+            let d = crate::image::io::read_image(&pd.join(dark))?;
+            for img in [&mut o, &mut p] {
+                for (c, plane) in img.planes.iter_mut().enumerate() {
+                    let dp = d.planes.get(c).or(d.planes.first());
+                    let level = dp.map_or(0.0, |q| q.mean() as f32);
+                    plane.data.iter_mut().for_each(|v| *v = (*v - level).max(0.0));
+                }
+            }
+        }
+        let mut opts = options(a);
+        opts.pinhole_variance_scale = om.frames_averaged.max(1) as f64 / pm.frames_averaged.max(1) as f64;
+        let dir = out.join(&pair.key);
+        if !a.quiet {
+            eprintln!("diagnosing pair {} (stage {} mm; {} / {} frames averaged)", pair.key, pair.stage_mm, om.frames_averaged, pm.frames_averaged);
+        }
+        diagnose_files(&o, &p, None, &opts, &open_p, &pin_p, None, &dir).with_context(|| format!("pair {}", pair.key))?;
+    }
     Ok(())
 }
 

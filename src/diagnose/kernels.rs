@@ -165,25 +165,13 @@ pub fn fit_kernels(op: &GatherOperator, y: &Plane, weight: &[f32], init: &[Plane
         project_simplex(&mut k.data, s);
     }
     let wapply = |p: &Plane| -> Plane { Plane { width: p.width, height: p.height, data: p.data.iter().zip(weight).map(|(a, w)| a * w).collect() } };
-    // Power iteration for L = ‖AᵀWA‖ restricted to the tangent space {Σ_j v_t[j] = 0 per
-    // tile}: the simplex projection ignores a gradient's constant part per tile (it only shifts
-    // the threshold), and the full operator's largest eigenvalue lies along those constants
-    // (the reference's mean brightness), hundreds of times the curvature that matters.
-    let centre = |v: &mut Vec<Plane>| {
-        for k in v.iter_mut() {
-            let m = k.mean() as f32;
-            k.data.iter_mut().for_each(|a| *a -= m);
-        }
-    };
-    let mut rng = crate::rng::Rng::new(7);
-    let mut v: Vec<Plane> = x.iter().map(|k| Plane { width: k.width, height: k.height, data: (0..k.data.len()).map(|_| rng.normal() as f32).collect() }).collect();
-    centre(&mut v);
+    // power iteration for L = ‖AᵀWA‖
+    let mut v: Vec<Plane> = x.iter().map(|k| k.map(|_| 1.0)).collect();
     let mut l = 1.0f64;
-    for _ in 0..16 {
+    for _ in 0..12 {
         let n = v.iter().map(|k| k.data.iter().map(|a| (*a as f64).powi(2)).sum::<f64>()).sum::<f64>().sqrt().max(1e-30);
         v.iter_mut().for_each(|k| k.scale((1.0 / n) as f32));
         v = op.adjoint(&wapply(&op.apply(&v)));
-        centre(&mut v);
         l = v.iter().map(|k| k.data.iter().map(|a| (*a as f64).powi(2)).sum::<f64>()).sum::<f64>().sqrt();
     }
     let step = (1.0 / (1.05 * l.max(1e-30))) as f32;
@@ -193,8 +181,7 @@ pub fn fit_kernels(op: &GatherOperator, y: &Plane, weight: &[f32], init: &[Plane
         for _ in 0..settings.iterations {
             let pred = op.apply(&z);
             let res = Plane { width: y.width, height: y.height, data: pred.data.iter().zip(&y.data).zip(weight).map(|((p, q), w)| (p - q) * w).collect() };
-            let mut g = op.adjoint(&res);
-            centre(&mut g);
+            let g = op.adjoint(&res);
             let mut xn: Vec<Plane> = z.iter().zip(&g).map(|(zk, gk)| Plane { width: zk.width, height: zk.height, data: zk.data.iter().zip(&gk.data).map(|(a, b)| a - step * b).collect() }).collect();
             for k in &mut xn {
                 project_simplex(&mut k.data, s);

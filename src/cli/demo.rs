@@ -50,7 +50,7 @@ pub struct DemoArgs {
     #[arg(long, default_value_t = 1e-3)]
     pub tolerance: f64,
     /// Iterations of the joint refinement with the interpolated forward model (0: off).
-    #[arg(long, default_value_t = 150)]
+    #[arg(long, default_value_t = 40)]
     pub joint_iterations: usize,
     /// Fit window side around each PSF centre; default: chosen by `estimate`.
     #[arg(long)]

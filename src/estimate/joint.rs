@@ -12,8 +12,10 @@
 //! `min Σ_x ½ M(x) (pred(x) − j(x))² + Σ_t λ_t TV(b_t),  b_t ≥ 0, 1ᵀb_t = σ_t`
 //!
 //! (`M` the valid-data mask, `I` the registered pinhole image times the exposure ratio, `λ_t`,
-//! `σ_t` from the window fits), with Condat–Vũ ([`crate::solve::primal_dual::condat_vu`])
-//! started from the window fits. The gradient for kernel `t` is `Pᵀ Iᵀ (w_t ⊙ r)` with `r` the
+//! `σ_t` from the window fits), with FISTA and adaptive restart started from the window fits;
+//! the prox of `λ_t TV + simplex` is solved per kernel by a few warm-started dual projected
+//! gradient steps (kernel-sized work only), the step is `1/L` with `L` measured on the
+//! simplices' tangent space. The gradient for kernel `t` is `Pᵀ Iᵀ (w_t ⊙ r)` with `r` the
 //! masked residual; every product is an FFT convolution on the box where `w_t ≠ 0` plus a
 //! kernel radius, so one iteration costs four FFTs of that box per kernel (kernels in parallel).
 //!
@@ -24,7 +26,7 @@ use super::solver::{project_simplex, tv_gradient, tv_gradient_adjoint};
 use crate::image::Plane;
 use crate::optics::psf_grid::PsfGrid;
 use crate::solve::fft::{good_size, Fft2, FftScratch};
-use crate::solve::primal_dual::{condat_vu, PrimalDual, SmoothPrimalDual, SplitOptions, Stats};
+use crate::solve::primal_dual::{PrimalDual, SplitOptions, Stats};
 use rayon::prelude::*;
 use rustfft::num_complex::Complex32;
 use std::sync::Arc;
@@ -180,10 +182,90 @@ impl PrimalDual for JointProblem {
     }
 }
 
-impl SmoothPrimalDual for JointProblem {
-    fn gradient(&mut self, x: &[f32], out: &mut [f32]) -> f64 {
-        self.normal(x, out, true)
+/// Inner iterations of the TV–simplex prox per outer step (warm-started dual).
+const PROX_ITERATIONS: usize = 12;
+
+/// `out = argmin_{x ≥ 0, 1ᵀx = total} ½‖x − v‖² + γ·TV(x)` by projected gradient on the dual
+/// (Beck & Teboulle 2009, with the constraint): `x = P(v − Kᵀq)`, `q ← Π_{|q|≤γ}(q + Kx/8)`,
+/// `‖K‖² ≤ 8`. `q` is the warm start and is updated in place. Kernel-sized work only.
+fn prox_tv_simplex(v: &[f32], q: &mut [f32], gamma: f32, total: f32, k: usize, iterations: usize, out: &mut [f32]) {
+    let d = q.len();
+    let mut kx = vec![0.0f32; d];
+    let mut ktq = vec![0.0f32; k * k];
+    let gamma = gamma.max(1e-30);
+    for it in 0..=iterations {
+        tv_gradient_adjoint(q, k, &mut ktq);
+        for ((o, &a), &b) in out.iter_mut().zip(v).zip(&ktq) {
+            *o = a - b;
+        }
+        project_simplex(out, total);
+        if it == iterations {
+            break;
+        }
+        tv_gradient(out, k, &mut kx);
+        let (qx, qy) = q.split_at_mut(d / 2);
+        let (kxx, kxy) = kx.split_at(d / 2);
+        for (((a, b), &ga), &gb) in qx.iter_mut().zip(qy.iter_mut()).zip(kxx).zip(kxy) {
+            *a += ga / 8.0;
+            *b += gb / 8.0;
+            let s = (*a * *a + *b * *b).sqrt() / gamma;
+            if s > 1.0 {
+                *a /= s;
+                *b /= s;
+            }
+        }
     }
+}
+
+/// FISTA (Beck & Teboulle 2009) with adaptive restart (O'Donoghue & Candès 2015) on
+/// `½‖M(pred(b) − j)‖² + Σ λ_t TV(b_t)` over the simplices, step `1/L` with `L` the Lipschitz
+/// constant on the simplices' tangent space; the prox is [`prox_tv_simplex`], its duals `q`
+/// carried over between steps (and calls). Stops at a relative step below `tolerance`.
+fn fista(p: &mut JointProblem, x: &mut [f32], q: &mut [f32], opts: &SplitOptions, l_f: f32) -> Stats {
+    let n = x.len();
+    let (k, k2, d) = (p.k, p.k * p.k, 2 * (p.k + 1) * (p.k + 1));
+    let mut z = x.to_vec();
+    let mut x_prev = x.to_vec();
+    let mut g = vec![0.0f32; n];
+    let mut v = vec![0.0f32; n];
+    let mut t = 1.0f64;
+    let mut stats = Stats { operator_norm: 8f32.sqrt(), ..Default::default() };
+    for it in 1..=opts.max_iterations {
+        stats.primal_objective = p.normal(&z, &mut g, true);
+        for ((vi, &zi), &gi) in v.iter_mut().zip(&z).zip(&g) {
+            *vi = zi - gi / l_f;
+        }
+        let (lambda, totals) = (&p.lambda, &p.totals);
+        x.par_chunks_mut(k2).zip(v.par_chunks(k2)).zip(q.par_chunks_mut(d)).zip(lambda.par_iter().zip(totals.par_iter())).for_each(|(((xb, vb), qb), (&lam, &tot))| {
+            prox_tv_simplex(vb, qb, lam / l_f, tot, k, PROX_ITERATIONS, xb);
+        });
+        let (mut dx2, mut x2, mut dot) = (0.0f64, 0.0f64, 0.0f64);
+        for i in 0..n {
+            let dx = (x[i] - x_prev[i]) as f64;
+            dx2 += dx * dx;
+            x2 += (x[i] as f64) * (x[i] as f64);
+            dot += (z[i] - x[i]) as f64 * dx;
+        }
+        // restart the momentum when the step goes against the gradient mapping
+        if dot > 0.0 {
+            t = 1.0;
+        }
+        let t_new = 0.5 * (1.0 + (1.0 + 4.0 * t * t).sqrt());
+        let beta = ((t - 1.0) / t_new) as f32;
+        for i in 0..n {
+            z[i] = x[i] + beta * (x[i] - x_prev[i]);
+        }
+        x_prev.copy_from_slice(x);
+        t = t_new;
+        stats.iterations = it;
+        let crit = (dx2 / x2.max(1e-300)).sqrt();
+        stats.criterion = crit;
+        if it >= opts.min_iterations && crit < opts.tolerance {
+            stats.converged = true;
+            break;
+        }
+    }
+    stats
 }
 
 /// Refines `kernels` (one channel, in the grid's tile order) in place. `fits[t] = (λ, N, σ̂)`
@@ -242,18 +324,18 @@ pub fn refine_channel(
     let totals: Vec<f32> = kernels.iter().map(|p| p.sum() as f32).collect();
     let mut p = JointProblem { w, h, k, parts, blurred: open.data.clone(), mask: valid.to_vec(), lambda: lam, totals, pred: vec![0.0; w * h] };
     let mut x: Vec<f32> = kernels.iter().flat_map(|p| p.data.iter().copied()).collect();
-    let l_f = p.lipschitz(8);
-    let mut y = vec![0.0f32; p.dual_len()];
+    let l_f = p.lipschitz(5);
+    let mut q = vec![0.0f32; p.dual_len()];
     let count = valid.iter().filter(|&&b| b).count().max(1);
     let first = SplitOptions { max_iterations: opts.max_iterations / 4, min_iterations: usize::MAX, tolerance: 0.0 };
-    let st1 = condat_vu(&mut p, &mut x, &mut y, &first, l_f, 8f32.sqrt(), |_, _| true);
+    let st1 = fista(&mut p, &mut x, &mut q, &first, l_f);
     let mut g = vec![0.0f32; x.len()];
     let sigma_joint = (2.0 * p.normal(&x, &mut g, true) / count as f64).sqrt();
     for (l, &(_, _, s0)) in p.lambda.iter_mut().zip(fits) {
         *l *= (sigma_joint / s0.max(1e-12)) as f32;
     }
     let rest = SplitOptions { max_iterations: opts.max_iterations.saturating_sub(st1.iterations), ..opts.clone() };
-    let mut stats = condat_vu(&mut p, &mut x, &mut y, &rest, l_f, 8f32.sqrt(), |_, _| true);
+    let mut stats = fista(&mut p, &mut x, &mut q, &rest, l_f);
     stats.iterations += st1.iterations;
     let f = p.normal(&x, &mut g, true);
     for (kp, xb) in kernels.iter_mut().zip(x.chunks(k * k)) {

@@ -208,7 +208,7 @@ pub fn propose(data: &Data, current: &Fit, a: &Analysis) -> Vec<Candidate> {
         for frac in GLARE_SIGMAS {
             let sigma = (frac * diag).max(2.0);
             let v = eval(sigma);
-            if best.is_none_or(|b| v < b.1) {
+            if best.map_or(true, |b| v < b.1) {
                 best = Some((sigma, v));
             }
         }
@@ -232,7 +232,7 @@ pub fn propose(data: &Data, current: &Fit, a: &Analysis) -> Vec<Candidate> {
                 }
             }
             let (xb, fb) = if f1 < f2 { (x1, f1) } else { (x2, f2) };
-            if best.is_none_or(|q| fb < q.1) {
+            if best.map_or(true, |q| fb < q.1) {
                 best = Some(((xb.exp() * 10.0).round() / 10.0, fb));
             }
         }

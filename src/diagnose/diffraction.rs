@@ -174,7 +174,7 @@ pub fn excess_detail(open: &Plane, reference: &Plane, s: f64, var_open: f64, var
     for i in 0..so.len() {
         let (fx, fy) = fft.frequency(i);
         let f = ((fx * fx + fy * fy) as f64).sqrt();
-        if f < 0.02 || f >= 0.5 {
+        if !(0.02..0.5).contains(&f) {
             continue;
         }
         let b = ((f / 0.5) * bands as f64) as usize;

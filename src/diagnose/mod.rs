@@ -267,7 +267,7 @@ pub fn diagnose(open: &Image, pinhole: &Image, profile: Option<&Profile>, opts: 
             let total = |f: &Fit| f.chi2() + f.noise_chi2;
             let gain = (total(&null) - total(&f)) / total(&null).max(1e-300);
             scores.push(CandidateScore { name: cand.name.to_string(), parameters: candidates::parameters_json(cand.name, &f.model.corrections), reduced_chi2: f.reduced_chi2(), delta_bic: dbic, note: format!("removes {:.1}% of χ²", 100.0 * gain) });
-            if dbic < 0.0 && gain >= opts.min_gain && best.as_ref().is_none_or(|b| dbic < b.2) {
+            if dbic < 0.0 && gain >= opts.min_gain && best.as_ref().map_or(true, |b| dbic < b.2) {
                 best = Some((cand, f, dbic));
             }
         }

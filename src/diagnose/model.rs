@@ -4,7 +4,7 @@
 //! # The model, in the order it is applied to a sharp (pinhole) image `P`
 //! 1. `tone_curve` — both captures are encoded: `L_p = T⁻¹(P)` (`transfer = "srgb"`), and the
 //!    prediction is encoded back at the end. Without it the profile's source transfer is used.
-//! 1b. `pinhole_diffraction` — the reference is restored by the Wiener filter of its own
+//!    Then `pinhole_diffraction` — the reference is restored by the Wiener filter of its own
 //!    diffraction PSF (`airy_radius_px`, `epsilon` per channel; [`super::diffraction`]).
 //! 2. `misregistration` — the reference is resampled onto the wide-open geometry with the fitted
 //!    similarity (`matrix`, `translation`; the convention of [`crate::profile::RegistrationInfo`]).

@@ -104,8 +104,11 @@ fn esc(s: &str) -> String {
     s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;").replace('"', "&quot;")
 }
 
+/// One plotted series: `(label, colour, points)`.
+pub type Series<'a> = (&'a str, &'a str, Vec<(f64, f64)>);
+
 /// A small line/point plot as inline SVG.
-pub fn svg_plot(title: &str, xlabel: &str, ylabel: &str, series: &[(&str, &str, Vec<(f64, f64)>)]) -> String {
+pub fn svg_plot(title: &str, xlabel: &str, ylabel: &str, series: &[Series]) -> String {
     let (wd, ht, ml, mb, mt, mr) = (420.0, 260.0, 58.0, 40.0, 26.0, 12.0);
     let pts: Vec<(f64, f64)> = series.iter().flat_map(|s| s.2.iter().copied()).filter(|p| p.0.is_finite() && p.1.is_finite()).collect();
     let (mut x0, mut x1, mut y0, mut y1) = (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);

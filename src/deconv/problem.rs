@@ -390,14 +390,14 @@ impl ChannelProblem<'_> {
         let n = self.n();
         let (w, h) = (self.w, self.h);
         let (g, rest) = buf.split_at_mut(n);
-        let (c, t) = rest.split_at_mut(n);
+        let t = &mut rest[..n];
         for (a, d) in FIRST.iter().enumerate() {
             filters::apply(*d, v, w, h, g);
             for cc in self.cross {
-                for i in 0..n {
-                    c[i] = cc.image[i] * g[i] - cc.grad[a][i] * v[i];
-                    t[i] = cc.image[i] * c[i];
-                    out[i] -= s * cc.grad[a][i] * c[i];
+                for ((((ti, o), im), gi), (hv, vi)) in t.iter_mut().zip(out.iter_mut()).zip(cc.image).zip(&cc.grad[a]).zip(g.iter().zip(v)) {
+                    let ci = im * hv - gi * vi;
+                    *ti = im * ci;
+                    *o -= s * gi * ci;
                 }
                 filters::add_adjoint(*d, t, w, h, s, out);
             }
@@ -416,8 +416,8 @@ impl ChannelProblem<'_> {
             for a in 0..2 {
                 let hx = &grads[a * n..(a + 1) * n];
                 let o = &mut rest[(2 * l + a) * n..(2 * l + a + 1) * n];
-                for i in 0..n {
-                    o[i] = cc.image[i] * hx[i] - cc.grad[a][i] * x[i];
+                for ((((o, im), hx), g), x) in o.iter_mut().zip(cc.image).zip(hx).zip(&cc.grad[a]).zip(x) {
+                    *o = im * hx - g * x;
                 }
             }
         }
@@ -435,9 +435,9 @@ impl ChannelProblem<'_> {
         for (l, cc) in self.cross.iter().enumerate() {
             for (a, d) in FIRST.iter().enumerate() {
                 let yy = &y[(ALL.len() + 2 * l + a) * n..(ALL.len() + 2 * l + a + 1) * n];
-                for i in 0..n {
-                    tmp[i] = cc.image[i] * yy[i];
-                    out[i] -= cc.grad[a][i] * yy[i];
+                for ((((t, o), im), g), y) in tmp.iter_mut().zip(out.iter_mut()).zip(cc.image).zip(&cc.grad[a]).zip(yy) {
+                    *t = im * y;
+                    *o -= g * y;
                 }
                 filters::add_adjoint(*d, &tmp, w, h, 1.0, out);
             }

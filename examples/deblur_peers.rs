@@ -154,6 +154,8 @@ fn experiment(out: &Path, scene: &Path) -> anyhow::Result<()> {
         // the CLI delivers sRGB here, so the prior is weighted for it (LR_GAMMA=0: uniform)
         output_transfer: if env("LR_GAMMA").is_some_and(|g| g <= 0.0) { None } else { Some(Transfer::Srgb) },
         transfer_weight: env("LR_GAMMA").map_or(d.transfer_weight, |v| v as f32),
+        reweight_power: env("LR_RWP").map_or(d.reweight_power, |v| v as f32),
+        reweight_eps: env("LR_RWE").map_or(d.reweight_eps, |v| v as f32),
         ..d
     };
     let (t, cpu0) = (Instant::now(), cpu_seconds());

@@ -139,6 +139,12 @@ pub struct DeconvOptions {
     pub output_transfer: Option<crate::image::Transfer>,
     /// `γ` above.
     pub transfer_weight: f32,
+    /// Reweighted-ℓ1 exponent `q` of the derivative prior (ADMM only): each pixel's threshold is
+    /// scaled by `((|H_a x| + ε)/ε)^(q−1)` from the current iterate, approximating a
+    /// hyper-Laplacian `|∇x|^q`; 1 is the plain ℓ1 prior.
+    pub reweight_power: f32,
+    /// `ε` above (linear gradient units).
+    pub reweight_eps: f32,
 }
 
 impl Default for DeconvOptions {
@@ -166,6 +172,8 @@ impl Default for DeconvOptions {
             parallel: true,
             output_transfer: None,
             transfer_weight: 0.5,
+            reweight_power: 1.0,
+            reweight_eps: 0.02,
         }
     }
 }
@@ -520,6 +528,9 @@ pub fn restore_tile(windows: &[Vec<f32>], kernels: &[Plane], setup: &TileSetup) 
                 });
                 let mut p = ChannelProblem::new(&fft, &ksp, data, ms[z][c].as_deref(), lam, &cross, dark);
                 p.set_weight(weight.as_deref());
+                if opts.reweight_power != 1.0 {
+                    p.reweight = Some((opts.reweight_power, opts.reweight_eps));
+                }
                 let mut x = warm;
                 if opts.admm_rho > 0.0 && p.admm_applies() {
                     stats.cg_iterations += p.solve_admm(&mut x, opts.max_iterations, opts.admm_rho * lam, opts.admm_cg_iterations);

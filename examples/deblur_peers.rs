@@ -11,6 +11,10 @@
 //! `report OUT [SCENE.png ...]`: PSNR (dB, sRGB-encoded values in [0, 1], whole image) of every
 //! method's output (`<method>.png`, or `<method>.tiff` from the peers) against the sharp scene, and the recorded wall
 //! seconds (and lensrig's CPU seconds: user + system over all threads), as a table.
+//!
+//! `enlarge SCENE.png WIDTH HEIGHT OUT.png`: a `WIDTH × HEIGHT` test scene made by mirror-tiling
+//! a scene (for the 1-MP and 12-MP timing rows; `LR_NO_RUN=1 prepare` then blurs it without
+//! restoring, so `run` can be timed on its own under `/usr/bin/time -v`).
 
 use lensrig::deconv::cli::{run, DeblurArgs};
 use lensrig::deconv::synth::{GaussianNoise, SyntheticLens};
@@ -107,6 +111,9 @@ fn prepare(out: &Path, scene: &Path) -> anyhow::Result<()> {
         tile: env("LR_TILE").map(|v| v as usize),
         quiet: true,
     };
+    if std::env::var("LR_NO_RUN").is_ok_and(|v| v == "1") {
+        return Ok(());
+    }
     let (t, cpu0) = (Instant::now(), cpu_seconds());
     run(&args)?;
     let (secs, cpu) = (t.elapsed().as_secs_f64(), cpu_seconds() - cpu0);
@@ -144,13 +151,16 @@ fn experiment(out: &Path, scene: &Path) -> anyhow::Result<()> {
         tile_core: env("LR_TILE").map(|v| v as usize),
         overlap: env("LR_OVERLAP").map_or(d.overlap, |v| v as usize),
         margin: env("LR_MARGIN").map(|v| v as usize).or(d.margin),
-        output_transfer: if env("LR_GAMMA").is_some_and(|g| g > 0.0) { Some(Transfer::Srgb) } else { d.output_transfer },
+        // the CLI delivers sRGB here, so the prior is weighted for it (LR_GAMMA=0: uniform)
+        output_transfer: if env("LR_GAMMA").is_some_and(|g| g <= 0.0) { None } else { Some(Transfer::Srgb) },
         transfer_weight: env("LR_GAMMA").map_or(d.transfer_weight, |v| v as f32),
+        reweight_power: env("LR_RWP").map_or(d.reweight_power, |v| v as f32),
+        reweight_eps: env("LR_RWE").map_or(d.reweight_eps, |v| v as f32),
         ..d
     };
-    let t = Instant::now();
+    let (t, cpu0) = (Instant::now(), cpu_seconds());
     let (planes, rep) = lensrig::deconv::deblur(&lin.planes, &profile.grid, &opts, &|_, _| {})?;
-    let secs = t.elapsed().as_secs_f64();
+    let (secs, cpu) = (t.elapsed().as_secs_f64(), cpu_seconds() - cpu0);
     let mut res = Image::new(planes);
     res.transfer = Transfer::Linear;
     let enc = res.encoded(Transfer::Srgb);
@@ -158,7 +168,7 @@ fn experiment(out: &Path, scene: &Path) -> anyhow::Result<()> {
     let sharp = read_image(scene)?;
     let peer = |m: &str| read_image(&dir.join(format!("{m}.tiff"))).map(|i| psnr(&i, &sharp)).unwrap_or(f64::NAN);
     println!(
-        "{:<18} lensrig {:.2} dB  RL {:.2}  Wiener {:.2}  blurred {:.2} | {secs:.2} s | tiles {} window {:?} cp {} λ {:?}",
+        "{:<18} lensrig {:.2} dB  RL {:.2}  Wiener {:.2}  blurred {:.2} | {secs:.2} s wall {cpu:.2} s CPU | tiles {} window {:?} cp {} λ {:?}",
         scene_name(scene),
         psnr(&enc, &sharp),
         peer("richardson_lucy"),
@@ -219,9 +229,23 @@ fn report(out: &Path, scenes: &[PathBuf]) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// Mirror-tiles `scene` to `width × height` (reflection at every edge, so no seams).
+fn enlarge(scene: &Path, width: usize, height: usize, out: &Path) -> anyhow::Result<()> {
+    let img = read_image(scene)?;
+    let planes = img.planes.iter().map(|p| p.window_reflect(0, 0, width, height)).collect();
+    let mut big = Image::new(planes);
+    big.transfer = img.transfer;
+    write_png16(out, &big, Overwrite::Replace)?;
+    Ok(())
+}
+
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
-    let usage = "usage: deblur_peers prepare|report|run OUT_DIR SCENE.png...";
+    let usage = "usage: deblur_peers prepare|report|run OUT_DIR SCENE.png... | enlarge SCENE.png WIDTH HEIGHT OUT.png";
+    if args.first().is_some_and(|c| c == "enlarge") {
+        anyhow::ensure!(args.len() == 5, usage);
+        return enlarge(Path::new(&args[1]), args[2].parse()?, args[3].parse()?, Path::new(&args[4]));
+    }
     let (cmd, out) = match (args.first(), args.get(1)) {
         (Some(c), Some(o)) => (c.as_str(), PathBuf::from(o)),
         _ => anyhow::bail!(usage),

@@ -305,8 +305,14 @@ pub fn diagnose(open: &Image, pinhole: &Image, profile: Option<&Profile>, opts: 
         }
     }
     let final_analysis = current_analysis;
-    let verdict = if effects.is_empty() && consistent(&current) {
-        "no mismatch: the base model fits to the noise floor".to_string()
+    let verdict = if effects.is_empty() && current.reduced_chi2() <= opts.consistent {
+        // the image model fits to the noise floor and no catalogue effect improved it; a noise
+        // curve that departs from the Poisson–Gaussian law is reported, not called a mismatch
+        let mut v = "no mismatch: the base model fits to the noise floor".to_string();
+        if current.noise_misfit > opts.consistent_noise {
+            v += &format!(" (the measured noise curve departs from a Poisson–Gaussian law by {:.0}%; no catalogue effect explains it)", 100.0 * current.noise_misfit);
+        }
+        v
     } else if consistent(&current) {
         format!("explained: {} bring the fit to the noise floor", effects.iter().map(|e| e.name.as_str()).collect::<Vec<_>>().join(", "))
     } else {

@@ -473,20 +473,14 @@ impl PrimalDual for ChannelProblem<'_> {
     }
 
     fn apply_k(&self, x: &[f32], out: &mut [f32]) {
+        // the unweighted split, then each block's weight: λ·w on the derivatives, β·w on the
+        // cross-channel terms
+        self.apply_split(x, out);
         let n = self.n();
-        let (w, h) = (self.w, self.h);
-        for (a, d) in ALL.iter().enumerate() {
-            filters::apply(*d, x, w, h, &mut out[a * n..(a + 1) * n]);
-        }
         let (grads, rest) = out.split_at_mut(ALL.len() * n);
         for (l, cc) in self.cross.iter().enumerate() {
-            for a in 0..2 {
-                let hx = &grads[a * n..(a + 1) * n];
-                let o = &mut rest[(2 * l + a) * n..(2 * l + a + 1) * n];
-                let g = &cc.grad[a];
-                for i in 0..n {
-                    o[i] = cc.beta * (cc.image[i] * hx[i] - g[i] * x[i]);
-                }
+            for o in rest[2 * l * n..(2 * l + 2) * n].chunks_mut(n) {
+                o.iter_mut().for_each(|v| *v *= cc.beta);
                 if let Some(wt) = self.weight {
                     o.iter_mut().zip(wt).for_each(|(v, w)| *v *= w);
                 }

@@ -402,7 +402,10 @@ fn diffraction_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Can
         m
     };
     let screen = FitSettings { rounds: 1, kernel_iterations: 30 };
-    let eval = |r: f64| fit(data, &make(r), &init(r), screen).chi2();
+    let eval = |r: f64| {
+        let m = init(r);
+        fit(data, &m.corrections, &m, screen).chi2()
+    };
     let scores: Vec<(f64, f64)> = AIRY_RADII.iter().map(|&r| (r, eval(r))).collect();
     let (mut best_r, mut best_v) = scores.iter().copied().fold((AIRY_RADII[0], f64::INFINITY), |b, s| if s.1 < b.1 { s } else { b });
     let (mut lo, mut hi) = ((best_r / 1.5).ln(), (best_r * 1.5).ln());

@@ -127,25 +127,7 @@ impl GatherOperator {
     }
 }
 
-/// Euclidean projection of `v` onto `{u ≥ 0, Σu = s}` (sort-based, Held et al.).
-pub fn project_simplex(v: &mut [f32], s: f32) {
-    if s <= 0.0 {
-        v.iter_mut().for_each(|x| *x = 0.0);
-        return;
-    }
-    let mut u: Vec<f32> = v.to_vec();
-    u.sort_by(|a, b| b.total_cmp(a));
-    let mut css = 0.0f64;
-    let mut theta = 0.0f64;
-    for (i, &ui) in u.iter().enumerate() {
-        css += ui as f64;
-        let t = (css - s as f64) / (i + 1) as f64;
-        if (ui as f64) - t > 0.0 {
-            theta = t;
-        }
-    }
-    v.iter_mut().for_each(|x| *x = (*x as f64 - theta).max(0.0) as f32);
-}
+pub use crate::estimate::solver::project_simplex;
 
 /// Settings of [`fit_kernels`].
 #[derive(Clone, Copy, Debug)]

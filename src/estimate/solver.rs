@@ -349,8 +349,13 @@ pub fn solve_tile(data: &TileData, s: &TileSettings, mut on_check: impl FnMut(us
     TileResult { kernel, stats, residual_rms, data_pixels, noise_sigma, lambda }
 }
 
-/// Euclidean projection of `v` (in place) onto `{b ≥ 0, Σ b = total}` (sort-based).
+/// Euclidean projection of `v` (in place) onto `{b ≥ 0, Σ b = total}` (sort-based, Held et
+/// al.); all zeros when `total ≤ 0`.
 pub fn project_simplex(v: &mut [f32], total: f32) {
+    if total <= 0.0 {
+        v.iter_mut().for_each(|x| *x = 0.0);
+        return;
+    }
     let mut vals: Vec<f32> = v.to_vec();
     vals.sort_unstable_by(|a, b| b.total_cmp(a));
     let mut cum = 0.0f64;

@@ -273,7 +273,7 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
                 None => kk.data.iter().map(|v| v * v).sum::<f32>(),
             })
             .collect();
-        Plane::from_fn(w, h, |x, y| grid0.weights_at(x as f64, y as f64).iter().map(|q| q.weight * e[q.tile]).sum())
+        grid0.blend_scalars(&e, w, h)
     };
 
     let mut variance_lin: Vec<Plane> = vec![Plane::new(w, h); nch];

@@ -62,12 +62,7 @@ impl GatherOperator {
                 let fft = Fft2::plan(pw, ph);
                 let win = sharp.window_reflect(x0 as isize - r as isize, y0 as isize - r as isize, pw, ph);
                 let pspec = fft.forward(&win.data);
-                let mut weight = vec![0.0; bw * bh];
-                for y in 0..bh {
-                    for x in 0..bw {
-                        weight[y * bw + x] = grid.weights_at((x0 + x) as f64, (y0 + y) as f64).iter().filter(|q| q.tile == t).map(|q| q.weight).sum();
-                    }
-                }
+                let weight = grid.tile_weights(t, x0, x1, y0, y1);
                 TileOp { x0, y0, bw, bh, fft, pspec, weight }
             })
             .collect();

@@ -193,8 +193,9 @@ pub fn render_case(effect: Option<&str>, seed: u64, spec: &CaseSpec) -> Result<C
         .map(|c| {
             let e: Vec<f32> = grid.kernels[c].iter().map(|kk| kk.data.iter().map(|v| v * v).sum()).collect();
             let pin_local = crate::optics::forward::blur_channel(&pinhole.variance[c], &grid, c);
+            let kq_plane = grid.blend_scalars(&e, w, h);
             Plane::from_fn(w, h, |x, y| {
-                let kq: f32 = grid.weights_at(x as f64, y as f64).iter().map(|q| q.weight * e[q.tile]).sum();
+                let kq = kq_plane.get(x, y);
                 let v = open.variance[c].get(x, y) + (s * s) as f32 * kq * pin_local.get(x, y);
                 match sensor.transfer {
                     Transfer::Linear => v,

@@ -66,11 +66,16 @@ impl JointProblem {
         let (k2, r) = (self.k * self.k, self.k / 2);
         // forward: every kernel's convolution on its domain
         self.parts.par_iter_mut().zip(b.par_chunks(k2)).for_each(|(p, bt)| {
-            p.buf.iter_mut().for_each(|v| *v = 0.0);
+            let (pw, ph) = (p.fft.width, p.fft.height);
+            // the kernel sits (wrapped) in rows 0..=r and ph−r..ph
+            let kernel_row = |y: usize| y <= r || y + r >= ph;
+            for y in (0..ph).filter(|&y| kernel_row(y)) {
+                p.buf[y * pw..(y + 1) * pw].fill(0.0);
+            }
             for (&i, &v) in p.index.iter().zip(bt) {
                 p.buf[i] = v;
             }
-            p.fft.forward_with(&p.buf, &mut p.spec, &mut p.scratch);
+            p.fft.forward_rows_with(&p.buf, &mut p.spec, kernel_row, &mut p.scratch);
             p.spec.iter_mut().zip(&p.a_hat).for_each(|(s, a)| *s *= a);
             let bh = p.bh;
             p.fft.inverse_rows_with(&mut p.spec, &mut p.out, |y| y >= r && y < r + bh, &mut p.scratch);
@@ -98,16 +103,18 @@ impl JointProblem {
         self.parts.par_iter_mut().zip(out.par_chunks_mut(k2)).for_each(|(p, ot)| {
             let pw = p.fft.width;
             let ph = p.fft.height;
-            p.buf.iter_mut().for_each(|v| *v = 0.0);
-            for y in 0..p.bh {
+            let bh = p.bh;
+            for y in 0..bh {
                 let src = &resid[(p.y0 + y) * w + p.x0..(p.y0 + y) * w + p.x0 + p.bw];
                 let wt = &p.weights[y * p.bw..(y + 1) * p.bw];
-                let dst = &mut p.buf[(y + r) * pw + r..(y + r) * pw + r + p.bw];
-                for ((d, s), q) in dst.iter_mut().zip(src).zip(wt) {
+                let row = &mut p.buf[(y + r) * pw..(y + r + 1) * pw];
+                row[..r].fill(0.0);
+                row[r + p.bw..].fill(0.0);
+                for ((d, s), q) in row[r..r + p.bw].iter_mut().zip(src).zip(wt) {
                     *d = q * s;
                 }
             }
-            p.fft.forward_with(&p.buf, &mut p.spec, &mut p.scratch);
+            p.fft.forward_rows_with(&p.buf, &mut p.spec, |y| y >= r && y < r + bh, &mut p.scratch);
             p.spec.iter_mut().zip(&p.a_hat).for_each(|(s, a)| *s *= a.conj());
             p.fft.inverse_rows_with(&mut p.spec, &mut p.out, |y| y <= r || y + r >= ph, &mut p.scratch);
             for (o, &i) in ot.iter_mut().zip(&p.index) {
@@ -298,12 +305,11 @@ pub fn refine_channel(
         let win = sharp.window_reflect(ox, oy, pw, ph);
         let mut a_hat = vec![Complex32::new(0.0, 0.0); fft.spectrum_len()];
         fft.forward_with(&win.data, &mut a_hat, &mut scratch);
-        let mut weights = vec![0.0f32; bw * bh];
+        let weights = grid.tile_weights(t, x0, x1, y0, y1);
         let mut w2 = 0.0f64;
         for y in 0..bh {
             for x in 0..bw {
-                let q: f32 = grid.weights_at((x0 + x) as f64, (y0 + y) as f64).iter().filter(|q| q.tile == t).map(|q| q.weight).sum();
-                weights[y * bw + x] = q;
+                let q = weights[y * bw + x];
                 if valid[(y0 + y) * w + x0 + x] {
                     w2 += (q as f64) * (q as f64);
                 }

@@ -27,16 +27,11 @@ pub fn blur_channel(sharp: &Plane, grid: &PsfGrid, channel: usize) -> Plane {
             // the box plus a margin of the kernel radius, mirrored at the image edges
             let win = sharp.window_reflect(x0 as isize - r as isize, y0 as isize - r as isize, bw + 2 * r, bh + 2 * r);
             let conv = Convolver::new(&grid.kernels[channel][t], win.width, win.height).apply(&win);
+            let weights = grid.tile_weights(t, x0, x1, y0, y1);
             let mut out = Plane::new(bw, bh);
             for y in 0..bh {
                 for x in 0..bw {
-                    let wt: f32 = grid
-                        .weights_at((x0 + x) as f64, (y0 + y) as f64)
-                        .iter()
-                        .filter(|q| q.tile == t)
-                        .map(|q| q.weight)
-                        .sum();
-                    out.data[y * bw + x] = wt * conv.get(x + r, y + r);
+                    out.data[y * bw + x] = weights[y * bw + x] * conv.get(x + r, y + r);
                 }
             }
             (x0, y0, out)

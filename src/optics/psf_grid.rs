@@ -109,6 +109,45 @@ impl PsfGrid {
         out
     }
 
+    /// Tile `t`'s weight `w_t(x, y)` over the box `[x0, x1) × [y0, y1)`, row-major. Equal to
+    /// [`Self::weights_at`] summed for `t`, computed from the separable factors
+    /// `w_t = c_i(x) · c_j(y)` (one 1-D evaluation per row and column).
+    pub fn tile_weights(&self, t: usize, x0: usize, x1: usize, y0: usize, y1: usize) -> Vec<f32> {
+        let (i, j) = (t % self.columns, t / self.columns);
+        let (xs, ys) = (self.column_xs(), self.row_ys());
+        let factor = |cs: &[f64], idx: usize, p: usize| -> f32 { hat_weights_1d(cs, p as f64).iter().filter(|q| q.0 == idx).map(|q| q.1).sum() };
+        let cx: Vec<f32> = (x0..x1).map(|x| factor(&xs, i, x)).collect();
+        let mut out = Vec::with_capacity((x1 - x0) * (y1 - y0));
+        for y in y0..y1 {
+            let a = factor(&ys, j, y);
+            out.extend(cx.iter().map(|&b| a * b));
+        }
+        out
+    }
+
+    /// The blend `Σ_t w_t(x, y) · values[t]` of one scalar per tile over a `width × height`
+    /// image (e.g. a per-tile kernel energy).
+    pub fn blend_scalars(&self, values: &[f32], width: usize, height: usize) -> Plane {
+        assert_eq!(values.len(), self.tile_count(), "one value per tile");
+        let (xs, ys) = (self.column_xs(), self.row_ys());
+        let cx: Vec<[(usize, f32); 4]> = (0..width).map(|x| hat_weights_1d(&xs, x as f64)).collect();
+        let mut out = Plane::new(width, height);
+        for y in 0..height {
+            let wy = hat_weights_1d(&ys, y as f64);
+            let row = &mut out.data[y * width..(y + 1) * width];
+            for (o, wx) in row.iter_mut().zip(&cx) {
+                let mut s = 0.0f32;
+                for &(j, a) in &wy {
+                    for &(i, b) in wx {
+                        s += a * b * values[j * self.columns + i];
+                    }
+                }
+                *o = s;
+            }
+        }
+        out
+    }
+
     /// The interpolated PSF of `channel` at `(x, y)`.
     pub fn kernel_at(&self, channel: usize, x: f64, y: f64) -> Plane {
         let k = self.kernel_size;
@@ -156,6 +195,30 @@ impl PsfGrid {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The separable fast paths equal the pointwise weights.
+    #[test]
+    fn tile_weights_and_blend_match_weights_at() {
+        let g = PsfGrid { kernel_size: 3, columns: 4, rows: 3, centers: PsfGrid::regular_centers(97, 61, 4, 3), channels: vec!["Y".into()], kernels: vec![vec![Plane::new(3, 3); 12]] };
+        let values: Vec<f32> = (0..12).map(|t| 1.0 + (t * t) as f32 * 0.37).collect();
+        let blend = g.blend_scalars(&values, 97, 61);
+        for t in 0..12 {
+            let (x0, x1, y0, y1) = g.support(t, 97, 61);
+            let tw = g.tile_weights(t, x0, x1, y0, y1);
+            for y in y0..y1 {
+                for x in x0..x1 {
+                    let want: f32 = g.weights_at(x as f64, y as f64).iter().filter(|q| q.tile == t).map(|q| q.weight).sum();
+                    assert!((tw[(y - y0) * (x1 - x0) + x - x0] - want).abs() < 1e-6, "tile {t} at ({x}, {y})");
+                }
+            }
+        }
+        for y in 0..61 {
+            for x in 0..97 {
+                let want: f32 = g.weights_at(x as f64, y as f64).iter().map(|q| q.weight * values[q.tile]).sum();
+                assert!((blend.get(x, y) - want).abs() < 1e-4, "blend at ({x}, {y})");
+            }
+        }
+    }
 
     fn grid() -> PsfGrid {
         let centers = PsfGrid::regular_centers(100, 60, 3, 2);

@@ -75,10 +75,10 @@ impl Fft2 {
         FftScratch {
             size: (self.width, self.height),
             row_real: self.r2c.make_input_vec(),
-            row_spec: self.r2c.make_output_vec(),
             r2c: self.r2c.make_scratch_vec(),
             c2r: self.c2r.make_scratch_vec(),
             col: vec![Complex32::new(0.0, 0.0); self.col_fwd.get_inplace_scratch_len().max(self.col_inv.get_inplace_scratch_len())],
+            batch: vec![Complex32::new(0.0, 0.0); ROW_BATCH * self.half_width],
         }
     }
 
@@ -119,28 +119,50 @@ impl Fft2 {
         self.with_cached_scratch(|s| self.forward_with(input, spec, s));
     }
 
-    /// Forward transform with caller-owned scratch. Rows that are entirely zero skip their row
-    /// transform (cheap for a small kernel placed in a large domain).
+    /// Forward transform with caller-owned scratch.
     pub fn forward_with(&self, input: &[f32], spec: &mut [Complex32], s: &mut FftScratch) {
+        self.forward_rows_with(input, spec, |_| true, s)
+    }
+
+    /// Forward transform with caller-owned scratch, reading only the input rows `y` for which
+    /// `rows(y)` is true: the other rows are taken as zero whatever `input` holds there (the
+    /// caller need not clear them).
+    pub fn forward_rows_with(&self, input: &[f32], spec: &mut [Complex32], rows: impl Fn(usize) -> bool, s: &mut FftScratch) {
         assert_eq!(input.len(), self.width * self.height, "FFT input size");
         assert_eq!(spec.len(), self.spectrum_len(), "FFT spectrum size");
         assert_eq!(s.size, (self.width, self.height), "FFT scratch size");
         let (w, h, hw) = (self.width, self.height, self.half_width);
         let zero = Complex32::new(0.0, 0.0);
-        for y in 0..h {
-            let src = &input[y * w..(y + 1) * w];
-            if src.iter().all(|&v| v == 0.0) {
-                for kx in 0..hw {
-                    spec[kx * h + y] = zero;
-                }
+        let live: Vec<bool> = (0..h).map(&rows).collect();
+        if live.iter().any(|&b| !b) {
+            spec.fill(zero);
+        }
+        // rows in batches, so the transposed writes go out ROW_BATCH bins at a time
+        let mut y0 = 0;
+        while y0 < h {
+            let nb = ROW_BATCH.min(h - y0);
+            if live[y0..y0 + nb].iter().all(|&b| !b) {
+                y0 += nb;
                 continue;
             }
-            s.row_real.copy_from_slice(src);
-            // Lengths are right by construction; realfft only errs on wrong lengths.
-            let _ = self.r2c.process_with_scratch(&mut s.row_real, &mut s.row_spec, &mut s.r2c);
-            for kx in 0..hw {
-                spec[kx * h + y] = s.row_spec[kx];
+            for j in 0..nb {
+                let src = &input[(y0 + j) * w..(y0 + j + 1) * w];
+                let dst = &mut s.batch[j * hw..(j + 1) * hw];
+                if !live[y0 + j] {
+                    dst.fill(zero);
+                    continue;
+                }
+                s.row_real.copy_from_slice(src);
+                // Lengths are right by construction; realfft only errs on wrong lengths.
+                let _ = self.r2c.process_with_scratch(&mut s.row_real, dst, &mut s.r2c);
             }
+            for kx in 0..hw {
+                let col = &mut spec[kx * h + y0..kx * h + y0 + nb];
+                for (j, c) in col.iter_mut().enumerate() {
+                    *c = s.batch[j * hw + kx];
+                }
+            }
+            y0 += nb;
         }
         self.col_fwd.process_with_scratch(spec, &mut s.col);
     }
@@ -168,18 +190,35 @@ impl Fft2 {
         self.col_inv.process_with_scratch(spec, &mut s.col);
         let norm = 1.0 / (w * h) as f32;
         let mut res = std::mem::take(&mut s.row_real);
-        for y in (0..h).filter(|&y| rows(y)) {
+        let mut ys = [0usize; ROW_BATCH];
+        let mut y = 0;
+        while y < h {
+            // gather the next batch of requested rows
+            let mut nb = 0;
+            while y < h && nb < ROW_BATCH {
+                if rows(y) {
+                    ys[nb] = y;
+                    nb += 1;
+                }
+                y += 1;
+            }
             for kx in 0..hw {
-                s.row_spec[kx] = spec[kx * h + y];
+                let col = &spec[kx * h..(kx + 1) * h];
+                for (j, &yy) in ys[..nb].iter().enumerate() {
+                    s.batch[j * hw + kx] = col[yy];
+                }
             }
-            // DC and (for even widths) Nyquist bins of a real signal's row transform are real.
-            s.row_spec[0].im = 0.0;
-            if w % 2 == 0 {
-                s.row_spec[hw - 1].im = 0.0;
-            }
-            let _ = self.c2r.process_with_scratch(&mut s.row_spec, &mut res, &mut s.c2r);
-            for (o, r) in out[y * w..(y + 1) * w].iter_mut().zip(&res) {
-                *o = r * norm;
+            for (j, &yy) in ys[..nb].iter().enumerate() {
+                let row = &mut s.batch[j * hw..(j + 1) * hw];
+                // DC and (for even widths) Nyquist bins of a real signal's row transform are real.
+                row[0].im = 0.0;
+                if w % 2 == 0 {
+                    row[hw - 1].im = 0.0;
+                }
+                let _ = self.c2r.process_with_scratch(row, &mut res, &mut s.c2r);
+                for (o, r) in out[yy * w..(yy + 1) * w].iter_mut().zip(&res) {
+                    *o = r * norm;
+                }
             }
         }
         s.row_real = res;
@@ -198,11 +237,14 @@ impl Fft2 {
 pub struct FftScratch {
     size: (usize, usize),
     row_real: Vec<f32>,
-    row_spec: Vec<Complex32>,
     r2c: Vec<Complex32>,
     c2r: Vec<Complex32>,
     col: Vec<Complex32>,
+    batch: Vec<Complex32>,
 }
+
+/// Rows transformed together before their bins are transposed into the column-major spectrum.
+const ROW_BATCH: usize = 32;
 
 /// The smallest even `m >= n` of the form 2^a·3^b (fast for rustfft and realfft).
 pub fn good_size(n: usize) -> usize {

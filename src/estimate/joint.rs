@@ -31,28 +31,36 @@ use rayon::prelude::*;
 use rustfft::num_complex::Complex32;
 use std::sync::Arc;
 
-/// One kernel's share of the model: its box, weights, sharp spectrum and work buffers.
-struct Part {
-    /// Box `[x0, x1) × [y0, y1)` in the image where the kernel's weight is non-zero.
+/// One block of the image: a `sw × sh` piece of the data, the spectrum of the sharp image on
+/// the piece plus a kernel radius (mirrored at the image edges), and the tiles whose weight is
+/// non-zero on it.
+struct Block {
     x0: usize,
     y0: usize,
-    bw: usize,
-    bh: usize,
-    weights: Vec<f32>,
-    fft: Arc<Fft2>,
-    scratch: FftScratch,
+    sw: usize,
+    sh: usize,
     a_hat: Vec<Complex32>,
-    index: Vec<usize>,
-    buf: Vec<f32>,
-    out: Vec<f32>,
-    spec: Vec<Complex32>,
+    tiles: Vec<usize>,
 }
 
 struct JointProblem {
     w: usize,
-    h: usize,
     k: usize,
-    parts: Vec<Part>,
+    columns: usize,
+    /// One `F × F` plan for every block.
+    fft: Arc<Fft2>,
+    blocks: Vec<Block>,
+    /// `blocks_of[t]`: the blocks tile `t` touches.
+    blocks_of: Vec<Vec<usize>>,
+    /// Separable Catmull–Rom factors: `w_t(x, y) = cx[t % columns][x] · cy[t / columns][y]`.
+    cx: Vec<Vec<f32>>,
+    cy: Vec<Vec<f32>>,
+    /// Kernel position `i` (row-major `k × k`, centre = zero displacement) in the wrapped
+    /// `F × F` layout.
+    index: Vec<usize>,
+    /// Per-tile spectra: the kernels (forward) and the accumulated gradients (adjoint).
+    b_hat: Vec<Vec<Complex32>>,
+    g_hat: Vec<Vec<Complex32>>,
     blurred: Vec<f32>,
     mask: Vec<bool>,
     lambda: Vec<f32>,
@@ -60,73 +68,148 @@ struct JointProblem {
     pred: Vec<f32>,
 }
 
+/// Per-task work buffers for one `F × F` plan.
+struct Work {
+    scratch: FftScratch,
+    buf: Vec<f32>,
+    out: Vec<f32>,
+    spec: Vec<Complex32>,
+}
+
+impl Work {
+    fn new(fft: &Fft2) -> Self {
+        let n = fft.width * fft.height;
+        Self { scratch: fft.make_scratch(), buf: vec![0.0; n], out: vec![0.0; n], spec: vec![Complex32::new(0.0, 0.0); fft.spectrum_len()] }
+    }
+}
+
 impl JointProblem {
     /// `out = ∇` of `½‖M(pred(b) − j)‖²` (or of `½‖M pred(b)‖²` without data); returns the value.
+    ///
+    /// Blocked FFT convolution: the image is cut into blocks of `F − 2r` pixels; for each block
+    /// and tile `pred += w_t ⊙ (I ⊛ b_t)` with one inverse FFT of size `F` (the block's
+    /// spectrum of `I` is precomputed, the kernel's once per call), and the gradient's spectrum
+    /// `Σ_B conj(Î_B) · FFT(w_t ⊙ r_B)` is accumulated per tile and inverted once. Exact (linear,
+    /// not circular, convolution on every block), and the `F × F` work stays in cache.
     fn normal(&mut self, b: &[f32], out: &mut [f32], with_data: bool) -> f64 {
         let (k2, r) = (self.k * self.k, self.k / 2);
-        // forward: every kernel's convolution on its domain
-        self.parts.par_iter_mut().zip(b.par_chunks(k2)).for_each(|(p, bt)| {
-            let (pw, ph) = (p.fft.width, p.fft.height);
-            // the kernel sits (wrapped) in rows 0..=r and ph−r..ph
-            let kernel_row = |y: usize| y <= r || y + r >= ph;
-            for y in (0..ph).filter(|&y| kernel_row(y)) {
-                p.buf[y * pw..(y + 1) * pw].fill(0.0);
-            }
-            for (&i, &v) in p.index.iter().zip(bt) {
-                p.buf[i] = v;
-            }
-            p.fft.forward_rows_with(&p.buf, &mut p.spec, kernel_row, &mut p.scratch);
-            p.spec.iter_mut().zip(&p.a_hat).for_each(|(s, a)| *s *= a);
-            let bh = p.bh;
-            p.fft.inverse_rows_with(&mut p.spec, &mut p.out, |y| y >= r && y < r + bh, &mut p.scratch);
-        });
-        self.pred.iter_mut().for_each(|v| *v = 0.0);
-        for p in &self.parts {
-            let pw = p.fft.width;
-            for y in 0..p.bh {
-                let row = &mut self.pred[(p.y0 + y) * self.w + p.x0..(p.y0 + y) * self.w + p.x0 + p.bw];
-                let src = &p.out[(y + r) * pw + r..(y + r) * pw + r + p.bw];
-                let wt = &p.weights[y * p.bw..(y + 1) * p.bw];
-                for ((o, s), q) in row.iter_mut().zip(src).zip(wt) {
-                    *o += q * s;
+        let fft = self.fft.clone();
+        let (fw, fh) = (fft.width, fft.height);
+        let index = &self.index;
+        // kernel spectra
+        self.b_hat.par_iter_mut().zip(b.par_chunks(k2)).for_each_init(
+            || Work::new(&fft),
+            |wk, (bh, bt)| {
+                let kernel_row = |y: usize| y <= r || y + r >= fh;
+                for y in (0..fh).filter(|&y| kernel_row(y)) {
+                    wk.buf[y * fw..(y + 1) * fw].fill(0.0);
                 }
+                for (&i, &v) in index.iter().zip(bt) {
+                    wk.buf[i] = v;
+                }
+                fft.forward_rows_with(&wk.buf, bh, kernel_row, &mut wk.scratch);
+            },
+        );
+        // forward, block by block
+        let this = &*self;
+        let preds: Vec<Vec<f32>> = this
+            .blocks
+            .par_iter()
+            .map_init(
+                || Work::new(&fft),
+                |wk, blk| {
+                    let mut local = vec![0.0f32; blk.sw * blk.sh];
+                    for &t in &blk.tiles {
+                        wk.spec.iter_mut().zip(&blk.a_hat).zip(&this.b_hat[t]).for_each(|((s, a), q)| *s = a * q);
+                        let sh = blk.sh;
+                        fft.inverse_rows_with(&mut wk.spec, &mut wk.out, |y| y >= r && y < r + sh, &mut wk.scratch);
+                        let cxt = &this.cx[t % this.columns][blk.x0..blk.x0 + blk.sw];
+                        let cyt = &this.cy[t / this.columns];
+                        for y in 0..blk.sh {
+                            let a = cyt[blk.y0 + y];
+                            if a == 0.0 {
+                                continue;
+                            }
+                            let src = &wk.out[(y + r) * fw + r..(y + r) * fw + r + blk.sw];
+                            for ((o, s), q) in local[y * blk.sw..(y + 1) * blk.sw].iter_mut().zip(src).zip(cxt) {
+                                *o += a * q * s;
+                            }
+                        }
+                    }
+                    local
+                },
+            )
+            .collect();
+        for (blk, local) in self.blocks.iter().zip(&preds) {
+            for y in 0..blk.sh {
+                let o = (blk.y0 + y) * self.w + blk.x0;
+                self.pred[o..o + blk.sw].copy_from_slice(&local[y * blk.sw..(y + 1) * blk.sw]);
             }
         }
-        let mut f = 0.0f64;
-        for i in 0..self.w * self.h {
-            let d = if self.mask[i] { self.pred[i] - if with_data { self.blurred[i] } else { 0.0 } } else { 0.0 };
-            self.pred[i] = d;
-            f += (d as f64) * (d as f64);
-        }
-        let resid = &self.pred;
+        // masked residual
         let w = self.w;
-        self.parts.par_iter_mut().zip(out.par_chunks_mut(k2)).for_each(|(p, ot)| {
-            let pw = p.fft.width;
-            let ph = p.fft.height;
-            let bh = p.bh;
-            for y in 0..bh {
-                let src = &resid[(p.y0 + y) * w + p.x0..(p.y0 + y) * w + p.x0 + p.bw];
-                let wt = &p.weights[y * p.bw..(y + 1) * p.bw];
-                let row = &mut p.buf[(y + r) * pw..(y + r + 1) * pw];
-                row[..r].fill(0.0);
-                row[r + p.bw..].fill(0.0);
-                for ((d, s), q) in row[r..r + p.bw].iter_mut().zip(src).zip(wt) {
-                    *d = q * s;
+        let (blurred, mask) = (&self.blurred, &self.mask);
+        let f: f64 = self
+            .pred
+            .par_chunks_mut(w)
+            .enumerate()
+            .map(|(y, row)| {
+                let mut f = 0.0f64;
+                for (x, p) in row.iter_mut().enumerate() {
+                    let i = y * w + x;
+                    let d = if mask[i] { *p - if with_data { blurred[i] } else { 0.0 } } else { 0.0 };
+                    *p = d;
+                    f += (d as f64) * (d as f64);
                 }
-            }
-            p.fft.forward_rows_with(&p.buf, &mut p.spec, |y| y >= r && y < r + bh, &mut p.scratch);
-            p.spec.iter_mut().zip(&p.a_hat).for_each(|(s, a)| *s *= a.conj());
-            p.fft.inverse_rows_with(&mut p.spec, &mut p.out, |y| y <= r || y + r >= ph, &mut p.scratch);
-            for (o, &i) in ot.iter_mut().zip(&p.index) {
-                *o = p.out[i];
-            }
-        });
+                f
+            })
+            .sum();
+        // adjoint, tile by tile
+        let mut g_hat = std::mem::take(&mut self.g_hat);
+        let this = &*self;
+        let resid = &self.pred;
+        g_hat.par_iter_mut().zip(out.par_chunks_mut(k2)).enumerate().for_each_init(
+            || Work::new(&fft),
+            |wk, (t, (gh, ot))| {
+                gh.iter_mut().for_each(|v| *v = Complex32::new(0.0, 0.0));
+                let cxt = &this.cx[t % this.columns];
+                let cyt = &this.cy[t / this.columns];
+                for &bi in &this.blocks_of[t] {
+                    let blk = &this.blocks[bi];
+                    for y in 0..blk.sh {
+                        let a = cyt[blk.y0 + y];
+                        let row = &mut wk.buf[(y + r) * fw..(y + r + 1) * fw];
+                        row[..r].fill(0.0);
+                        row[r + blk.sw..].fill(0.0);
+                        let src = &resid[(blk.y0 + y) * w + blk.x0..(blk.y0 + y) * w + blk.x0 + blk.sw];
+                        for ((d, s), q) in row[r..r + blk.sw].iter_mut().zip(src).zip(&cxt[blk.x0..blk.x0 + blk.sw]) {
+                            *d = a * q * s;
+                        }
+                    }
+                    let sh = blk.sh;
+                    fft.forward_rows_with(&wk.buf, &mut wk.spec, |y| y >= r && y < r + sh, &mut wk.scratch);
+                    for ((g, s), a) in gh.iter_mut().zip(&wk.spec).zip(&blk.a_hat) {
+                        *g += s * a.conj();
+                    }
+                }
+                wk.spec.copy_from_slice(gh);
+                fft.inverse_rows_with(&mut wk.spec, &mut wk.out, |y| y <= r || y + r >= fh, &mut wk.scratch);
+                for (o, &i) in ot.iter_mut().zip(index) {
+                    *o = wk.out[i];
+                }
+            },
+        );
+        self.g_hat = g_hat;
         0.5 * f
     }
 
-    fn lipschitz(&mut self, iterations: usize) -> f32 {
-        let (k2, n) = (self.k * self.k, self.parts.len() * self.k * self.k);
-        let mut v: Vec<f32> = (0..n).map(|i| ((i * 7919 % 101) as f32 / 101.0) - 0.5).collect();
+    /// Largest eigenvalue of the data term's Hessian on the simplices' tangent space (each
+    /// kernel's component of zero sum), by power iteration from `start` (or a fixed
+    /// pseudo-random vector when it is empty), times a safety factor of 1.3. `start` returns
+    /// the last iterate, a warm start for the next channel's (similar) operator.
+    fn lipschitz(&mut self, iterations: usize, start: &mut Vec<f32>) -> f32 {
+        let (k2, n) = (self.k * self.k, self.b_hat.len() * self.k * self.k);
+        let mut v: Vec<f32> = if start.len() == n { start.clone() } else { (0..n).map(|i| ((i * 7919 % 101) as f32 / 101.0) - 0.5).collect() };
         let mut hv = vec![0.0; n];
         let zero_mean = |v: &mut [f32]| {
             for c in v.chunks_mut(k2) {
@@ -144,16 +227,17 @@ impl JointProblem {
             est = hv.iter().zip(&v).map(|(&a, &b)| a as f64 * b as f64).sum::<f64>();
             std::mem::swap(&mut v, &mut hv);
         }
+        *start = v;
         (est.max(1e-30) * 1.3) as f32
     }
 }
 
 impl PrimalDual for JointProblem {
     fn primal_len(&self) -> usize {
-        self.parts.len() * self.k * self.k
+        self.b_hat.len() * self.k * self.k
     }
     fn dual_len(&self) -> usize {
-        self.parts.len() * 2 * (self.k + 1) * (self.k + 1)
+        self.b_hat.len() * 2 * (self.k + 1) * (self.k + 1)
     }
     fn apply_k(&self, x: &[f32], out: &mut [f32]) {
         let (k2, d) = (self.k * self.k, 2 * (self.k + 1) * (self.k + 1));
@@ -188,6 +272,9 @@ impl PrimalDual for JointProblem {
         }
     }
 }
+
+/// Largest block side of the blocked convolutions, in kernels.
+const BLOCK_KERNELS: usize = 5;
 
 /// Inner iterations of the TV–simplex prox per outer step (warm-started dual).
 const PROX_ITERATIONS: usize = 12;
@@ -224,10 +311,18 @@ fn prox_tv_simplex(v: &[f32], q: &mut [f32], gamma: f32, total: f32, k: usize, i
     }
 }
 
+/// Iterations over which the data term's relative decrease is measured for the stopping rule.
+const STALL_WINDOW: usize = 5;
+
+/// Stop when the data term `½‖M r‖²` (∝ χ²) fell by less than this fraction over the last
+/// [`STALL_WINDOW`] iterations: the fit no longer changes at the noise level.
+const STALL_DECREASE: f64 = 1e-3;
+
 /// FISTA (Beck & Teboulle 2009) with adaptive restart (O'Donoghue & Candès 2015) on
 /// `½‖M(pred(b) − j)‖² + Σ λ_t TV(b_t)` over the simplices, step `1/L` with `L` the Lipschitz
 /// constant on the simplices' tangent space; the prox is [`prox_tv_simplex`], its duals `q`
-/// carried over between steps (and calls). Stops at a relative step below `tolerance`.
+/// carried over between steps (and calls). Stops (after `min_iterations`) at a relative step
+/// below `tolerance`, or when the data term stalls ([`STALL_DECREASE`]).
 fn fista(p: &mut JointProblem, x: &mut [f32], q: &mut [f32], opts: &SplitOptions, l_f: f32) -> Stats {
     let n = x.len();
     let (k, k2, d) = (p.k, p.k * p.k, 2 * (p.k + 1) * (p.k + 1));
@@ -237,8 +332,10 @@ fn fista(p: &mut JointProblem, x: &mut [f32], q: &mut [f32], opts: &SplitOptions
     let mut v = vec![0.0f32; n];
     let mut t = 1.0f64;
     let mut stats = Stats { operator_norm: 8f32.sqrt(), ..Default::default() };
+    let mut history = Vec::with_capacity(opts.max_iterations);
     for it in 1..=opts.max_iterations {
         stats.primal_objective = p.normal(&z, &mut g, true);
+        history.push(stats.primal_objective);
         for ((vi, &zi), &gi) in v.iter_mut().zip(&z).zip(&g) {
             *vi = zi - gi / l_f;
         }
@@ -267,7 +364,8 @@ fn fista(p: &mut JointProblem, x: &mut [f32], q: &mut [f32], opts: &SplitOptions
         stats.iterations = it;
         let crit = (dx2 / x2.max(1e-300)).sqrt();
         stats.criterion = crit;
-        if it >= opts.min_iterations && crit < opts.tolerance {
+        let stalled = it > STALL_WINDOW && history[it - 1 - STALL_WINDOW] - history[it - 1] < STALL_DECREASE * history[it - 1];
+        if it >= opts.min_iterations && (crit < opts.tolerance || stalled) {
             stats.converged = true;
             break;
         }
@@ -280,7 +378,10 @@ fn fista(p: &mut JointProblem, x: &mut [f32], q: &mut [f32], opts: &SplitOptions
 /// The joint fit first runs a quarter of its iterations with `λ` rescaled to the data the
 /// kernel sees here (`√Σ_x w_t² M` for `√N`), then replaces `σ̂` (which counted the window
 /// model's mismatch) by the joint model's residual RMS and continues. Returns the loop's
-/// statistics and the masked residual RMS.
+/// statistics and the masked residual RMS (at the last extrapolated point, within a step of
+/// the result). `power` carries the Lipschitz power iteration's vector from one channel to the
+/// next (start with an empty vector): a warm start needs 2 iterations instead of 5.
+#[allow(clippy::too_many_arguments)]
 pub fn refine_channel(
     open: &Plane,
     sharp: &Plane,
@@ -289,61 +390,114 @@ pub fn refine_channel(
     kernels: &mut [Plane],
     fits: &[(f32, usize, f64)],
     opts: &SplitOptions,
+    power: &mut Vec<f32>,
 ) -> (Stats, f64) {
     let (w, h) = (open.width, open.height);
     let k = grid.kernel_size;
     let r = k / 2;
-    let mut parts = Vec::with_capacity(grid.tile_count());
+    // blocks of at most BLOCK_KERNELS kernels, splitting each axis evenly, plus the margin,
+    // on one FFT size
+    let s_max = BLOCK_KERNELS * k;
+    let even = |n: usize| n.div_ceil(n.div_ceil(s_max));
+    let (sx, sy) = (even(w), even(h));
+    let f = good_size(sx.max(sy) + 2 * r);
+    let fft = Fft2::plan(f, f);
+    let (xs, ys) = (grid.column_xs(), grid.row_ys());
+    let factors = |cs: &[f64], n: usize| -> Vec<Vec<f32>> {
+        let mut out = vec![vec![0.0f32; n]; cs.len()];
+        for p in 0..n {
+            for (i, q) in crate::optics::psf_grid::hat_weights_1d(cs, p as f64) {
+                out[i][p] += q;
+            }
+        }
+        out
+    };
+    let (cx, cy) = (factors(&xs, w), factors(&ys, h));
+    let mut blocks = Vec::new();
+    for y0 in (0..h).step_by(sy) {
+        for x0 in (0..w).step_by(sx) {
+            let (sw, sh) = (sx.min(w - x0), sy.min(h - y0));
+            let tiles: Vec<usize> = (0..grid.tile_count())
+                .filter(|&t| cx[t % grid.columns][x0..x0 + sw].iter().any(|&v| v != 0.0) && cy[t / grid.columns][y0..y0 + sh].iter().any(|&v| v != 0.0))
+                .collect();
+            blocks.push((x0, y0, sw, sh, tiles));
+        }
+    }
+    let blocks: Vec<Block> = blocks
+        .into_par_iter()
+        .map(|(x0, y0, sw, sh, tiles)| {
+            let win = sharp.window_reflect(x0 as isize - r as isize, y0 as isize - r as isize, f, f);
+            let a_hat = fft.forward(&win.data);
+            Block { x0, y0, sw, sh, a_hat, tiles }
+        })
+        .collect();
+    let mut blocks_of = vec![Vec::new(); grid.tile_count()];
+    for (bi, blk) in blocks.iter().enumerate() {
+        for &t in &blk.tiles {
+            blocks_of[t].push(bi);
+        }
+    }
+    // λ = c · σ · sd · √N: rescale the window's √N to the effective data Σ w_t² M here
     let mut lam = Vec::with_capacity(grid.tile_count());
-    for t in 0..grid.tile_count() {
-        let (x0, x1, y0, y1) = grid.support(t, w, h);
-        let (bw, bh) = (x1 - x0, y1 - y0);
-        let (pw, ph) = (good_size(bw + 2 * r), good_size(bh + 2 * r));
-        let (ox, oy) = (x0 as isize - r as isize, y0 as isize - r as isize);
-        let fft = Fft2::plan(pw, ph);
-        let mut scratch = fft.make_scratch();
-        let win = sharp.window_reflect(ox, oy, pw, ph);
-        let mut a_hat = vec![Complex32::new(0.0, 0.0); fft.spectrum_len()];
-        fft.forward_with(&win.data, &mut a_hat, &mut scratch);
-        let weights = grid.tile_weights(t, x0, x1, y0, y1);
+    for (t, &(l0, n0, _)) in fits.iter().enumerate().take(grid.tile_count()) {
+        let (i, j) = (t % grid.columns, t / grid.columns);
         let mut w2 = 0.0f64;
-        for y in 0..bh {
-            for x in 0..bw {
-                let q = weights[y * bw + x];
-                if valid[(y0 + y) * w + x0 + x] {
+        for y in 0..h {
+            let a = cy[j][y];
+            if a == 0.0 {
+                continue;
+            }
+            for x in 0..w {
+                let q = a * cx[i][x];
+                if q != 0.0 && valid[y * w + x] {
                     w2 += (q as f64) * (q as f64);
                 }
             }
         }
-        // λ = c · σ · sd · √N: rescale the window's √N to the effective data Σ w_t² M here
-        let (l0, n0, _) = fits[t];
         lam.push(l0 * (w2 / n0.max(1) as f64).sqrt() as f32);
-        let index: Vec<usize> = (0..k * k)
-            .map(|i| {
-                let (u, v) = ((i % k) as isize - r as isize, (i / k) as isize - r as isize);
-                (v.rem_euclid(ph as isize) as usize) * pw + u.rem_euclid(pw as isize) as usize
-            })
-            .collect();
-        let n = pw * ph;
-        parts.push(Part { x0, y0, bw, bh, weights, fft: fft.clone(), scratch, a_hat, index, buf: vec![0.0; n], out: vec![0.0; n], spec: vec![Complex32::new(0.0, 0.0); fft.spectrum_len()] });
     }
+    let index: Vec<usize> = (0..k * k)
+        .map(|i| {
+            let (u, v) = ((i % k) as isize - r as isize, (i / k) as isize - r as isize);
+            (v.rem_euclid(f as isize) as usize) * f + u.rem_euclid(f as isize) as usize
+        })
+        .collect();
+    let spectra = vec![vec![Complex32::new(0.0, 0.0); fft.spectrum_len()]; grid.tile_count()];
     let totals: Vec<f32> = kernels.iter().map(|p| p.sum() as f32).collect();
-    let mut p = JointProblem { w, h, k, parts, blurred: open.data.clone(), mask: valid.to_vec(), lambda: lam, totals, pred: vec![0.0; w * h] };
+    let mut p = JointProblem {
+        w,
+        k,
+        columns: grid.columns,
+        fft,
+        blocks,
+        blocks_of,
+        cx,
+        cy,
+        index,
+        b_hat: spectra.clone(),
+        g_hat: spectra,
+        blurred: open.data.clone(),
+        mask: valid.to_vec(),
+        lambda: lam,
+        totals,
+        pred: vec![0.0; w * h],
+    };
     let mut x: Vec<f32> = kernels.iter().flat_map(|p| p.data.iter().copied()).collect();
-    let l_f = p.lipschitz(5);
+    let l_f = p.lipschitz(if power.is_empty() { 5 } else { 2 }, power);
     let mut q = vec![0.0f32; p.dual_len()];
     let count = valid.iter().filter(|&&b| b).count().max(1);
     let first = SplitOptions { max_iterations: opts.max_iterations / 4, min_iterations: usize::MAX, tolerance: 0.0 };
     let st1 = fista(&mut p, &mut x, &mut q, &first, l_f);
     let mut g = vec![0.0f32; x.len()];
-    let sigma_joint = (2.0 * p.normal(&x, &mut g, true) / count as f64).sqrt();
+    let f1 = if st1.iterations > 0 { st1.primal_objective } else { p.normal(&x, &mut g, true) };
+    let sigma_joint = (2.0 * f1 / count as f64).sqrt();
     for (l, &(_, _, s0)) in p.lambda.iter_mut().zip(fits) {
         *l *= (sigma_joint / s0.max(1e-12)) as f32;
     }
     let rest = SplitOptions { max_iterations: opts.max_iterations.saturating_sub(st1.iterations), ..opts.clone() };
     let mut stats = fista(&mut p, &mut x, &mut q, &rest, l_f);
     stats.iterations += st1.iterations;
-    let f = p.normal(&x, &mut g, true);
+    let f = if stats.iterations > st1.iterations { stats.primal_objective } else { p.normal(&x, &mut g, true) };
     for (kp, xb) in kernels.iter_mut().zip(x.chunks(k * k)) {
         kp.data.copy_from_slice(xb);
     }

@@ -338,10 +338,11 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
     if opts.joint_iterations > 0 {
         let shape = PsfGrid { kernel_size: k, columns: cols, rows, centers: centers.clone(), channels: open.channels.clone(), kernels: vec![] };
         let o = crate::solve::primal_dual::SplitOptions { max_iterations: opts.joint_iterations, min_iterations: 5, tolerance: opts.tolerance * 0.1 };
+        let mut power = Vec::new();
         for c in 0..nch {
             let mut sharp = pin_reg[c].clone();
             sharp.scale(ratio[c] as f32);
-            let (st, rms) = joint::refine_channel(&open_lin[c], &sharp, &valid_masks[c], &shape, &mut kernels[c], &tile_lambda[c], &o);
+            let (st, rms) = joint::refine_channel(&open_lin[c], &sharp, &valid_masks[c], &shape, &mut kernels[c], &tile_lambda[c], &o, &mut power);
             // the profile's per-tile figures then describe the refined kernels
             for t in 0..cols * rows {
                 info.iterations[c][t] += st.iterations;

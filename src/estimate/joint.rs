@@ -273,8 +273,68 @@ impl PrimalDual for JointProblem {
     }
 }
 
-/// Largest block side of the blocked convolutions, in kernels.
-const BLOCK_KERNELS: usize = 5;
+/// Largest number of data pixels the joint fit uses. Beyond it (12-megapixel captures) every
+/// n-th block is kept, in a staggered pattern so every tile's support keeps data: the
+/// kernels' ~10⁵ unknowns per channel are still determined by millions of pixels, at a
+/// fraction of the cost.
+pub const JOINT_DATA_PIXELS: usize = 2_500_000;
+
+/// Splits of one axis into blocks: `(start, length)` intervals.
+type Splits = Vec<(usize, usize)>;
+
+/// The block layout of the blocked convolutions: intervals along x and y and the FFT side `F`.
+///
+/// The cost of one pass is `F² · (Σ_x a_x) · (Σ_y a_y)` with `a` the number of tiles active
+/// (non-zero weight) on an interval. Candidates: every axis split evenly into blocks of at most
+/// `m` kernels, or cut at the PSF centres (where the set of active tiles changes, so a block
+/// sees at most four tiles per axis) and then split evenly, for `m = 2…8`; the cheapest wins.
+fn block_layout(cx: &[Vec<f32>], cy: &[Vec<f32>], xs: &[f64], ys: &[f64], k: usize) -> (Splits, Splits, usize) {
+    let r = k / 2;
+    let split = |cuts: &[usize], s_max: usize| -> Splits {
+        let mut out = Vec::new();
+        for win in cuts.windows(2) {
+            let len = win[1] - win[0];
+            if len == 0 {
+                continue;
+            }
+            let parts = len.div_ceil(s_max);
+            let step = len.div_ceil(parts);
+            let mut a = win[0];
+            while a < win[1] {
+                out.push((a, step.min(win[1] - a)));
+                a += step;
+            }
+        }
+        out
+    };
+    let active = |fs: &[Vec<f32>], sp: &Splits| -> usize { sp.iter().map(|&(a, l)| fs.iter().filter(|f| f[a..a + l].iter().any(|&v| v != 0.0)).count()).sum() };
+    let centre_cuts = |cs: &[f64], n: usize| -> Vec<usize> {
+        let mut c = vec![0];
+        c.extend(cs.iter().map(|&x| ((x + 0.5).round().max(0.0) as usize).min(n)));
+        c.push(n);
+        c.dedup();
+        c
+    };
+    let (w, h) = (cx.first().map_or(0, |f| f.len()), cy.first().map_or(0, |f| f.len()));
+    let mut best: Option<(f64, Splits, Splits, usize)> = None;
+    for m in 2..=8 {
+        let s_max = m * k;
+        for aligned in [false, true] {
+            let (cut_x, cut_y) = if aligned { (centre_cuts(xs, w), centre_cuts(ys, h)) } else { (vec![0, w], vec![0, h]) };
+            let (sx, sy) = (split(&cut_x, s_max), split(&cut_y, s_max));
+            let longest = sx.iter().chain(&sy).map(|&(_, l)| l).max().unwrap_or(1);
+            let f = good_size(longest + 2 * r);
+            let cost = (f * f) as f64 * (active(cx, &sx) * active(cy, &sy)) as f64;
+            if best.as_ref().map_or(true, |b| cost < b.0) {
+                best = Some((cost, sx, sy, f));
+            }
+        }
+    }
+    match best {
+        Some((_, sx, sy, f)) => (sx, sy, f),
+        None => (vec![(0, w)], vec![(0, h)], good_size(w.max(h) + 2 * r)),
+    }
+}
 
 /// Inner iterations of the TV–simplex prox per outer step (warm-started dual).
 const PROX_ITERATIONS: usize = 12;
@@ -395,13 +455,6 @@ pub fn refine_channel(
     let (w, h) = (open.width, open.height);
     let k = grid.kernel_size;
     let r = k / 2;
-    // blocks of at most BLOCK_KERNELS kernels, splitting each axis evenly, plus the margin,
-    // on one FFT size
-    let s_max = BLOCK_KERNELS * k;
-    let even = |n: usize| n.div_ceil(n.div_ceil(s_max));
-    let (sx, sy) = (even(w), even(h));
-    let f = good_size(sx.max(sy) + 2 * r);
-    let fft = Fft2::plan(f, f);
     let (xs, ys) = (grid.column_xs(), grid.row_ys());
     let factors = |cs: &[f64], n: usize| -> Vec<Vec<f32>> {
         let mut out = vec![vec![0.0f32; n]; cs.len()];
@@ -413,16 +466,35 @@ pub fn refine_channel(
         out
     };
     let (cx, cy) = (factors(&xs, w), factors(&ys, h));
+    let (bx, by, f) = block_layout(&cx, &cy, &xs, &ys, k);
+    let fft = Fft2::plan(f, f);
     let mut blocks = Vec::new();
-    for y0 in (0..h).step_by(sy) {
-        for x0 in (0..w).step_by(sx) {
-            let (sw, sh) = (sx.min(w - x0), sy.min(h - y0));
+    for &(y0, sh) in &by {
+        for &(x0, sw) in &bx {
             let tiles: Vec<usize> = (0..grid.tile_count())
                 .filter(|&t| cx[t % grid.columns][x0..x0 + sw].iter().any(|&v| v != 0.0) && cy[t / grid.columns][y0..y0 + sh].iter().any(|&v| v != 0.0))
                 .collect();
             blocks.push((x0, y0, sw, sh, tiles));
         }
     }
+    // data subsampling on large images: keep every n-th block in a staggered pattern
+    let mut mask = valid.to_vec();
+    let total: usize = blocks.iter().map(|b| b.2 * b.3).sum();
+    let keep_every = total.div_ceil(JOINT_DATA_PIXELS).max(1);
+    if keep_every > 1 {
+        let nbx = bx.len();
+        let (kept, dropped): (Vec<_>, Vec<_>) = blocks.into_iter().enumerate().partition(|(i, _)| {
+            let (ix, iy) = (i % nbx, i / nbx);
+            (ix + 2 * iy) % keep_every == 0
+        });
+        for (_, (x0, y0, sw, sh, _)) in &dropped {
+            for y in *y0..y0 + sh {
+                mask[y * w + x0..y * w + x0 + sw].fill(false);
+            }
+        }
+        blocks = kept.into_iter().map(|(_, b)| b).collect();
+    }
+    let valid = &mask[..];
     let blocks: Vec<Block> = blocks
         .into_par_iter()
         .map(|(x0, y0, sw, sh, tiles)| {
@@ -477,7 +549,7 @@ pub fn refine_channel(
         b_hat: spectra.clone(),
         g_hat: spectra,
         blurred: open.data.clone(),
-        mask: valid.to_vec(),
+        mask: mask.clone(),
         lambda: lam,
         totals,
         pred: vec![0.0; w * h],

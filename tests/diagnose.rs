@@ -92,7 +92,6 @@ fn black_level_is_named_and_recovered() {
 }
 
 #[test]
-#[ignore = "known regression (session 2): since the estimator's rewrite the base kernels fitted to sRGB-encoded data leave a reduced χ² near 100, and the tone_curve candidate's budgeted refit (even warm-started from a linearised re-estimate) reaches only ~77, so black_level is named first; run with --ignored"]
 fn tone_curve_is_named() {
     let (d, _) = check_named("tone_curve", 5);
     assert_eq!(d.effects[0].parameters["transfer"], "srgb");

@@ -177,6 +177,9 @@ pub fn render_case(effect: Option<&str>, seed: u64, spec: &CaseSpec) -> Result<C
         }
         Some(other) => return Err(format!("unknown effect '{other}' (expected one of {})", CONCEALED.join(", "))),
     };
+    // one camera records both captures: the reference shares the wide-open capture's encoding
+    // (`pin_sensor` is cloned before the effect is chosen, so `tone_curve` must reach it here)
+    pin_sensor.transfer = sensor.transfer;
     let mut open = render(&sc, &lens, &open_shot, &sensor, &mut Rng::new(seed * 2 + 1));
     let pin_scene: Vec<Plane> = match moved {
         Some(m) => vec![soft(scene_moved(w, h, seed, Some(m), ppc)); lens.bands.len()],
@@ -223,4 +226,26 @@ pub fn floor_ratio(case: &Case, predicted: &[Plane], mask: &[Vec<bool>]) -> f64 
         }
     }
     (sq / v.max(1e-300)).sqrt()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `tone_curve` conceals an sRGB camera: both captures are encoded (the catalogue's model,
+    /// [`super::super::model`] step 1), not only the wide-open one.
+    #[test]
+    fn tone_curve_case_encodes_both_captures() {
+        let spec = CaseSpec { width: 96, height: 64, ..Default::default() };
+        let c = render_case(Some("tone_curve"), 5, &spec).expect("renders");
+        for (name, r) in [("wide-open", &c.open), ("pinhole", &c.pinhole)] {
+            let stored = r.image.planes[0].mean();
+            let encoded = r.clean[0].map(|v| Transfer::Srgb.encode(v.clamp(0.0, 1.0))).mean();
+            let linear = r.clean[0].mean();
+            assert!((stored - encoded).abs() < 0.01 && (stored - linear).abs() > 0.05, "{name}: stored mean {stored:.4}, sRGB-encoded {encoded:.4}, linear {linear:.4}");
+        }
+        let clean = render_case(None, 5, &spec).expect("renders");
+        let (stored, linear) = (clean.pinhole.image.planes[0].mean(), clean.pinhole.clean[0].mean());
+        assert!((stored - linear).abs() < 0.01, "clean pinhole: stored {stored:.4} vs linear {linear:.4}");
+    }
 }

@@ -92,7 +92,6 @@ fn black_level_is_named_and_recovered() {
 }
 
 #[test]
-#[ignore = "known regression (session 2): since the estimator's rewrite the base kernels fitted to sRGB-encoded data leave a reduced χ² near 100, and the tone_curve candidate's budgeted refit (even warm-started from a linearised re-estimate) reaches only ~77, so black_level is named first; run with --ignored"]
 fn tone_curve_is_named() {
     let (d, _) = check_named("tone_curve", 5);
     assert_eq!(d.effects[0].parameters["transfer"], "srgb");
@@ -109,17 +108,16 @@ fn veiling_glare_is_named_and_its_fraction_recovered() {
     assert!(got / want > 0.4 && got / want < 1.6, "glare fraction {got} vs {want}");
 }
 
+/// Named, the rotation within 35% (the similarity search is biased towards the kernels'
+/// current positions), and the final residual at the floor.
 #[test]
-/// Known gap: named, rotation within 35%, but the final residual stays ~2.5–3× the floor
-/// (the rotation and scale are not estimated to the ~0.02 px the sharp reference demands);
-/// the floor is asserted only against the base model's.
 fn misregistration_is_named_and_its_rotation_recovered() {
     let (row, d, c) = case(Some("misregistration"), 7);
     assert_eq!(d.effects.first().map(|e| e.name.as_str()), Some("misregistration"), "rounds {:?}", d.rounds);
     let got = d.effects[0].parameters["rotation_deg"].as_f64().unwrap();
     let want = c.truth["rotation_deg"].as_f64().unwrap();
     assert!((got / want - 1.0).abs() < 0.35, "rotation {got} vs {want}");
-    assert!(row.floor_ratio < 4.0, "final residual {:.3}× the floor", row.floor_ratio);
+    assert!(row.floor_ratio <= FLOOR, "final residual {:.3}× the floor", row.floor_ratio);
 }
 
 #[test]

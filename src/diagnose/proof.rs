@@ -65,6 +65,15 @@ pub fn scene(w: usize, h: usize, seed: u64) -> Plane {
 /// rendered exactly from the procedural target (area-averaged, 4×4 samples per pixel) rather
 /// than by resampling a rendered image, which would low-pass the sharp reference.
 pub fn scene_moved(w: usize, h: usize, seed: u64, m: Option<Similarity>, pixels_per_cell: f64) -> Plane {
+    scene_moved_soft(w, h, seed, m, pixels_per_cell, 0.0)
+}
+
+/// [`scene_moved`] with the printed pattern itself softened by a Gaussian of `sigma_px` (pixels
+/// of the unmoved view) *before* the pixels integrate it: the softened pattern is a property of
+/// the scene, so every camera pose sees the same band-limited continuous image. Each cell is
+/// constant, so the blurred pattern at a point is exact: `Σ_cells value·Δ_xΦ·Δ_yΦ` (the
+/// Gaussian's mass over the cell, separable). `sigma_px = 0` is the sharp pattern.
+pub fn scene_moved_soft(w: usize, h: usize, seed: u64, m: Option<Similarity>, pixels_per_cell: f64, sigma_px: f64) -> Plane {
     let spec = TargetSpec::new("A4", 300, 4, seed).ok();
     let (x0, x1, y0, y1) = (0.12 * w as f64, 0.80 * w as f64, 0.10 * h as f64, 0.86 * h as f64);
     let edge = |v: f64, a: f64, b: f64| {
@@ -84,13 +93,41 @@ pub fn scene_moved(w: usize, h: usize, seed: u64, m: Option<Similarity>, pixels_
                 let qx = x as f64 + (i as f64 + 0.5) / ss as f64 - 0.5 - cx;
                 let qy = y as f64 + (j as f64 + 0.5) / ss as f64 - 0.5 - cy;
                 let (sx, sy) = (a * qx - b * qy + cx + m.dx, b * qx + a * qy + cy + m.dy);
-                let n = spec.as_ref().map_or(0.5, |s| s.noise_at(u0 + (sx + 0.5) / ppc, v0 + (sy + 0.5) / ppc));
+                let (u, v) = (u0 + (sx + 0.5) / ppc, v0 + (sy + 0.5) / ppc);
+                let n = spec.as_ref().map_or(0.5, |s| if sigma_px > 0.0 { soft_noise(s, u, v, sigma_px / ppc) } else { s.noise_at(u, v) });
                 let frame = edge(sx, x0, x1) * edge(sy, y0, y1);
                 acc += n * (0.2 + 0.8 * frame as f32);
             }
         }
         acc / (ss * ss) as f32
     })
+}
+
+/// The cell pattern of `spec` blurred by a Gaussian of `sigma` cells at `(u, v)` (exact for
+/// piecewise-constant cells; see [`scene_moved_soft`]).
+fn soft_noise(spec: &TargetSpec, u: f64, v: f64, sigma: f64) -> f32 {
+    let reach = (4.0 * sigma).ceil() as i64 + 1;
+    let (iu, iv) = (u.floor() as i64, v.floor() as i64);
+    let mass = |c: i64, x: f64| phi((c as f64 + 1.0 - x) / sigma) - phi((c as f64 - x) / sigma);
+    let wu: Vec<f64> = (iu - reach..=iu + reach).map(|c| mass(c, u)).collect();
+    let wv: Vec<f64> = (iv - reach..=iv + reach).map(|c| mass(c, v)).collect();
+    let mut acc = 0.0f64;
+    for (j, cv) in (iv - reach..=iv + reach).enumerate() {
+        for (i, cu) in (iu - reach..=iu + reach).enumerate() {
+            acc += wu[i] * wv[j] * spec.noise_at(cu as f64 + 0.5, cv as f64 + 0.5) as f64;
+        }
+    }
+    let total: f64 = wu.iter().sum::<f64>() * wv.iter().sum::<f64>();
+    (acc / total) as f32
+}
+
+/// The standard normal CDF (Abramowitz–Stegun 7.1.26 for erf, |error| < 1.5e-7).
+fn phi(x: f64) -> f64 {
+    let z = x.abs() / std::f64::consts::SQRT_2;
+    let t = 1.0 / (1.0 + 0.327_591_1 * z);
+    let poly = t * (0.254_829_592 + t * (-0.284_496_736 + t * (1.421_413_741 + t * (-1.453_152_027 + t * 1.061_405_429))));
+    let erf = 1.0 - poly * (-z * z).exp();
+    if x >= 0.0 { 0.5 * (1.0 + erf) } else { 0.5 * (1.0 - erf) }
 }
 
 fn signed(r: &mut Rng, lo: f64, hi: f64) -> f64 {
@@ -113,9 +150,12 @@ pub fn render_case(effect: Option<&str>, seed: u64, spec: &CaseSpec) -> Result<C
     // A sub-pixel move of a reference is only reproducible when the reference is band-limited;
     // an aliased 1.6-px-cell target is not (a real pinhole reference is softened by diffraction,
     // about 2.44·λ·N across). The misregistration case therefore uses a softened target
-    // (Gaussian σ = 1 px) in both captures.
-    let soft = |p: Plane| if effect == Some("misregistration") { crate::optics::capture::gaussian_blur(&p, 1.0) } else { p };
-    let sc: Vec<Plane> = vec![soft(scene_moved(w, h, seed, None, ppc)); lens.bands.len()];
+    // (Gaussian σ = 1 px) in both captures, softened before the pixels integrate it: blurring
+    // the sampled image instead keeps the aliasing of each pose's sampling, which differs
+    // between the poses, and no resampling model reproduces it (it held the fit at ~2.7× the
+    // floor even with the true similarity and kernels).
+    let soft_sigma = if effect == Some("misregistration") { 1.0 } else { 0.0 };
+    let sc: Vec<Plane> = vec![scene_moved_soft(w, h, seed, None, ppc, soft_sigma); lens.bands.len()];
     let mut sensor = Sensor::default();
     let k = spec.kernel_size;
     let mut open_shot = Shot::lens(spec.f_number, 0.7, spec.grid.0, spec.grid.1, k);
@@ -177,9 +217,12 @@ pub fn render_case(effect: Option<&str>, seed: u64, spec: &CaseSpec) -> Result<C
         }
         Some(other) => return Err(format!("unknown effect '{other}' (expected one of {})", CONCEALED.join(", "))),
     };
+    // one camera records both captures: the reference shares the wide-open capture's encoding
+    // (`pin_sensor` is cloned before the effect is chosen, so `tone_curve` must reach it here)
+    pin_sensor.transfer = sensor.transfer;
     let mut open = render(&sc, &lens, &open_shot, &sensor, &mut Rng::new(seed * 2 + 1));
     let pin_scene: Vec<Plane> = match moved {
-        Some(m) => vec![soft(scene_moved(w, h, seed, Some(m), ppc)); lens.bands.len()],
+        Some(m) => vec![scene_moved_soft(w, h, seed, Some(m), ppc, soft_sigma); lens.bands.len()],
         None => sc.clone(),
     };
     let mut pinhole = render(&pin_scene, &lens, &pin_shot, &pin_sensor, &mut Rng::new(seed * 2 + 2));
@@ -223,4 +266,55 @@ pub fn floor_ratio(case: &Case, predicted: &[Plane], mask: &[Vec<bool>]) -> f64 
         }
     }
     (sq / v.max(1e-300)).sqrt()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The softened pattern is band-limited before sampling: a rotated view equals (to well under
+    /// the noise) a resampling of the unrotated one, which the sharp pattern blurred after
+    /// sampling does not achieve.
+    #[test]
+    fn softened_scene_moves_reproducibly() {
+        let (w, h) = (64, 48);
+        let m = Similarity { rotation_deg: 0.5, ..Default::default() };
+        let th = 0.5f64.to_radians();
+        let a = scene_moved_soft(w, h, 3, None, 1.6, 1.0);
+        let b = scene_moved_soft(w, h, 3, Some(m), 1.6, 1.0);
+        let err = |p: &Plane, q: &Plane| {
+            let shifted = crate::diagnose::model::resample(p, [th.cos(), -th.sin(), th.sin(), th.cos()]).0;
+            let (mut s, mut n) = (0.0f64, 0);
+            for y in 8..h - 8 {
+                for x in 8..w - 8 {
+                    s += ((shifted.get(x, y) - q.get(x, y)) as f64).powi(2);
+                    n += 1;
+                }
+            }
+            (s / n as f64).sqrt()
+        };
+        let soft = err(&a, &b);
+        let blur = |p: Plane| crate::optics::capture::gaussian_blur(&p, 1.0);
+        let after = err(&blur(scene_moved(w, h, 3, None, 1.6)), &blur(scene_moved(w, h, 3, Some(m), 1.6)));
+        assert!(soft < 1e-3 && after > 10.0 * soft, "softened before sampling: RMS {soft:.2e}; blurred after sampling: {after:.2e}");
+        // the blur conserves the mean reflectance
+        assert!((a.mean() - scene_moved(w, h, 3, None, 1.6).mean()).abs() < 5e-3);
+    }
+
+    /// `tone_curve` conceals an sRGB camera: both captures are encoded (the catalogue's model,
+    /// [`super::super::model`] step 1), not only the wide-open one.
+    #[test]
+    fn tone_curve_case_encodes_both_captures() {
+        let spec = CaseSpec { width: 96, height: 64, ..Default::default() };
+        let c = render_case(Some("tone_curve"), 5, &spec).expect("renders");
+        for (name, r) in [("wide-open", &c.open), ("pinhole", &c.pinhole)] {
+            let stored = r.image.planes[0].mean();
+            let encoded = r.clean[0].map(|v| Transfer::Srgb.encode(v.clamp(0.0, 1.0))).mean();
+            let linear = r.clean[0].mean();
+            assert!((stored - encoded).abs() < 0.01 && (stored - linear).abs() > 0.05, "{name}: stored mean {stored:.4}, sRGB-encoded {encoded:.4}, linear {linear:.4}");
+        }
+        let clean = render_case(None, 5, &spec).expect("renders");
+        let (stored, linear) = (clean.pinhole.image.planes[0].mean(), clean.pinhole.clean[0].mean());
+        assert!((stored - linear).abs() < 0.01, "clean pinhole: stored {stored:.4} vs linear {linear:.4}");
+    }
 }

@@ -156,6 +156,13 @@ fn experiment(out: &Path, scene: &Path) -> anyhow::Result<()> {
         transfer_weight: env("LR_GAMMA").map_or(d.transfer_weight, |v| v as f32),
         reweight_power: env("LR_RWP").map_or(d.reweight_power, |v| v as f32),
         reweight_eps: env("LR_RWE").map_or(d.reweight_eps, |v| v as f32),
+        order2_weight: env("LR_D2").map_or(d.order2_weight, |v| v as f32),
+        cross_local: env("LR_BLOC").map_or(d.cross_local, |v| v as f32),
+        saturation: match env("LR_SAT") {
+            Some(v) if v > 1.0 => None,
+            Some(v) => Some(v as f32),
+            None => d.saturation,
+        },
         ..d
     };
     let (t, cpu0) = (Instant::now(), cpu_seconds());

@@ -5,10 +5,13 @@
 //! is fixed, the data are the residual `ΔJ = J − B I_k`, and
 //!
 //! ```text
-//! min_x ‖M (B x − ΔJ)‖₂² + λ Σ_{a=1..5} ‖H_a x‖₁ + Σ_l β_l Σ_{a=1,2} ‖(D_{i_l} H_a − D_{H_a i_l}) x‖₁
+//! min_x ‖M (B x − ΔJ)‖₂² + λ Σ_{a=1..5} μ_a ‖H_a x‖₁ + Σ_l β_l Σ_{a=1,2} ‖D_{p_l} (D_{i_l} H_a − D_{H_a i_l}) x‖₁
 //!       + λ_b Σ_l Σ_{a=1,2} ‖D_w (H_a x − H_a (i_l − I_k))‖₂²
 //! ```
 //!
+//! - `μ_1 = μ_2 = 1`, `μ_3 = μ_4 = μ_5 = μ₂` ([`ChannelProblem::order2_weight`]); `p_l` is the
+//!   optional per-pixel factor of a cross-channel block ([`CrossChannel::pixel`], 1 if absent);
+//!   the optional per-pixel weight ([`ChannelProblem::set_weight`]) multiplies every ℓ1 term.
 //! - `K` stacks the ℓ1 operators with their weights inside, `F = ‖·‖₁` (dual prox: clamp to
 //!   `[−1, 1]`).
 //! - `G` is the data term plus the dark-region term. Without saturated pixels and without dark
@@ -37,6 +40,8 @@ pub struct CrossChannel<'a> {
     pub image: &'a [f32],
     /// `H_1 i_l`, `H_2 i_l`.
     pub grad: [Vec<f32>; 2],
+    /// Per-pixel factor on `beta` (`None`: 1): the block's weight is `β · p_k` at pixel `k`.
+    pub pixel: Option<Vec<f32>>,
 }
 
 /// The dark-region term's fixed parts.
@@ -101,6 +106,9 @@ pub struct ChannelProblem<'a> {
     /// Reweighted ℓ1 on the derivative blocks in [`ChannelProblem::solve_admm`]: `(q, ε)` scales
     /// each pixel's threshold by `((|H_a x| + ε)/ε)^(q−1)` from the current iterate (`None`: ℓ1).
     pub reweight: Option<(f32, f32)>,
+    /// Relative weight `μ₂` of the second-order derivative blocks `H_3..H_5` (the prior is
+    /// `λ (Σ_{a=1,2} ‖H_a x‖₁ + μ₂ Σ_{a=3..5} ‖H_a x‖₁)`); 1: METHOD.md §3 as printed.
+    pub order2_weight: f32,
 }
 
 impl<'a> ChannelProblem<'a> {
@@ -158,6 +166,7 @@ impl<'a> ChannelProblem<'a> {
             cg_max_iterations: 4,
             cg_tolerance: 1e-3,
             reweight: None,
+            order2_weight: 1.0,
         }
     }
 
@@ -168,6 +177,15 @@ impl<'a> ChannelProblem<'a> {
 
     fn n(&self) -> usize {
         self.w * self.h
+    }
+
+    /// The prior weight of derivative block `a` (`λ` or `λ μ₂`).
+    fn block_lambda(&self, a: usize) -> f32 {
+        if a < 2 {
+            self.lambda
+        } else {
+            self.lambda * self.order2_weight
+        }
     }
 
     /// `out = Bᵀ M B u + c_dark · Σ_a H_aᵀ D_w² H_a u` scaled as the CG system needs:
@@ -259,7 +277,18 @@ impl ChannelProblem<'_> {
         };
         // shrinkage thresholds per block (times the per-pixel weight): λ/ρ, β_l/ρ
         let scale: Vec<f32> =
-            (0..nblk).map(|blk| if blk < ALL.len() { self.lambda / rho } else { self.cross[(blk - ALL.len()) / 2].beta / rho }).collect();
+            (0..nblk).map(|blk| if blk < ALL.len() { self.block_lambda(blk) / rho } else { self.cross[(blk - ALL.len()) / 2].beta / rho }).collect();
+        // per-pixel threshold factors of the cross-channel blocks: w_k · p_k
+        let cross_w: Vec<Option<Vec<f32>>> = self
+            .cross
+            .iter()
+            .map(|cc| {
+                cc.pixel.as_ref().map(|p| match self.weight {
+                    Some(wt) => p.iter().zip(wt).map(|(p, w)| p * w).collect(),
+                    None => p.clone(),
+                })
+            })
+            .collect();
         let mut u = vec![0.0f32; nblk * n];
         let mut kx = vec![0.0f32; nblk * n];
         let mut rhs = vec![0.0f32; n];
@@ -291,7 +320,7 @@ impl ChannelProblem<'_> {
                     let inv = 1.0 / eps;
                     for (i, (k, uu)) in kb.iter_mut().zip(ub.iter_mut()).enumerate() {
                         let v = *k + *uu;
-                        let g = (1.0 + k.abs() * inv).powf(q - 1.0);
+                        let g = if q == 0.5 { 1.0 / (1.0 + k.abs() * inv).sqrt() } else { (1.0 + k.abs() * inv).powf(q - 1.0) };
                         let t = s * g * self.weight.map_or(1.0, |wt| wt[i]);
                         let c = v.max(-t).min(t);
                         *uu = c;
@@ -299,7 +328,8 @@ impl ChannelProblem<'_> {
                     }
                     continue;
                 }
-                match self.weight {
+                let blk_w = if blk >= ALL.len() { cross_w[(blk - ALL.len()) / 2].as_deref().or(self.weight) } else { self.weight };
+                match blk_w {
                     Some(wt) => {
                         for ((k, uu), w) in kb.iter_mut().zip(ub.iter_mut()).zip(wt) {
                             let v = *k + *uu;
@@ -481,14 +511,23 @@ impl PrimalDual for ChannelProblem<'_> {
         for (l, cc) in self.cross.iter().enumerate() {
             for o in rest[2 * l * n..(2 * l + 2) * n].chunks_mut(n) {
                 o.iter_mut().for_each(|v| *v *= cc.beta);
+                if let Some(p) = &cc.pixel {
+                    o.iter_mut().zip(p).for_each(|(v, p)| *v *= p);
+                }
                 if let Some(wt) = self.weight {
                     o.iter_mut().zip(wt).for_each(|(v, w)| *v *= w);
                 }
             }
         }
         match self.weight {
-            Some(wt) => grads.chunks_mut(n).for_each(|g| g.iter_mut().zip(wt).for_each(|(v, w)| *v *= self.lambda * w)),
-            None => grads.iter_mut().for_each(|v| *v *= self.lambda),
+            Some(wt) => grads.chunks_mut(n).enumerate().for_each(|(a, g)| {
+                let l = self.block_lambda(a);
+                g.iter_mut().zip(wt).for_each(|(v, w)| *v *= l * w)
+            }),
+            None => grads.chunks_mut(n).enumerate().for_each(|(a, g)| {
+                let l = self.block_lambda(a);
+                g.iter_mut().for_each(|v| *v *= l)
+            }),
         }
     }
 
@@ -502,16 +541,16 @@ impl PrimalDual for ChannelProblem<'_> {
             match self.weight {
                 Some(wt) => {
                     tmp.iter_mut().zip(ya).zip(wt).for_each(|((t, v), w)| *t = v * w);
-                    filters::add_adjoint(*d, &tmp, w, h, self.lambda, out);
+                    filters::add_adjoint(*d, &tmp, w, h, self.block_lambda(a), out);
                 }
-                None => filters::add_adjoint(*d, ya, w, h, self.lambda, out),
+                None => filters::add_adjoint(*d, ya, w, h, self.block_lambda(a), out),
             }
         }
         for (l, cc) in self.cross.iter().enumerate() {
             for (a, d) in FIRST.iter().enumerate() {
                 let yy = &y[(ALL.len() + 2 * l + a) * n..(ALL.len() + 2 * l + a + 1) * n];
                 for i in 0..n {
-                    let v = self.weight.map_or(yy[i], |wt| wt[i] * yy[i]);
+                    let v = self.weight.map_or(yy[i], |wt| wt[i] * yy[i]) * cc.pixel.as_ref().map_or(1.0, |p| p[i]);
                     tmp[i] = cc.image[i] * v;
                     out[i] -= cc.beta * cc.grad[a][i] * v;
                 }
@@ -606,10 +645,11 @@ mod tests {
         let k = Plane::filled(3, 3, 1.0 / 9.0);
         let ks = KernelSpectrum::new(&fft, &kernel_to_origin(&k, w, h));
         let other = field(n, 5);
-        let cross = vec![CrossChannel { beta: 0.7, grad: gradients(&other, w, h), image: &other }];
+        let cross = vec![CrossChannel { beta: 0.7, grad: gradients(&other, w, h), image: &other, pixel: Some(field(n, 31).iter().map(|v| 0.5 + v).collect()) }];
         let wt: Vec<f32> = field(n, 23).iter().map(|v| 0.2 + v).collect();
         let mut p = ChannelProblem::new(&fft, &ks, &field(n, 1), None, 0.3, &cross, None);
         p.set_weight(Some(&wt));
+        p.order2_weight = 0.4;
         let x = field(n, 11);
         let y: Vec<f32> = field(p.dual_len(), 17).iter().map(|v| v - 0.5).collect();
         let mut kx = vec![0.0; p.dual_len()];
@@ -653,16 +693,18 @@ mod tests {
         let ks = KernelSpectrum::new(&fft, &kernel_to_origin(&k.map(|v| v / s), w, h));
         let data = field(n, 3);
         let other = field(n, 5);
-        let cross = vec![CrossChannel { beta: 0.02, grad: gradients(&other, w, h), image: &other }];
+        let cross = vec![CrossChannel { beta: 0.02, grad: gradients(&other, w, h), image: &other, pixel: Some(field(n, 31).iter().map(|v| 0.5 + v).collect()) }];
         let wt: Vec<f32> = field(n, 23).iter().map(|v| 0.5 + v).collect();
         let mask: Vec<f32> = (0..n).map(|i| if i % 7 == 3 { 0.0 } else { 1.0 }).collect();
         for m in [None, Some(&mask[..])] {
             let mut a = ChannelProblem::new(&fft, &ks, &data, m, 0.01, &cross, None);
             a.set_weight(Some(&wt));
+            a.order2_weight = 0.5;
             let mut xa = data.clone();
             a.solve_admm(&mut xa, 400, 0.5, 10);
             let mut b = ChannelProblem::new(&fft, &ks, &data, m, 0.01, &cross, None);
             b.set_weight(Some(&wt));
+            b.order2_weight = 0.5;
             b.cg_max_iterations = 50;
             b.cg_tolerance = 1e-7;
             let mut xb = data.clone();
@@ -672,8 +714,36 @@ mod tests {
             chambolle_pock(&mut b, &mut xb, &mut y, &opts, Some(l), |_, _| true);
             let (fa, fb) = (objective(&a, &xa, &data, m), objective(&b, &xb, &data, m));
             let start = objective(&a, &data, &data, m);
-            assert!(fa < start * 0.9, "ADMM did not descend: {fa} vs start {start}");
+            assert!(fa < start * 0.95, "ADMM did not descend: {fa} vs start {start}");
             assert!(fa <= fb * 1.002 + 1e-6, "mask {}: ADMM {fa} vs CP {fb}", m.is_some());
+        }
+    }
+
+    /// `K` carries `λ` on the first-order blocks, `λ μ₂` on the second-order ones and
+    /// `β p_k` on a cross-channel block.
+    #[test]
+    fn block_weights_enter_k() {
+        let (w, h) = (10, 8);
+        let n = w * h;
+        let fft = Fft2::plan(w, h);
+        let ks = KernelSpectrum::new(&fft, &kernel_to_origin(&Plane::filled(1, 1, 1.0), w, h));
+        let other = field(n, 5);
+        let pix: Vec<f32> = field(n, 31).iter().map(|v| 0.5 + v).collect();
+        let with = vec![CrossChannel { beta: 0.7, grad: gradients(&other, w, h), image: &other, pixel: Some(pix.clone()) }];
+        let without = vec![CrossChannel { beta: 0.7, grad: gradients(&other, w, h), image: &other, pixel: None }];
+        let x = field(n, 11);
+        let mut p = ChannelProblem::new(&fft, &ks, &field(n, 1), None, 0.3, &with, None);
+        p.order2_weight = 0.25;
+        let q = ChannelProblem::new(&fft, &ks, &field(n, 1), None, 0.3, &without, None);
+        let (mut kp, mut kq) = (vec![0.0; p.dual_len()], vec![0.0; q.dual_len()]);
+        p.apply_k(&x, &mut kp);
+        q.apply_k(&x, &mut kq);
+        for i in 0..ALL.len() * n {
+            let f = if i < 2 * n { 1.0 } else { 0.25 };
+            assert!((kp[i] - f * kq[i]).abs() < 1e-6, "block {}: {} vs {}", i / n, kp[i], kq[i]);
+        }
+        for i in ALL.len() * n..kp.len() {
+            assert!((kp[i] - pix[i % n] * kq[i]).abs() < 1e-6);
         }
     }
 

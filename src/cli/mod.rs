@@ -90,7 +90,8 @@ pub struct EstimateArgs {
     /// Kernel size (odd, pixels); default: measured from the data.
     #[arg(long)]
     pub kernel: Option<usize>,
-    /// Tile side in pixels; default: about four kernels.
+    /// Spacing of the PSF centres in pixels; default: about 1.8 kernels (each centre is fitted
+    /// on a window of about four kernels, then all kernels jointly).
     #[arg(long)]
     pub tile: Option<usize>,
     /// How the files encode light: linear (raw, machine vision) or srgb (webcams).
@@ -107,6 +108,10 @@ pub struct EstimateArgs {
     pub lambda_scale: f64,
     #[arg(long, default_value_t = 150)]
     pub max_iterations: usize,
+    /// Iterations of the joint refinement of all kernels with the interpolated forward model
+    /// (at most; it stops when χ² stalls); 0 keeps the per-window fits.
+    #[arg(long, default_value_t = 40)]
+    pub joint_iterations: usize,
     /// Hide the progress bar.
     #[arg(long)]
     pub quiet: bool,
@@ -168,6 +173,7 @@ fn run_estimate(a: &EstimateArgs) -> Result<()> {
         tile: a.tile,
         lambda_scale: a.lambda_scale,
         max_iterations: a.max_iterations,
+        joint_iterations: a.joint_iterations,
         registration: a.register,
         black_level: a.black_level.map(|b| vec![b]).unwrap_or_default(),
         progress: !a.quiet,

@@ -66,6 +66,8 @@ struct JointProblem {
     lambda: Vec<f32>,
     totals: Vec<f32>,
     pred: Vec<f32>,
+    /// Advanced by one per FISTA iteration.
+    progress: indicatif::ProgressBar,
 }
 
 /// Per-task work buffers for one `F × F` plan.
@@ -396,6 +398,7 @@ fn fista(p: &mut JointProblem, x: &mut [f32], q: &mut [f32], opts: &SplitOptions
     for it in 1..=opts.max_iterations {
         stats.primal_objective = p.normal(&z, &mut g, true);
         history.push(stats.primal_objective);
+        p.progress.inc(1);
         for ((vi, &zi), &gi) in v.iter_mut().zip(&z).zip(&g) {
             *vi = zi - gi / l_f;
         }
@@ -537,6 +540,7 @@ fn build_problem(open: &Plane, sharp: &Plane, valid: &[bool], grid: &PsfGrid, ke
         lambda: lam,
         totals,
         pred: vec![0.0; w * h],
+        progress: indicatif::ProgressBar::hidden(),
     }
 }
 
@@ -548,6 +552,7 @@ fn build_problem(open: &Plane, sharp: &Plane, valid: &[bool], grid: &PsfGrid, ke
 /// statistics and the masked residual RMS (at the last extrapolated point, within a step of
 /// the result). `power` carries the Lipschitz power iteration's vector from one channel to the
 /// next (start with an empty vector): a warm start needs 2 iterations instead of 5.
+/// `progress` advances by one per iteration.
 #[allow(clippy::too_many_arguments)]
 pub fn refine_channel(
     open: &Plane,
@@ -558,8 +563,9 @@ pub fn refine_channel(
     fits: &[(f32, usize, f64)],
     opts: &SplitOptions,
     power: &mut Vec<f32>,
+    progress: &indicatif::ProgressBar,
 ) -> (Stats, f64) {
-    refine_channel_capped(open, sharp, valid, grid, kernels, fits, opts, power, JOINT_DATA_PIXELS)
+    refine_channel_capped(open, sharp, valid, grid, kernels, fits, opts, power, progress, JOINT_DATA_PIXELS)
 }
 
 /// [`refine_channel`] with the data subsampled to about `max_pixels` pixels.
@@ -573,9 +579,11 @@ fn refine_channel_capped(
     fits: &[(f32, usize, f64)],
     opts: &SplitOptions,
     power: &mut Vec<f32>,
+    progress: &indicatif::ProgressBar,
     max_pixels: usize,
 ) -> (Stats, f64) {
     let mut p = build_problem(open, sharp, valid, grid, kernels, fits, max_pixels);
+    p.progress = progress.clone();
     let k = grid.kernel_size;
     let mut x: Vec<f32> = kernels.iter().flat_map(|p| p.data.iter().copied()).collect();
     let l_f = p.lipschitz(if power.is_empty() { 5 } else { 2 }, power);
@@ -701,7 +709,7 @@ mod tests {
         assert!(kept < w * h / 2 && kept > w * h / 6, "kept {kept} of {}", w * h);
         assert!(p.blocks_of.iter().all(|b| !b.is_empty()), "a tile lost all its data");
         let o = crate::solve::primal_dual::SplitOptions { max_iterations: 200, min_iterations: 5, tolerance: 1e-5 };
-        super::refine_channel_capped(&est.open_linear[0], &sharp_s, &est.valid_masks[0], &grid, &mut kernels, &fits, &o, &mut Vec::new(), cap);
+        super::refine_channel_capped(&est.open_linear[0], &sharp_s, &est.valid_masks[0], &grid, &mut kernels, &fits, &o, &mut Vec::new(), &indicatif::ProgressBar::hidden(), cap);
         let mut refined = grid.clone();
         refined.kernels[0] = kernels;
         let cv = |gr: &PsfGrid| {

@@ -339,16 +339,19 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
         let shape = PsfGrid { kernel_size: k, columns: cols, rows, centers: centers.clone(), channels: open.channels.clone(), kernels: vec![] };
         let o = crate::solve::primal_dual::SplitOptions { max_iterations: opts.joint_iterations, min_iterations: 5, tolerance: opts.tolerance * 0.1 };
         let mut power = Vec::new();
+        let bar = progress_bar(opts.progress, (nch * opts.joint_iterations) as u64, "joint refinement");
         for c in 0..nch {
             let mut sharp = pin_reg[c].clone();
             sharp.scale(ratio[c] as f32);
-            let (st, rms) = joint::refine_channel(&open_lin[c], &sharp, &valid_masks[c], &shape, &mut kernels[c], &tile_lambda[c], &o, &mut power);
+            let (st, rms) = joint::refine_channel(&open_lin[c], &sharp, &valid_masks[c], &shape, &mut kernels[c], &tile_lambda[c], &o, &mut power, &bar);
+            bar.set_position(((c + 1) * opts.joint_iterations) as u64);
             // the profile's per-tile figures then describe the refined kernels
             for t in 0..cols * rows {
                 info.iterations[c][t] += st.iterations;
                 info.residual_rms[c][t] = rms;
             }
         }
+        bar.finish_and_clear();
     }
     // the noise level per channel: median over tiles of the least-squares residual level
     let noise: Vec<f64> = tile_noise

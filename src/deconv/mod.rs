@@ -163,6 +163,12 @@ pub struct DeconvOptions {
     /// · λ / max(ī_l(k), 0.05)` with `ī_l` the other channel blurred by a Gaussian of width `s`;
     /// 0 normalises by the tile mean of `i_l` instead.
     pub cross_local: f32,
+    /// Unknown-boundary data term (Almeida & Figueiredo 2013): the outer `r` pixels of each
+    /// tile window (`r` the kernel radius) get data weight 0, and ADMM splits `v = B x` so the
+    /// masked data term stays an elementwise prox ([`problem::ChannelProblem::data_split`]).
+    pub unknown_boundary: bool,
+    /// `ρ_v / 2` of that split (relative to the data term's weight 2).
+    pub data_split_rho: f32,
 }
 
 impl Default for DeconvOptions {
@@ -194,6 +200,8 @@ impl Default for DeconvOptions {
             reweight_eps: 0.02,
             order2_weight: 0.5,
             cross_local: 4.0,
+            unknown_boundary: false,
+            data_split_rho: 1.0,
         }
     }
 }
@@ -483,6 +491,30 @@ pub fn restore_tile(windows: &[Vec<f32>], kernels: &[Plane], setup: &TileSetup) 
         ksz = ksz / 2 + 1;
     }
     stats.levels = levels;
+    // unknown boundary: data weight 0 within the kernel radius of the window edge (there the
+    // periodic B wraps around), so the estimate extends past the data instead of being fitted
+    // to the mirrored window
+    let masks0: Vec<Option<Vec<f32>>> = if opts.unknown_boundary {
+        masks0
+            .into_iter()
+            .zip(kernels)
+            .map(|(m, k)| {
+                let (rx, ry) = (k.width / 2, k.height / 2);
+                let (w, h) = (setup.width, setup.height);
+                let mut m = m.unwrap_or_else(|| vec![1.0; w * h]);
+                for y in 0..h {
+                    for x in 0..w {
+                        if x < rx || x + rx >= w || y < ry || y + ry >= h {
+                            m[y * w + x] = 0.0;
+                        }
+                    }
+                }
+                Some(m)
+            })
+            .collect()
+    } else {
+        masks0
+    };
     // pyramids, index 0 = finest
     let mut js: Vec<Vec<Vec<f32>>> = vec![windows.to_vec()];
     let mut ms: Vec<Vec<Option<Vec<f32>>>> = vec![masks0];
@@ -559,6 +591,9 @@ pub fn restore_tile(windows: &[Vec<f32>], kernels: &[Plane], setup: &TileSetup) 
                     p.reweight = Some((opts.reweight_power, opts.reweight_eps));
                 }
                 let mut x = warm;
+                if opts.unknown_boundary {
+                    p.data_split = Some(2.0 * opts.data_split_rho);
+                }
                 if opts.admm_rho > 0.0 && p.admm_applies() {
                     stats.cg_iterations += p.solve_admm(&mut x, opts.max_iterations, opts.admm_rho * lam, opts.admm_cg_iterations);
                     stats.cp_iterations += opts.max_iterations;

@@ -55,8 +55,9 @@
 //!    estimate extends past the data by `r` instead of being fitted to the mirrored window. The
 //!    mirrored margin then only has to carry the data the kept pixels need: with margin
 //!    `max(3k/4, 16)` and tile cores of at most 96 px (a PSF closer to the true one across the
-//!    tile) the photograph benchmark gained +0.01 to +0.87 dB at about +35 % CPU; without the
-//!    mask, the same thin margins cost up to 4 dB from ringing at the window edge.
+//!    tile) the photograph benchmark gained +0.02 to +0.87 dB (the same CPU on the small scenes,
+//!    ≈ +40 % on 1 MP); without the mask, the same thin margins cost up to 4 dB from ringing at
+//!    the window edge.
 //!
 //! # Conventions
 //! Planes are **linear** values on the full-scale axis ([`crate::image`]); decoding and

@@ -158,6 +158,8 @@ fn experiment(out: &Path, scene: &Path) -> anyhow::Result<()> {
         reweight_eps: env("LR_RWE").map_or(d.reweight_eps, |v| v as f32),
         order2_weight: env("LR_D2").map_or(d.order2_weight, |v| v as f32),
         cross_local: env("LR_BLOC").map_or(d.cross_local, |v| v as f32),
+        unknown_boundary: env("LR_UB").map_or(d.unknown_boundary, |v| v > 0.0),
+        data_split_rho: env("LR_VRHO").map_or(d.data_split_rho, |v| v as f32),
         saturation: match env("LR_SAT") {
             Some(v) if v > 1.0 => None,
             Some(v) => Some(v as f32),

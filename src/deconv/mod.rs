@@ -45,6 +45,19 @@
 //!    literal reading of the paper's Fig. 8 suggests, penalises the correction of the blocky
 //!    upsampled start and cost 2 dB in tests.
 //! 5. Pixels at or above the saturation level get weight 0 in the data term.
+//! 6. Unknown boundary (Almeida & Figueiredo 2013, IEEE TIP 22(8);
+//!    [`DeconvOptions::unknown_boundary`], on by default): the data term of a tile is
+//!    `‖M(B x − ΔJ)‖²` with `M_k = 0` within the kernel radius `r = ⌊k/2⌋` of the window edge
+//!    (where the periodic `B` wraps around) and on saturated pixels, 1 elsewhere. ADMM splits
+//!    `v = B x` with penalty `ρ_v = 2 · data_split_rho`: the `v`-update is elementwise,
+//!    `v_k = (2 M_k ΔJ_k + ρ_v t_k)/(2 M_k + ρ_v)` with `t = B x + u_v`, and the `x`-update stays
+//!    the Fourier division by `ρ_v |B̂|² + ρ Σ_a |Ĥ_a|²` (plus the cross-channel CG step), so the
+//!    estimate extends past the data by `r` instead of being fitted to the mirrored window. The
+//!    mirrored margin then only has to carry the data the kept pixels need: with margin
+//!    `max(3k/4, 16)` and tile cores of at most 96 px (a PSF closer to the true one across the
+//!    tile) the photograph benchmark gained +0.02 to +0.87 dB (the same CPU on the small scenes,
+//!    ≈ +40 % on 1 MP); without the mask, the same thin margins cost up to 4 dB from ringing at
+//!    the window edge.
 //!
 //! # Conventions
 //! Planes are **linear** values on the full-scale axis ([`crate::image`]); decoding and
@@ -135,11 +148,13 @@ pub struct DeconvOptions {
     pub step_balance: f32,
     /// Linear values at or above this are saturated and dropped from the data term.
     pub saturation: Option<f32>,
-    /// Largest tile core (pixels); `None` picks one from the kernel size and the PSF grid.
+    /// Largest tile core (pixels); `None` picks one from the kernel size and the PSF grid
+    /// (1.5 grid spacings, at most 96 with [`DeconvOptions::unknown_boundary`]).
     pub tile_core: Option<usize>,
     /// Width of the blending band between tiles.
     pub overlap: usize,
-    /// Margin around the kept pixels of a tile; `None`: twice the kernel size (at least 16).
+    /// Margin around the kept pixels of a tile; `None`: twice the kernel size (at least 16), or
+    /// with [`DeconvOptions::unknown_boundary`] three quarters of it (at least 16).
     pub margin: Option<usize>,
     /// Restore tiles in parallel.
     pub parallel: bool,
@@ -163,6 +178,12 @@ pub struct DeconvOptions {
     /// · λ / max(ī_l(k), 0.05)` with `ī_l` the other channel blurred by a Gaussian of width `s`;
     /// 0 normalises by the tile mean of `i_l` instead.
     pub cross_local: f32,
+    /// Unknown-boundary data term (Almeida & Figueiredo 2013): the outer `r` pixels of each
+    /// tile window (`r` the kernel radius) get data weight 0, and ADMM splits `v = B x` so the
+    /// masked data term stays an elementwise prox ([`problem::ChannelProblem::data_split`]).
+    pub unknown_boundary: bool,
+    /// `ρ_v / 2` of that split (relative to the data term's weight 2).
+    pub data_split_rho: f32,
 }
 
 impl Default for DeconvOptions {
@@ -194,6 +215,8 @@ impl Default for DeconvOptions {
             reweight_eps: 0.02,
             order2_weight: 0.5,
             cross_local: 4.0,
+            unknown_boundary: true,
+            data_split_rho: 1.0,
         }
     }
 }
@@ -298,13 +321,16 @@ pub fn deblur(
 
     // tile layout
     let k = grid.kernel_size;
-    let margin = opts.margin.unwrap_or((2 * k).max(16));
+    // the unknown-boundary data term needs no mirrored margin to absorb ringing: the estimate
+    // extends past the used data by the kernel radius
+    let margin = opts.margin.unwrap_or(if opts.unknown_boundary { (3 * k / 4).max(16) } else { (2 * k).max(16) });
     let levels = opts.max_levels.max(1);
     let default_core = {
         let budget = 512usize.saturating_sub(2 * margin + opts.overlap).max(96);
         let spacing = |v: &[f64]| if v.len() > 1 { (v[1] - v[0]).abs() as usize } else { usize::MAX };
         let gs = spacing(&grid.column_xs()).min(spacing(&grid.row_ys()));
-        (gs.saturating_mul(3) / 2).clamp(48, budget)
+        let cap = if opts.unknown_boundary { budget.min(96) } else { budget };
+        (gs.saturating_mul(3) / 2).clamp(48, cap)
     };
     let core = opts.tile_core.unwrap_or(default_core).max(16);
     let mut xs = tiles::spans(w, core, opts.overlap);
@@ -483,6 +509,30 @@ pub fn restore_tile(windows: &[Vec<f32>], kernels: &[Plane], setup: &TileSetup) 
         ksz = ksz / 2 + 1;
     }
     stats.levels = levels;
+    // unknown boundary: data weight 0 within the kernel radius of the window edge (there the
+    // periodic B wraps around), so the estimate extends past the data instead of being fitted
+    // to the mirrored window
+    let masks0: Vec<Option<Vec<f32>>> = if opts.unknown_boundary {
+        masks0
+            .into_iter()
+            .zip(kernels)
+            .map(|(m, k)| {
+                let (rx, ry) = (k.width / 2, k.height / 2);
+                let (w, h) = (setup.width, setup.height);
+                let mut m = m.unwrap_or_else(|| vec![1.0; w * h]);
+                for y in 0..h {
+                    for x in 0..w {
+                        if x < rx || x + rx >= w || y < ry || y + ry >= h {
+                            m[y * w + x] = 0.0;
+                        }
+                    }
+                }
+                Some(m)
+            })
+            .collect()
+    } else {
+        masks0
+    };
     // pyramids, index 0 = finest
     let mut js: Vec<Vec<Vec<f32>>> = vec![windows.to_vec()];
     let mut ms: Vec<Vec<Option<Vec<f32>>>> = vec![masks0];
@@ -559,6 +609,9 @@ pub fn restore_tile(windows: &[Vec<f32>], kernels: &[Plane], setup: &TileSetup) 
                     p.reweight = Some((opts.reweight_power, opts.reweight_eps));
                 }
                 let mut x = warm;
+                if opts.unknown_boundary {
+                    p.data_split = Some(2.0 * opts.data_split_rho);
+                }
                 if opts.admm_rho > 0.0 && p.admm_applies() {
                     stats.cg_iterations += p.solve_admm(&mut x, opts.max_iterations, opts.admm_rho * lam, opts.admm_cg_iterations);
                     stats.cp_iterations += opts.max_iterations;

@@ -21,6 +21,11 @@
 //!   solved by conjugate gradients preconditioned with the unmasked Fourier inverse and warm
 //!   started from the previous prox.
 //! - The dark term matches the gradients of the *total* `I_k + x` to those of `i_l`.
+//! - With [`ChannelProblem::data_split`] (`ρ_v`), ADMM splits `v = B x`: the data term
+//!   `‖M(v − ΔJ)‖²` has the elementwise prox `v_k = (2 M_k ΔJ_k + ρ_v t_k)/(2 M_k + ρ_v)`,
+//!   `t = B x + u_v`, `u_v ← t − v`, and the `x`-update solves
+//!   `(ρ_v BᵀB + ρ Σ HᵀH + ρ Σ CᵀC) x = ρ_v Bᵀ(v − u_v) + ρ Σ Kᵀ(z − u)` (a Fourier division
+//!   without cross-channel blocks), whatever the mask `M` (Almeida & Figueiredo 2013).
 //!
 //! All arrays live on the tile's periodic FFT domain (`width × height`, row-major); `B` is the
 //! circular convolution with the tile's kernel, whose wrap-around only touches the cropped
@@ -89,6 +94,8 @@ pub struct ChannelProblem<'a> {
     /// `Bᵀ M ΔJ` (CG prox).
     btmj: Vec<f32>,
     mask: Option<&'a [f32]>,
+    /// `M ΔJ` (split data term).
+    mj: Vec<f32>,
     lambda: f32,
     /// Per-pixel factor on every ℓ1 term (`K = D_w [λH; βC]`); `None`: 1.
     weight: Option<&'a [f32]>,
@@ -109,6 +116,11 @@ pub struct ChannelProblem<'a> {
     /// Relative weight `μ₂` of the second-order derivative blocks `H_3..H_5` (the prior is
     /// `λ (Σ_{a=1,2} ‖H_a x‖₁ + μ₂ Σ_{a=3..5} ‖H_a x‖₁)`); 1: METHOD.md §3 as printed.
     pub order2_weight: f32,
+    /// Penalty `ρ_v` of the data split `v = B x` in [`ChannelProblem::solve_admm`] (`None`: no
+    /// split). With it the data term `‖M(v − ΔJ)‖²` is an elementwise prox, so the mask `M`
+    /// (saturation, and the unknown boundary of the tile) leaves the `x`-update a Fourier
+    /// division (Almeida & Figueiredo 2013).
+    pub data_split: Option<f32>,
 }
 
 impl<'a> ChannelProblem<'a> {
@@ -128,7 +140,7 @@ impl<'a> ChannelProblem<'a> {
         assert_eq!(residual.len(), n);
         let mut spec = vec![Complex32::new(0.0, 0.0); fft.spectrum_len()];
         let needs_cg = mask.is_some() || dark.is_some();
-        let (bj, btmj) = if needs_cg {
+        let (bj, btmj, mj) = if needs_cg {
             let masked: Vec<f32> = match mask {
                 Some(m) => residual.iter().zip(m).map(|(r, m)| r * m).collect(),
                 None => residual.to_vec(),
@@ -139,13 +151,13 @@ impl<'a> ChannelProblem<'a> {
             }
             let mut out = vec![0.0; n];
             fft.inverse_into(&mut spec, &mut out);
-            (Vec::new(), out)
+            (Vec::new(), out, masked)
         } else {
             let mut bj = fft.forward(residual);
             for (s, b) in bj.iter_mut().zip(&kernel.b) {
                 *s *= b.conj();
             }
-            (bj, Vec::new())
+            (bj, Vec::new(), residual.to_vec())
         };
         Self {
             w,
@@ -155,6 +167,7 @@ impl<'a> ChannelProblem<'a> {
             bj,
             btmj,
             mask,
+            mj,
             lambda,
             weight: None,
             cross,
@@ -167,6 +180,7 @@ impl<'a> ChannelProblem<'a> {
             cg_tolerance: 1e-3,
             reweight: None,
             order2_weight: 1.0,
+            data_split: None,
         }
     }
 
@@ -250,18 +264,23 @@ impl ChannelProblem<'_> {
         let nblk = ALL.len() + 2 * self.cross.len();
         let sh = self.derivative_power();
         // P = 2BᵀB + ρ ΣHᵀH (the Fourier part of the x-update system), and its inverse
-        let denom: Vec<f32> = sh.iter().zip(&self.kernel.b2).map(|(s, b2)| (2.0 * b2 + rho * s).max(1e-12)).collect();
+        // with the data split v = Bx the data enters the x-update as ρ_v BᵀB, and the mask lives
+        // in the v-prox only
+        let split = self.data_split;
+        let data_w = split.unwrap_or(2.0);
+        let xmask = if split.is_some() { None } else { self.mask };
+        let denom: Vec<f32> = sh.iter().zip(&self.kernel.b2).map(|(s, b2)| (data_w * b2 + rho * s).max(1e-12)).collect();
         let inv_denom: Vec<f32> = denom.iter().map(|d| 1.0 / d).collect();
-        let direct = self.mask.is_none() && self.cross.is_empty();
+        let direct = xmask.is_none() && self.cross.is_empty();
         // Fast inexact x-update (the default: unmasked, one CG step): one preconditioned
         // steepest-descent step with exact line search, which is what one warm-started PCG
         // iteration is, with `P x` and `ρ CᵀC x` carried along instead of recomputed: since
         // `P p = r` for `p = P⁻¹ r`, `A p = r + ρ CᵀC p` needs no transform, so a step costs two
         // FFTs and one cross-channel normal product (the generic path below: seven and two).
-        let fast = !direct && self.mask.is_none() && cg_iterations == 1;
+        let fast = !direct && xmask.is_none() && cg_iterations == 1;
         let mut spec = vec![Complex32::new(0.0, 0.0); self.fft.spectrum_len()];
         // 2 BᵀM ΔJ, spatial (CG paths); `self.bj` is conj(F B)·F(ΔJ) when unmasked
-        let two_btj: Vec<f32> = if direct {
+        let mut two_btj: Vec<f32> = if direct || split.is_some() {
             Vec::new()
         } else {
             let mut t = if self.mask.is_none() {
@@ -289,6 +308,20 @@ impl ChannelProblem<'_> {
                 })
             })
             .collect();
+        // data split state: B x, the scaled dual u_v, and v − u_v
+        let (mut bx, mut uv, mut dv, mut spec2) = match split {
+            Some(_) => {
+                let mut bx = vec![0.0f32; n];
+                self.fft.forward_into(x, &mut spec);
+                spec.iter_mut().zip(&self.kernel.b).for_each(|(s, b)| *s *= b);
+                self.fft.inverse_into(&mut spec, &mut bx);
+                (bx, vec![0.0f32; n], vec![0.0f32; n], spec.clone())
+            }
+            None => Default::default(),
+        };
+        if split.is_some() && !direct {
+            two_btj = vec![0.0f32; n];
+        }
         let mut u = vec![0.0f32; nblk * n];
         let mut kx = vec![0.0f32; nblk * n];
         let mut rhs = vec![0.0f32; n];
@@ -310,6 +343,24 @@ impl ChannelProblem<'_> {
         let (mut s1, mut s2, mut s0) = if !direct && !fast { (spec.clone(), spec.clone(), spec.clone()) } else { Default::default() };
         let mut bu = if !direct && !fast { vec![0.0f32; n] } else { Vec::new() };
         for _ in 0..iterations {
+            if let Some(rv) = split {
+                // v = argmin ‖M(v − ΔJ)‖² + ρ_v/2 ‖v − (Bx + u_v)‖²  (elementwise),
+                // u_v ← Bx + u_v − v; dv = v − u_v
+                let c = 2.0 / rv;
+                for i in 0..n {
+                    let t = bx[i] + uv[i];
+                    let m = self.mask.map_or(1.0, |m| m[i]);
+                    let v = (c * self.mj[i] + t) / (c * m + 1.0);
+                    uv[i] = t - v;
+                    dv[i] = v - uv[i];
+                }
+                if !direct {
+                    // ρ_v Bᵀ dv, spatial, in place of 2BᵀMΔJ
+                    self.fft.forward_into(&dv, &mut spec2);
+                    spec2.iter_mut().zip(&self.kernel.b).for_each(|(s, b)| *s *= b.conj() * rv);
+                    self.fft.inverse_into(&mut spec2, &mut two_btj);
+                }
+            }
             self.apply_split(x, &mut kx);
             // z = shrink(Kx + u), u ← Kx + u − z; kx ← z − u (the x-update's right-hand side)
             for (blk, (kb, ub)) in kx.chunks_mut(n).zip(u.chunks_mut(n)).enumerate() {
@@ -353,6 +404,16 @@ impl ChannelProblem<'_> {
             self.apply_split_adjoint(&kx, &mut rhs);
             if direct {
                 self.fft.forward_into(&rhs, &mut spec);
+                if let Some(rv) = split {
+                    self.fft.forward_into(&dv, &mut spec2);
+                    for (((s, s2), b), d) in spec.iter_mut().zip(spec2.iter_mut()).zip(&self.kernel.b).zip(&inv_denom) {
+                        *s = (*s * rho + *s2 * b.conj() * rv) * d;
+                        *s2 = *s * b;
+                    }
+                    self.fft.inverse_into(&mut spec, x);
+                    self.fft.inverse_into(&mut spec2, &mut bx);
+                    continue;
+                }
                 for ((s, b), d) in spec.iter_mut().zip(&self.bj).zip(&inv_denom) {
                     *s = (*s * rho + b * 2.0) * d;
                 }
@@ -366,6 +427,11 @@ impl ChannelProblem<'_> {
                 }
                 self.fft.forward_into(&r, &mut spec);
                 spec.iter_mut().zip(&inv_denom).for_each(|(s, d)| *s *= d);
+                if split.is_some() {
+                    // B p, to carry B x along (dv is free again: it holds B p)
+                    spec2.iter_mut().zip(&spec).zip(&self.kernel.b).for_each(|((t, s), b)| *t = s * b);
+                    self.fft.inverse_into(&mut spec2, &mut dv);
+                }
                 self.fft.inverse_into(&mut spec, &mut p);
                 cp.iter_mut().for_each(|v| *v = 0.0);
                 self.add_cross_normal(&p, rho, &mut kbuf, &mut cp);
@@ -381,6 +447,9 @@ impl ChannelProblem<'_> {
                         px[i] += alpha * r[i];
                         cx[i] += alpha * cp[i];
                     }
+                    if split.is_some() {
+                        bx.iter_mut().zip(&dv).for_each(|(b, d)| *b += alpha * d);
+                    }
                 }
                 cg_total += 1;
                 continue;
@@ -390,7 +459,7 @@ impl ChannelProblem<'_> {
                 |v, out| {
                     // 2BᵀMBv + ρ ΣHᵀH v in Fourier when unmasked, then ρ CᵀC v
                     this.fft.forward_into(v, &mut s1);
-                    match this.mask {
+                    match xmask {
                         None => {
                             for (s, d) in s1.iter_mut().zip(&denom) {
                                 *s *= d;
@@ -428,6 +497,11 @@ impl ChannelProblem<'_> {
                 1e-4,
             );
             cg_total += st.iterations;
+            if split.is_some() {
+                self.fft.forward_into(x, &mut spec);
+                spec.iter_mut().zip(&self.kernel.b).for_each(|(s, b)| *s *= b);
+                self.fft.inverse_into(&mut spec, &mut bx);
+            }
         }
         cg_total
     }
@@ -696,12 +770,22 @@ mod tests {
         let cross = vec![CrossChannel { beta: 0.02, grad: gradients(&other, w, h), image: &other, pixel: Some(field(n, 31).iter().map(|v| 0.5 + v).collect()) }];
         let wt: Vec<f32> = field(n, 23).iter().map(|v| 0.5 + v).collect();
         let mask: Vec<f32> = (0..n).map(|i| if i % 7 == 3 { 0.0 } else { 1.0 }).collect();
-        for m in [None, Some(&mask[..])] {
+        // unknown boundary: no data within 2 px of the edge (the kernel radius)
+        let edge: Vec<f32> = (0..n).map(|i| if (2..w - 2).contains(&(i % w)) && (2..h - 2).contains(&(i / w)) && i % 7 != 3 { 1.0 } else { 0.0 }).collect();
+        for (m, split) in [(None, None), (Some(&mask[..]), None), (Some(&mask[..]), Some(2.0)), (Some(&edge[..]), Some(2.0)), (None, Some(1.0))] {
             let mut a = ChannelProblem::new(&fft, &ks, &data, m, 0.01, &cross, None);
             a.set_weight(Some(&wt));
             a.order2_weight = 0.5;
+            a.data_split = split;
             let mut xa = data.clone();
-            a.solve_admm(&mut xa, 400, 0.5, 10);
+            a.solve_admm(&mut xa, if split.is_some() { 1500 } else { 400 }, 0.5, 10);
+            // the split's one-step (fast) x-update reaches the same minimum
+            if split.is_some() {
+                let mut xf = data.clone();
+                a.solve_admm(&mut xf, 3000, 0.5, 1);
+                let (ff, fa) = (objective(&a, &xf, &data, m), objective(&a, &xa, &data, m));
+                assert!(ff <= fa * 1.003 + 1e-6, "split fast {ff} vs CG {fa}");
+            }
             let mut b = ChannelProblem::new(&fft, &ks, &data, m, 0.01, &cross, None);
             b.set_weight(Some(&wt));
             b.order2_weight = 0.5;
@@ -715,7 +799,7 @@ mod tests {
             let (fa, fb) = (objective(&a, &xa, &data, m), objective(&b, &xb, &data, m));
             let start = objective(&a, &data, &data, m);
             assert!(fa < start * 0.95, "ADMM did not descend: {fa} vs start {start}");
-            assert!(fa <= fb * 1.002 + 1e-6, "mask {}: ADMM {fa} vs CP {fb}", m.is_some());
+            assert!(fa <= fb * 1.002 + 1e-6, "mask {} split {split:?}: ADMM {fa} vs CP {fb}", m.is_some());
         }
     }
 

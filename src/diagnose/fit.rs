@@ -301,7 +301,7 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
             .map(|kk| match &diffraction {
                 Some(d) => {
                     let (r, eps) = d.channel(c);
-                    super::diffraction::noise_gain(kk, r, eps)
+                    super::diffraction::noise_gain(kk, r, d.aberration_sigma_px, eps)
                 }
                 None => kk.data.iter().map(|v| v * v).sum::<f32>(),
             })

@@ -86,6 +86,10 @@ pub struct DiffractionCorrection {
     pub airy_radius_px: Vec<f64>,
     /// Wiener noise-to-signal ratio of the restoration.
     pub epsilon: Vec<f64>,
+    /// Standard deviation (px) of the Gaussian blur of the lens's residual aberrations at the
+    /// stop, on top of diffraction (0: diffraction alone).
+    #[serde(default)]
+    pub aberration_sigma_px: f64,
 }
 
 impl DiffractionCorrection {
@@ -93,7 +97,7 @@ impl DiffractionCorrection {
     pub fn restore(&self, c: usize, p: &Plane) -> Plane {
         let r = self.airy_radius_px.get(c).or(self.airy_radius_px.first()).copied().unwrap_or(1.0);
         let e = self.epsilon.get(c).or(self.epsilon.first()).copied().unwrap_or(1e-2);
-        super::diffraction::restore(p, r, e)
+        super::diffraction::restore(p, r, self.aberration_sigma_px, e)
     }
     /// `(radius, epsilon)` of channel `c`.
     pub fn channel(&self, c: usize) -> (f64, f64) {

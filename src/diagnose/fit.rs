@@ -8,8 +8,7 @@
 //! `G` the vignetting × gradient gain and `β_c` the offset (each present only when its
 //! correction is). The fit alternates: kernels by projected FISTA ([`super::kernels`]) with the
 //! other parameters fixed, then one Gauss–Newton step for the scalar parameters, then the
-//! weights `1/Var` from the new prediction. Three rounds. Under `veiling_glare`, each kernel step hands the
-//! kernels' common flat floor to the glare amplitude ([`move_pedestal_to_glare`]).
+//! weights `1/Var` from the new prediction. Three rounds.
 //!
 //! # Noise and χ²
 //! `Var = Var_open(m) + ΣK²·s²·Var_pinhole(level)` on the linear axis, from the measured
@@ -186,38 +185,6 @@ pub fn solve_dense(mut a: Vec<Vec<f64>>, mut b: Vec<f64>) -> Option<Vec<f64>> {
 
 /// Fits `corrections` (their parameter values are starting points) to `data`, starting from
 /// `init`'s kernels and exposure ratios.
-/// Under `veiling_glare`, the part of the halo that falls inside the kernel support is, over a
-/// target whose local mean varies slowly, interchangeable with a flat floor under every kernel
-/// (`c·(B_k * P)` and `c·k²·(G_σ * P)` agree at low frequencies; the halo is nearly flat across
-/// a kernel width). The kernel step alone leaves that floor where the base fit put it, so the
-/// fitted fraction comes out short. The floor common to all tiles — the smallest, over tiles,
-/// of the median of each kernel's outer ring (a PSF is near zero at its support's edge) — is
-/// taken out of the kernels and its mass `c·k²` (less what the clamp at 0 keeps) returned, to
-/// be added to the glare amplitude.
-pub fn move_pedestal_to_glare(kernels: &mut [Plane]) -> f64 {
-    let floor = kernels
-        .iter()
-        .map(|k| {
-            let (kw, kh) = (k.width, k.height);
-            let mut ring: Vec<f32> = (0..kw * kh).filter(|&i| i % kw == 0 || i % kw + 1 == kw || i / kw == 0 || i / kw + 1 == kh).map(|i| k.data[i]).collect();
-            ring.sort_by(|a, b| a.total_cmp(b));
-            ring.get(ring.len() / 2).copied().unwrap_or(0.0)
-        })
-        .fold(f32::INFINITY, f32::min);
-    if !(floor.is_finite() && floor > 0.0) || kernels.is_empty() {
-        return 0.0;
-    }
-    let mut moved = 0.0f64;
-    for k in kernels.iter_mut() {
-        for v in k.data.iter_mut() {
-            let d = v.min(floor);
-            *v -= d;
-            moved += d as f64;
-        }
-    }
-    moved / kernels.len() as f64
-}
-
 pub fn fit(data: &Data, corrections: &Corrections, init: &Model, settings: FitSettings) -> Fit {
     fit_masked(data, corrections, init, settings, &|_, _| true)
 }
@@ -340,13 +307,6 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
                 let (nu, _s) = fit_kernels(&ops[c], &y, &wt, &u[c], kset);
                 u[c] = nu;
                 a_parts[c] = blur_part(c, &u[c]);
-            }
-            if corr.veiling_glare.is_some() {
-                let moved = move_pedestal_to_glare(&mut u[c]);
-                if moved > 0.0 {
-                    glare_amp[c] += moved;
-                    a_parts[c] = blur_part(c, &u[c]);
-                }
             }
         }
         // Gauss–Newton on the scalar parameters (shared ones couple the channels)

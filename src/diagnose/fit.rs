@@ -129,7 +129,8 @@ pub fn correction_params(c: &Corrections, channels: usize) -> usize {
         p += 1;
     }
     if c.pinhole_diffraction.is_some() {
-        p += 1;
+        // the Airy radius and the aberration blur
+        p += 2;
     }
     if c.misregistration.is_some() {
         p += 2;

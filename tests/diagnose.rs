@@ -130,9 +130,10 @@ fn psf_field_variation_is_named() {
     check_named("psf_field_variation", 9);
 }
 
-/// Known gap: named first and the fit improves, but the final residual is ~1.2× the floor
-/// (not 1.10): the Airy model leaves out the lens's residual aberrations at the stop, which the
-/// fitted radius absorbs (it comes out larger than the diffraction radius alone).
+/// Named first and at the floor: the reference's blur is modelled as the Airy pattern times a
+/// Gaussian of the lens's residual aberrations at the stop (`aberration_sigma_px`); the Airy
+/// radius still comes out above the diffraction radius alone (the aberrations vary across the
+/// field, the model has one Gaussian).
 #[test]
 fn pinhole_diffraction_is_named_and_its_radius_estimated() {
     let (row, d, c) = case(Some("pinhole_diffraction"), 1);
@@ -143,7 +144,8 @@ fn pinhole_diffraction_is_named_and_its_radius_estimated() {
     let got = e.parameters["airy_radius_px"][0].as_f64().unwrap();
     let want = c.truth["airy_radius_px"].as_f64().unwrap();
     assert!(got / want > 0.8 && got / want < 1.6, "Airy radius {got:.2} px vs diffraction alone {want:.2} px");
-    assert!(row.floor_ratio < 1.25, "final residual {:.3}× the floor", row.floor_ratio);
+    assert!(e.parameters["aberration_sigma_px"].as_f64().is_some_and(|v| (0.0..=1.5).contains(&v)), "{}", e.parameters);
+    assert!(row.floor_ratio <= FLOOR, "final residual {:.3}× the floor", row.floor_ratio);
 }
 
 /// The report files, the corrected profile through `apply_corrections`, the CLI entry point,

@@ -12,7 +12,7 @@
 //! | `saturation` | clipped pixels censored, reference-clipped pixels out of the data term | 1 |
 //! | `psf_field_variation` | a finer kernel grid (twice the tiles per axis, at most one tile per two kernel widths; may be proposed again) | the extra kernels |
 //!
-//! | `pinhole_diffraction` | the reference restored by the Wiener filter of its Airy PSF ([`super::diffraction`]) | 1 (the Airy radius; channels scale by wavelength) |
+//! | `pinhole_diffraction` | the reference restored by the Wiener filter of its Airy ⊛ Gaussian PSF ([`super::diffraction`]) | 2 (the Airy radius, channels scaling by wavelength; the Gaussian `σ_a` of the residual aberrations) |
 
 use super::analysis::{curve, where_text, Analysis};
 use super::fit::{fit, Data, Fit, FitSettings, Model, CLIP};
@@ -351,6 +351,9 @@ pub fn parameters_json(name: &str, c: &Corrections) -> serde_json::Value {
     v.unwrap_or(serde_json::Value::Null)
 }
 
+/// Largest residual-aberration blur `σ_a` (px) searched for `pinhole_diffraction`.
+const ABERRATION_MAX_PX: f64 = 1.5;
+
 /// Airy radii (px, green) screened for `pinhole_diffraction`.
 const AIRY_RADII: [f64; 5] = [0.9, 1.3, 1.9, 2.8, 4.0];
 
@@ -378,34 +381,35 @@ fn diffraction_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Can
         return None;
     }
     let names: Vec<String> = data.open.channels.clone();
-    let make = |r: f64| -> Corrections {
+    let make = |r: f64, sa: f64| -> Corrections {
         let radii: Vec<f64> = (0..nch).map(|c| r * super::diffraction::channel_wavelength_um(names.get(c).map_or("Y", |s| s.as_str())) / 0.55).collect();
         let eps: Vec<f64> = (0..nch)
             .map(|c| {
                 let p = &current.reference[c];
                 let vp = data.pinhole_variance_scale * data.curves[c].linear_variance(p.mean() as f32, transfer) as f64;
-                super::diffraction::epsilon(p, vp, radii[c])
+                super::diffraction::epsilon(p, vp, radii[c], sa)
             })
             .collect();
-        Corrections { pinhole_diffraction: Some(super::model::DiffractionCorrection { airy_radius_px: radii, epsilon: eps }), ..current.model.corrections.clone() }
+        Corrections { pinhole_diffraction: Some(super::model::DiffractionCorrection { airy_radius_px: radii, epsilon: eps, aberration_sigma_px: sa }), ..current.model.corrections.clone() }
     };
     // warm start: K ≈ K_current * D (module docs of `diffraction`)
-    let init = |r: f64| -> Model {
-        let corr = make(r);
-        let d = corr.pinhole_diffraction.clone().unwrap_or(super::model::DiffractionCorrection { airy_radius_px: vec![r], epsilon: vec![1e-2] });
+    let init = |r: f64, sa: f64| -> Model {
+        let corr = make(r, sa);
+        let d = corr.pinhole_diffraction.clone().unwrap_or(super::model::DiffractionCorrection { airy_radius_px: vec![r], epsilon: vec![1e-2], aberration_sigma_px: sa });
         let mut m = current.model.clone();
         for (c, ks) in m.grid.kernels.iter_mut().enumerate() {
             let rc = d.channel(c).0;
-            ks.iter_mut().for_each(|k| *k = super::diffraction::blur_kernel(k, rc));
+            ks.iter_mut().for_each(|k| *k = super::diffraction::blur_kernel(k, rc, sa));
         }
         m.corrections = corr;
         m
     };
     let screen = FitSettings { rounds: 1, kernel_iterations: 30 };
-    let eval = |r: f64| {
-        let m = init(r);
+    let eval2 = |r: f64, sa: f64| {
+        let m = init(r, sa);
         fit(data, &m.corrections, &m, screen).chi2()
     };
+    let eval = |r: f64| eval2(r, 0.0);
     let scores: Vec<(f64, f64)> = AIRY_RADII.iter().map(|&r| (r, eval(r))).collect();
     let (mut best_r, mut best_v) = scores.iter().copied().fold((AIRY_RADII[0], f64::INFINITY), |b, s| if s.1 < b.1 { s } else { b });
     let (mut lo, mut hi) = ((best_r / 1.5).ln(), (best_r * 1.5).ln());
@@ -428,17 +432,52 @@ fn diffraction_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Can
             (best_r, best_v) = (x.exp(), v);
         }
     }
+    // the residual aberrations: σ_a by golden section at the fitted radius, then the radius
+    // again (it shrinks once the Gaussian takes the aberrations' share); kept only if χ² falls
+    let mut best_sa = 0.0;
+    {
+        let golden = |lo: f64, hi: f64, f: &dyn Fn(f64) -> f64| -> (f64, f64) {
+            let (mut lo, mut hi) = (lo, hi);
+            let (mut x1, mut x2) = (hi - gr * (hi - lo), lo + gr * (hi - lo));
+            let (mut f1, mut f2) = (f(x1), f(x2));
+            for _ in 0..2 {
+                if f1 < f2 {
+                    (hi, x2, f2) = (x2, x1, f1);
+                    x1 = hi - gr * (hi - lo);
+                    f1 = f(x1);
+                } else {
+                    (lo, x1, f1) = (x1, x2, f2);
+                    x2 = lo + gr * (hi - lo);
+                    f2 = f(x2);
+                }
+            }
+            if f1 < f2 {
+                (x1, f1)
+            } else {
+                (x2, f2)
+            }
+        };
+        let r0 = best_r;
+        let (sa, v) = golden(0.1, ABERRATION_MAX_PX, &|sa| eval2(r0, sa));
+        if v < best_v {
+            (best_sa, best_v) = (sa, v);
+            let (lr, v2) = golden((r0 / 1.8).ln(), r0.ln(), &|x| eval2(x.exp(), sa));
+            if v2 < best_v {
+                (best_r, best_v) = (lr.exp(), v2);
+            }
+        }
+    }
     let _ = best_v;
     Some(Candidate {
         name: "pinhole_diffraction",
-        corrections: make(best_r),
+        corrections: make(best_r, best_sa),
         evidence: format!(
             "the wide-open capture has {:.2}× the power a non-negative kernel can pass from the reference at {:.2} cycles/px (noise removed; at most 1 without this effect); residual against image gradient: {}",
             worst.1,
             worst.0,
             curve_text(a, "gradient")
         ),
-        init: Some(init(best_r)),
+        init: Some(init(best_r, best_sa)),
         location: format!("fine detail everywhere (above {:.2} cycles/px); channels {}; {}", worst.0, channel_list(data), where_text(a)),
     })
 }

@@ -18,6 +18,15 @@
 //! base model `K * P` cannot restore what `D̂` removed: wherever the wide-open lens passes more
 //! than the stopped-down one, the wide-open capture holds detail the model cannot reproduce.
 //!
+//! At a real stop the lens is not quite diffraction-limited: its residual aberrations add a
+//! small blur, modelled as a Gaussian of standard deviation `σ_a` pixels (one for the whole
+//! field), so that the reference's transfer function is
+//!
+//! `D̂_a(fx, fy) = D̂(fx, fy) · exp(−2π²·σ_a²·(fx² + fy²))`
+//!
+//! (`σ_a = 0`: diffraction alone). Without it the fitted Airy radius absorbs the aberrations
+//! and comes out too large. `D` below stands for `D_a`.
+//!
 //! # The model term
 //! The reference is restored before the kernels act, by the Wiener filter of `D`:
 //!
@@ -68,11 +77,17 @@ pub fn transfer(fx: f64, fy: f64, radius_px: f64) -> f64 {
     circular_otf((fx * fx + fy * fy).sqrt() / fc) * sinc(fx) * sinc(fy)
 }
 
+/// `D̂_a`: [`transfer`] times the Gaussian of the residual aberrations, `σ_a = aberration_px`.
+pub fn reference_transfer(fx: f64, fy: f64, radius_px: f64, aberration_px: f64) -> f64 {
+    let g = if aberration_px > 0.0 { (-2.0 * std::f64::consts::PI.powi(2) * aberration_px * aberration_px * (fx * fx + fy * fy)).exp() } else { 1.0 };
+    transfer(fx, fy, radius_px) * g
+}
+
 /// The Wiener restoration `S̃` of a reference plane (module docs). Mirror-padded by a margin
 /// of several Airy radii; returns a plane of the input's size.
-pub fn restore(p: &Plane, radius_px: f64, epsilon: f64) -> Plane {
+pub fn restore(p: &Plane, radius_px: f64, aberration_px: f64, epsilon: f64) -> Plane {
     let (w, h) = (p.width, p.height);
-    let m = ((6.0 * radius_px).ceil() as usize + 8).min(w.max(h));
+    let m = ((6.0 * radius_px + 4.0 * aberration_px).ceil() as usize + 8).min(w.max(h));
     let (pw, ph) = (good_size(w + 2 * m), good_size(h + 2 * m));
     let fft = Fft2::plan(pw, ph);
     let win = p.window_reflect(-(m as isize), -(m as isize), pw, ph);
@@ -81,7 +96,7 @@ pub fn restore(p: &Plane, radius_px: f64, epsilon: f64) -> Plane {
     let mut spec = fft.forward(&centred);
     for (i, s) in spec.iter_mut().enumerate() {
         let (fx, fy) = fft.frequency(i);
-        let d = transfer(fx as f64, fy as f64, radius_px);
+        let d = reference_transfer(fx as f64, fy as f64, radius_px, aberration_px);
         *s *= (d / (d * d + epsilon)) as f32;
     }
     let full = fft.inverse(spec);
@@ -91,7 +106,7 @@ pub fn restore(p: &Plane, radius_px: f64, epsilon: f64) -> Plane {
 /// The noise-to-signal ratio `ε = σ²_P / σ²_S` of a reference plane with noise variance
 /// `noise_var`, the target's variance taken from the plane's spectrum (`σ²_S = (var P − σ²_P) /
 /// mean D̂²`), at least `1e-4`.
-pub fn epsilon(p: &Plane, noise_var: f64, radius_px: f64) -> f64 {
+pub fn epsilon(p: &Plane, noise_var: f64, radius_px: f64, aberration_px: f64) -> f64 {
     let n = p.data.len().max(1) as f64;
     let mean = p.sum() / n;
     let var = p.data.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / n;
@@ -102,7 +117,7 @@ pub fn epsilon(p: &Plane, noise_var: f64, radius_px: f64) -> f64 {
         for i in 0..steps {
             let fx = (i as f64 + 0.5) / steps as f64 - 0.5;
             let fy = (j as f64 + 0.5) / steps as f64 - 0.5;
-            acc += transfer(fx, fy, radius_px).powi(2);
+            acc += reference_transfer(fx, fy, radius_px, aberration_px).powi(2);
         }
     }
     let md2 = (acc / (steps * steps) as f64).max(1e-9);
@@ -112,7 +127,7 @@ pub fn epsilon(p: &Plane, noise_var: f64, radius_px: f64) -> f64 {
 
 /// Energy `Σ (K * W)²` of the combined kernel through which the reference's noise reaches the
 /// prediction (`Ŵ = D̂/(D̂² + ε)`), computed on a periodic grid of side `good_size(4k)`.
-pub fn noise_gain(kernel: &Plane, radius_px: f64, epsilon: f64) -> f32 {
+pub fn noise_gain(kernel: &Plane, radius_px: f64, aberration_px: f64, epsilon: f64) -> f32 {
     let k = kernel.width.max(kernel.height);
     let n = good_size((4 * k).max(64));
     let fft = Fft2::plan(n, n);
@@ -127,7 +142,7 @@ pub fn noise_gain(kernel: &Plane, radius_px: f64, epsilon: f64) -> f32 {
     let mut e = 0.0f64;
     for (i, s) in spec.iter().enumerate() {
         let (fx, fy) = fft.frequency(i);
-        let d = transfer(fx as f64, fy as f64, radius_px);
+        let d = reference_transfer(fx as f64, fy as f64, radius_px, aberration_px);
         let g = d / (d * d + epsilon);
         let kx = i / n;
         let mult = if kx == 0 || (n % 2 == 0 && kx == n / 2) { 1.0 } else { 2.0 };
@@ -197,7 +212,7 @@ pub fn excess_detail(open: &Plane, reference: &Plane, s: f64, var_open: f64, var
 /// `K * D` cropped to the kernel's support, clamped non-negative and rescaled to `K`'s sum: the
 /// wide-open kernel that a kernel fitted against the unrestored reference (`K_base ≈ K * D⁻¹`)
 /// implies, the warm start of the refit once the reference is restored.
-pub fn blur_kernel(kernel: &Plane, radius_px: f64) -> Plane {
+pub fn blur_kernel(kernel: &Plane, radius_px: f64, aberration_px: f64) -> Plane {
     let (kw, kh) = (kernel.width, kernel.height);
     let n = good_size(2 * kw.max(kh) + 16);
     let fft = Fft2::plan(n, n);
@@ -205,7 +220,7 @@ pub fn blur_kernel(kernel: &Plane, radius_px: f64) -> Plane {
     let mut spec = fft.forward(&padded);
     for (i, s) in spec.iter_mut().enumerate() {
         let (fx, fy) = fft.frequency(i);
-        *s *= transfer(fx as f64, fy as f64, radius_px) as f32;
+        *s *= reference_transfer(fx as f64, fy as f64, radius_px, aberration_px) as f32;
     }
     let full = fft.inverse(spec);
     let mut out = crate::solve::conv::kernel_from_origin(&full, n, n, kw, kh);
@@ -299,7 +314,7 @@ mod tests {
             *s *= transfer(fx as f64, fy as f64, 2.0) as f32;
         }
         let blurred = Plane { width: w, height: h, data: fft.inverse(spec) };
-        let restored = restore(&blurred, 2.0, 1e-4);
+        let restored = restore(&blurred, 2.0, 0.0, 1e-4);
         let err = |a: &Plane| {
             let mut s = 0.0f64;
             for y in 16..h - 16 {
@@ -312,12 +327,42 @@ mod tests {
         assert!(err(&restored) < 0.25 * err(&blurred), "restored {:.4} vs blurred {:.4}", err(&restored), err(&blurred));
     }
 
+    /// `D̂_a` is the diffraction transfer times the Gaussian's (`exp(−2π²σ²f²)`), and restoring
+    /// an Airy ⊛ Gaussian blur with the Gaussian modelled beats the Airy pattern alone.
+    #[test]
+    fn aberrated_transfer_and_its_restoration() {
+        assert_eq!(reference_transfer(0.1, 0.2, 1.5, 0.0), transfer(0.1, 0.2, 1.5));
+        let want = transfer(0.2, 0.0, 1.5) * (-2.0 * std::f64::consts::PI.powi(2) * 0.49 * 0.04f64).exp();
+        assert!((reference_transfer(0.2, 0.0, 1.5, 0.7) - want).abs() < 1e-12);
+        let (w, h) = (96, 80);
+        let mut r = Rng::new(6);
+        let sharp = crate::optics::capture::gaussian_blur(&Plane::from_fn(w, h, |_, _| r.uniform() as f32), 1.0);
+        let fft = Fft2::plan(w, h);
+        let mut spec = fft.forward(&sharp.data);
+        for (i, s) in spec.iter_mut().enumerate() {
+            let (fx, fy) = fft.frequency(i);
+            *s *= reference_transfer(fx as f64, fy as f64, 1.5, 0.7) as f32;
+        }
+        let blurred = Plane { width: w, height: h, data: fft.inverse(spec) };
+        let err = |a: &Plane| {
+            let mut s = 0.0f64;
+            for y in 16..h - 16 {
+                for x in 16..w - 16 {
+                    s += ((a.get(x, y) - sharp.get(x, y)) as f64).powi(2);
+                }
+            }
+            s.sqrt()
+        };
+        let (with, without) = (err(&restore(&blurred, 1.5, 0.7, 1e-4)), err(&restore(&blurred, 1.5, 0.0, 1e-4)));
+        assert!(with < 0.7 * without, "with the Gaussian {with:.4}, Airy alone {without:.4}");
+    }
+
     #[test]
     fn noise_gain_grows_as_epsilon_falls_and_matches_a_delta_kernel() {
         let mut delta = Plane::new(9, 9);
         delta.set(4, 4, 1.0);
-        let big = noise_gain(&delta, 2.5, 1e-3);
-        let small = noise_gain(&delta, 2.5, 1e-1);
+        let big = noise_gain(&delta, 2.5, 0.0, 1e-3);
+        let small = noise_gain(&delta, 2.5, 0.0, 1e-1);
         assert!(big > small && small > 0.0, "{big} {small}");
         // a delta kernel: Σ W² = mean over frequencies of Ŵ²
         let n = good_size(64);
@@ -369,7 +414,7 @@ mod simulator_tests {
         let e0 = err(&stopped.clean[0]);
         let mut rows = vec![];
         for r in [0.6 * r_true, r_true, 1.6 * r_true] {
-            rows.push((r, err(&restore(&stopped.clean[0], r, 1e-3))));
+            rows.push((r, err(&restore(&stopped.clean[0], r, 0.0, 1e-3))));
         }
         eprintln!("unrestored {e0:.4}; {rows:?}");
         // with a 16-frame average's noise and the measured ε
@@ -378,8 +423,8 @@ mod simulator_tests {
         let nv = noisy.variance[0].mean();
         let mut nrows = vec![];
         for r in [0.6 * r_true, 0.9 * r_true, r_true, 1.1 * r_true, 1.35 * r_true, 1.6 * r_true] {
-            let e = epsilon(&noisy.image.planes[0], nv, r);
-            nrows.push((r, e, err(&restore(&noisy.image.planes[0], r, e))));
+            let e = epsilon(&noisy.image.planes[0], nv, r, 0.0);
+            nrows.push((r, e, err(&restore(&noisy.image.planes[0], r, 0.0, e))));
         }
         eprintln!("noisy: unrestored {:.4}; {nrows:?}", err(&noisy.image.planes[0]));
         assert!(rows[1].1 < 0.5 * e0, "{rows:?} vs {e0}");

@@ -129,7 +129,8 @@ pub fn correction_params(c: &Corrections, channels: usize) -> usize {
         p += 1;
     }
     if c.pinhole_diffraction.is_some() {
-        p += 1;
+        // the Airy radius and the aberration blur
+        p += 2;
     }
     if c.misregistration.is_some() {
         p += 2;
@@ -268,7 +269,7 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
             .map(|kk| match &diffraction {
                 Some(d) => {
                     let (r, eps) = d.channel(c);
-                    super::diffraction::noise_gain(kk, r, eps)
+                    super::diffraction::noise_gain(kk, r, d.aberration_sigma_px, eps)
                 }
                 None => kk.data.iter().map(|v| v * v).sum::<f32>(),
             })

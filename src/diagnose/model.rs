@@ -5,7 +5,8 @@
 //! 1. `tone_curve` — both captures are encoded: `L_p = T⁻¹(P)` (`transfer = "srgb"`), and the
 //!    prediction is encoded back at the end. Without it the profile's source transfer is used.
 //!    Then `pinhole_diffraction` — the reference is restored by the Wiener filter of its own
-//!    diffraction PSF (`airy_radius_px`, `epsilon` per channel; [`super::diffraction`]).
+//!    PSF at the stop (`airy_radius_px`, `epsilon` per channel, `aberration_sigma_px`;
+//!    [`super::diffraction`]).
 //! 2. `misregistration` — the reference is resampled onto the wide-open geometry with the fitted
 //!    similarity (`matrix`, `translation`; the convention of [`crate::profile::RegistrationInfo`]).
 //! 3. **blur** — `A = Σ_t w_t·(K_t * L_p)`, the profile's kernels (sum 1), hat-interpolated.
@@ -86,6 +87,10 @@ pub struct DiffractionCorrection {
     pub airy_radius_px: Vec<f64>,
     /// Wiener noise-to-signal ratio of the restoration.
     pub epsilon: Vec<f64>,
+    /// Standard deviation (px) of the Gaussian blur of the lens's residual aberrations at the
+    /// stop, on top of diffraction (0: diffraction alone).
+    #[serde(default)]
+    pub aberration_sigma_px: f64,
 }
 
 impl DiffractionCorrection {
@@ -93,7 +98,7 @@ impl DiffractionCorrection {
     pub fn restore(&self, c: usize, p: &Plane) -> Plane {
         let r = self.airy_radius_px.get(c).or(self.airy_radius_px.first()).copied().unwrap_or(1.0);
         let e = self.epsilon.get(c).or(self.epsilon.first()).copied().unwrap_or(1e-2);
-        super::diffraction::restore(p, r, e)
+        super::diffraction::restore(p, r, self.aberration_sigma_px, e)
     }
     /// `(radius, epsilon)` of channel `c`.
     pub fn channel(&self, c: usize) -> (f64, f64) {

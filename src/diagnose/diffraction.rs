@@ -301,29 +301,37 @@ mod tests {
         }
     }
 
+    /// `sharp` blurred by the transfer function `otf(fx, fy)` on its own periodic grid.
+    fn periodic_blur(sharp: &Plane, otf: impl Fn(f64, f64) -> f64) -> Plane {
+        let fft = Fft2::plan(sharp.width, sharp.height);
+        let mut spec = fft.forward(&sharp.data);
+        for (i, s) in spec.iter_mut().enumerate() {
+            let (fx, fy) = fft.frequency(i);
+            *s *= otf(fx as f64, fy as f64) as f32;
+        }
+        Plane { width: sharp.width, height: sharp.height, data: fft.inverse(spec) }
+    }
+
+    /// L2 distance of `a` and `b` away from a border of `m` pixels.
+    fn interior_error(a: &Plane, b: &Plane, m: usize) -> f64 {
+        let mut s = 0.0f64;
+        for y in m..a.height - m {
+            for x in m..a.width - m {
+                s += ((a.get(x, y) - b.get(x, y)) as f64).powi(2);
+            }
+        }
+        s.sqrt()
+    }
+
     #[test]
     fn restore_undoes_the_blur_where_the_otf_is_strong() {
         let (w, h) = (96, 80);
         let mut r = Rng::new(5);
         let sharp = crate::optics::capture::gaussian_blur(&Plane::from_fn(w, h, |_, _| r.uniform() as f32), 1.2);
         // blur with D by FFT on a large periodic grid (periodic sharp image)
-        let fft = Fft2::plan(w, h);
-        let mut spec = fft.forward(&sharp.data);
-        for (i, s) in spec.iter_mut().enumerate() {
-            let (fx, fy) = fft.frequency(i);
-            *s *= transfer(fx as f64, fy as f64, 2.0) as f32;
-        }
-        let blurred = Plane { width: w, height: h, data: fft.inverse(spec) };
+        let blurred = periodic_blur(&sharp, |fx, fy| transfer(fx, fy, 2.0));
         let restored = restore(&blurred, 2.0, 0.0, 1e-4);
-        let err = |a: &Plane| {
-            let mut s = 0.0f64;
-            for y in 16..h - 16 {
-                for x in 16..w - 16 {
-                    s += ((a.get(x, y) - sharp.get(x, y)) as f64).powi(2);
-                }
-            }
-            s.sqrt()
-        };
+        let err = |a: &Plane| interior_error(a, &sharp, 16);
         assert!(err(&restored) < 0.25 * err(&blurred), "restored {:.4} vs blurred {:.4}", err(&restored), err(&blurred));
     }
 
@@ -337,22 +345,8 @@ mod tests {
         let (w, h) = (96, 80);
         let mut r = Rng::new(6);
         let sharp = crate::optics::capture::gaussian_blur(&Plane::from_fn(w, h, |_, _| r.uniform() as f32), 1.0);
-        let fft = Fft2::plan(w, h);
-        let mut spec = fft.forward(&sharp.data);
-        for (i, s) in spec.iter_mut().enumerate() {
-            let (fx, fy) = fft.frequency(i);
-            *s *= reference_transfer(fx as f64, fy as f64, 1.5, 0.7) as f32;
-        }
-        let blurred = Plane { width: w, height: h, data: fft.inverse(spec) };
-        let err = |a: &Plane| {
-            let mut s = 0.0f64;
-            for y in 16..h - 16 {
-                for x in 16..w - 16 {
-                    s += ((a.get(x, y) - sharp.get(x, y)) as f64).powi(2);
-                }
-            }
-            s.sqrt()
-        };
+        let blurred = periodic_blur(&sharp, |fx, fy| reference_transfer(fx, fy, 1.5, 0.7));
+        let err = |a: &Plane| interior_error(a, &sharp, 16);
         let (with, without) = (err(&restore(&blurred, 1.5, 0.7, 1e-4)), err(&restore(&blurred, 1.5, 0.0, 1e-4)));
         assert!(with < 0.7 * without, "with the Gaussian {with:.4}, Airy alone {without:.4}");
     }

@@ -552,25 +552,10 @@ fn build_problem(open: &Plane, sharp: &Plane, valid: &[bool], grid: &PsfGrid, ke
 /// statistics and the masked residual RMS (at the last extrapolated point, within a step of
 /// the result). `power` carries the Lipschitz power iteration's vector from one channel to the
 /// next (start with an empty vector): a warm start needs 2 iterations instead of 5.
-/// `progress` advances by one per iteration.
+/// `progress` advances by one per iteration. The data are subsampled to about `max_pixels`
+/// pixels (the pipeline passes [`JOINT_DATA_PIXELS`]).
 #[allow(clippy::too_many_arguments)]
 pub fn refine_channel(
-    open: &Plane,
-    sharp: &Plane,
-    valid: &[bool],
-    grid: &PsfGrid,
-    kernels: &mut [Plane],
-    fits: &[(f32, usize, f64)],
-    opts: &SplitOptions,
-    power: &mut Vec<f32>,
-    progress: &indicatif::ProgressBar,
-) -> (Stats, f64) {
-    refine_channel_capped(open, sharp, valid, grid, kernels, fits, opts, power, progress, JOINT_DATA_PIXELS)
-}
-
-/// [`refine_channel`] with the data subsampled to about `max_pixels` pixels.
-#[allow(clippy::too_many_arguments)]
-fn refine_channel_capped(
     open: &Plane,
     sharp: &Plane,
     valid: &[bool],
@@ -709,7 +694,7 @@ mod tests {
         assert!(kept < w * h / 2 && kept > w * h / 6, "kept {kept} of {}", w * h);
         assert!(p.blocks_of.iter().all(|b| !b.is_empty()), "a tile lost all its data");
         let o = crate::solve::primal_dual::SplitOptions { max_iterations: 200, min_iterations: 5, tolerance: 1e-5 };
-        super::refine_channel_capped(&est.open_linear[0], &sharp_s, &est.valid_masks[0], &grid, &mut kernels, &fits, &o, &mut Vec::new(), &indicatif::ProgressBar::hidden(), cap);
+        super::refine_channel(&est.open_linear[0], &sharp_s, &est.valid_masks[0], &grid, &mut kernels, &fits, &o, &mut Vec::new(), &indicatif::ProgressBar::hidden(), cap);
         let mut refined = grid.clone();
         refined.kernels[0] = kernels;
         let cv = |gr: &PsfGrid| {

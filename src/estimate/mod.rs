@@ -343,7 +343,7 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
         for c in 0..nch {
             let mut sharp = pin_reg[c].clone();
             sharp.scale(ratio[c] as f32);
-            let (st, rms) = joint::refine_channel(&open_lin[c], &sharp, &valid_masks[c], &shape, &mut kernels[c], &tile_lambda[c], &o, &mut power, &bar);
+            let (st, rms) = joint::refine_channel(&open_lin[c], &sharp, &valid_masks[c], &shape, &mut kernels[c], &tile_lambda[c], &o, &mut power, &bar, joint::JOINT_DATA_PIXELS);
             bar.set_position(((c + 1) * opts.joint_iterations) as u64);
             // the profile's per-tile figures then describe the refined kernels
             for t in 0..cols * rows {

@@ -133,22 +133,21 @@ impl Fft2 {
         assert_eq!(s.size, (self.width, self.height), "FFT scratch size");
         let (w, h, hw) = (self.width, self.height, self.half_width);
         let zero = Complex32::new(0.0, 0.0);
-        let live: Vec<bool> = (0..h).map(&rows).collect();
-        if live.iter().any(|&b| !b) {
+        if (0..h).any(|y| !rows(y)) {
             spec.fill(zero);
         }
         // rows in batches, so the transposed writes go out ROW_BATCH bins at a time
         let mut y0 = 0;
         while y0 < h {
             let nb = ROW_BATCH.min(h - y0);
-            if live[y0..y0 + nb].iter().all(|&b| !b) {
+            if (y0..y0 + nb).all(|y| !rows(y)) {
                 y0 += nb;
                 continue;
             }
             for j in 0..nb {
                 let src = &input[(y0 + j) * w..(y0 + j + 1) * w];
                 let dst = &mut s.batch[j * hw..(j + 1) * hw];
-                if !live[y0 + j] {
+                if !rows(y0 + j) {
                     dst.fill(zero);
                     continue;
                 }

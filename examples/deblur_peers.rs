@@ -110,6 +110,7 @@ fn prepare(out: &Path, scene: &Path) -> anyhow::Result<()> {
         saturation: 0.99,
         tile: env("LR_TILE").map(|v| v as usize),
         quiet: true,
+        force: true,
     };
     if std::env::var("LR_NO_RUN").is_ok_and(|v| v == "1") {
         return Ok(());

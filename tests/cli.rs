@@ -54,6 +54,11 @@ fn demo_recovers_the_simulated_lens_and_simulate_predicts() {
     // simulate: same size, 16-bit, and close to the recorded wide-open image
     let pred = d.path().join("pred.png");
     ok(&["simulate", "--profile", run.join("profile").to_str().unwrap(), "--sharp", run.join("pinhole.png").to_str().unwrap(), "--out", pred.to_str().unwrap()]);
+    // an existing output is never replaced without --force, and is left as it was
+    let before = std::fs::read(&pred).unwrap();
+    let e = fails(&["simulate", "--profile", run.join("profile").to_str().unwrap(), "--sharp", run.join("pinhole.png").to_str().unwrap(), "--out", pred.to_str().unwrap()]);
+    assert!(e.contains("already exists") && e.contains("--force"), "{e}");
+    assert_eq!(std::fs::read(&pred).unwrap(), before);
     let p = lensrig::image::io::read_image(&pred).unwrap();
     let o = lensrig::image::io::read_image(&run.join("open.png")).unwrap();
     assert_eq!((p.width(), p.height(), p.channel_count(), p.format), (512, 384, 3, lensrig::image::SampleFormat::U16));

@@ -124,9 +124,12 @@ pub struct SimulateArgs {
     /// Sharp (pinhole) image, same size and encoding as the profile's source images.
     #[arg(long)]
     pub sharp: PathBuf,
-    /// Predicted wide-open image (16-bit PNG).
+    /// Predicted wide-open image (16-bit PNG); an existing file is kept unless `--force`.
     #[arg(long)]
     pub out: PathBuf,
+    /// Replace OUT if it exists.
+    #[arg(long)]
+    pub force: bool,
 }
 
 /// Runs a parsed command line.
@@ -257,11 +260,14 @@ pub fn predict(profile: &Profile, sharp: &Image, sharp_path: &Path) -> Result<Im
 }
 
 fn run_simulate(a: &SimulateArgs) -> Result<()> {
+    if !a.force && a.out.exists() {
+        bail!("{} already exists and is never overwritten (use --force to replace it)", a.out.display());
+    }
     let profile = Profile::load(&a.profile)?;
     let mut sharp = read_image(&a.sharp)?;
     sharp.transfer = profile.meta.source.transfer;
     let out = predict(&profile, &sharp, &a.sharp)?;
-    write_png16(&a.out, &out, Overwrite::Replace)?;
+    write_png16(&a.out, &out, if a.force { Overwrite::Replace } else { Overwrite::Never })?;
     println!("wrote {} ({}x{}, {} channel(s), 16-bit)", a.out.display(), out.width(), out.height(), out.channel_count());
     Ok(())
 }

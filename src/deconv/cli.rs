@@ -23,9 +23,12 @@ pub struct DeblurArgs {
     /// Blurred capture (PNG or TIFF) taken through the profiled lens.
     #[arg(long = "in", value_name = "BLURRED")]
     pub input: PathBuf,
-    /// Restored image, 16-bit PNG (replaced if it exists).
+    /// Restored image, 16-bit PNG; an existing file is kept unless `--force`.
     #[arg(long, value_name = "RESTORED.png")]
     pub out: PathBuf,
+    /// Replace RESTORED.png if it exists.
+    #[arg(long)]
+    pub force: bool,
     /// Encoding of the input values (default: the profile's source encoding).
     #[arg(long)]
     pub transfer: Option<Transfer>,
@@ -77,6 +80,9 @@ impl DeblurArgs {
 /// Unreadable profile or input, a channel count or size that does not match the profile (the
 /// message names the file and both values), unwritable output.
 pub fn run(args: &DeblurArgs) -> anyhow::Result<()> {
+    if !args.force && args.out.exists() {
+        bail!("{} already exists and is never overwritten (use --force to replace it)", args.out.display());
+    }
     let profile = Profile::load(&args.profile).with_context(|| format!("cannot load profile {}", args.profile.display()))?;
     let mut img = read_image(&args.input)?;
     let grid = &profile.grid;
@@ -136,7 +142,7 @@ pub fn run(args: &DeblurArgs) -> anyhow::Result<()> {
     lin.planes = planes;
     lin.transfer = Transfer::Linear;
     let out = lin.encoded(transfer);
-    write_png16(&args.out, &out, Overwrite::Replace)?;
+    write_png16(&args.out, &out, if args.force { Overwrite::Replace } else { Overwrite::Never })?;
     if !args.quiet {
         eprintln!(
             "deblur: {} tiles of {}x{}, noise σ {:?}, λ {:?}, {} CP / {} CG iterations, {} saturated px -> {}",
@@ -193,6 +199,7 @@ mod tests {
             saturation: 0.99,
             tile: None,
             quiet: true,
+            force: true,
         }
     }
 

@@ -175,7 +175,32 @@ pub struct BenchRow {
     pub base_chi2: f64,
     pub final_chi2: f64,
     pub floor_ratio: f64,
+    /// The first effect's parameters against the rendered truth, for the keys both have
+    /// (`key fitted/true`; empty when the effect is misnamed or has no numeric truth).
+    pub recovered: String,
     pub seconds: f64,
+}
+
+/// `key fitted/true` for every numeric key of `truth` that `fitted` also has (arrays: the first
+/// element, the first channel).
+pub fn recovered_text(fitted: &serde_json::Value, truth: &serde_json::Value) -> String {
+    let num = |v: &serde_json::Value| v.as_f64().or_else(|| v.as_array().and_then(|a| a.first()).and_then(serde_json::Value::as_f64));
+    let Some(t) = truth.as_object() else { return String::new() };
+    t.iter()
+        .filter_map(|(k, tv)| Some(format!("{k} {}/{}", short(num(&fitted[k.as_str()])?), short(num(tv)?))))
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+fn short(v: f64) -> String {
+    if v == 0.0 {
+        "0".into()
+    } else if v.abs() >= 10.0 {
+        format!("{v:.1}")
+    } else {
+        let digits = (2 - v.abs().log10().floor() as i32).clamp(0, 6) as usize;
+        format!("{v:.digits$}")
+    }
 }
 
 /// Diagnoses one proof case and scores it against the truth.
@@ -193,6 +218,10 @@ pub fn bench_case(effect: Option<&str>, seed: u64, spec: &CaseSpec, opts: &Diagn
         None => d.effects.is_empty(),
     };
     let ratio = floor_ratio(&case, &d.final_fit.predicted, &d.final_fit.eval);
+    let recovered = match (correct, d.effects.first()) {
+        (true, Some(e)) => recovered_text(&e.parameters, &case.truth),
+        _ => String::new(),
+    };
     let row = BenchRow {
         effect: effect.unwrap_or("clean").to_string(),
         seed,
@@ -201,6 +230,7 @@ pub fn bench_case(effect: Option<&str>, seed: u64, spec: &CaseSpec, opts: &Diagn
         base_chi2: d.base.reduced_chi2(),
         final_chi2: d.final_fit.reduced_chi2(),
         floor_ratio: ratio,
+        recovered,
         seconds: t.elapsed().as_secs_f64(),
     };
     Ok((row, d, case))
@@ -219,7 +249,7 @@ fn bench(a: &DiagnoseArgs, seeds: u64) -> Result<()> {
         Some(e) => vec![Some(e)],
         None => std::iter::once(None).chain(CONCEALED.iter().map(|e| Some(*e))).collect(),
     };
-    println!("{:<22} {:>4} {:<22} {:>3} {:>10} {:>10} {:>8} {:>6}", "effect", "seed", "named first", "ok", "base χ²", "final χ²", "floor×", "s");
+    println!("{:<22} {:>4} {:<22} {:>3} {:>10} {:>10} {:>8} {:>6}  {}", "effect", "seed", "named first", "ok", "base χ²", "final χ²", "floor×", "s", "fitted/true");
     let (mut ok, mut total) = (0, 0);
     for e in effects {
         for seed in a.bench_first_seed..a.bench_first_seed + seeds {
@@ -237,9 +267,24 @@ fn bench(a: &DiagnoseArgs, seeds: u64) -> Result<()> {
             }
             total += 1;
             ok += r.correct as usize;
-            println!("{:<22} {:>4} {:<22} {:>3} {:>10.3} {:>10.3} {:>8.3} {:>6.1}", r.effect, r.seed, r.named, if r.correct { "yes" } else { "NO" }, r.base_chi2, r.final_chi2, r.floor_ratio, r.seconds);
+            println!("{:<22} {:>4} {:<22} {:>3} {:>10.3} {:>10.3} {:>8.3} {:>6.1}  {}", r.effect, r.seed, r.named, if r.correct { "yes" } else { "NO" }, r.base_chi2, r.final_chi2, r.floor_ratio, r.seconds, r.recovered);
         }
     }
     println!("{ok} of {total} cases named correctly");
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::recovered_text;
+    use serde_json::json;
+
+    #[test]
+    fn recovered_pairs_shared_numeric_keys() {
+        let fitted = json!({"fraction": 0.0886, "sigma_px": 17.6, "offset": [0.0282, 0.03]});
+        let truth = json!({"fraction": 0.0998, "sigma_px": 22.93, "offset": [0.02826], "f_number": 16.0});
+        // keys in the truth's order (serde_json sorts them); f_number has no fitted value
+        assert_eq!(recovered_text(&fitted, &truth), "fraction 0.0886/0.0998, offset 0.0282/0.0283, sigma_px 17.6/22.9");
+        assert_eq!(recovered_text(&fitted, &json!({"transfer": "srgb"})), "");
+    }
 }

@@ -250,10 +250,29 @@ fn diagnose_reads_a_capture_session() {
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "diagnose --session: {stderr}");
     assert!(stderr.contains("4 / 4 frames averaged"), "frame counts not read from the metadata: {stderr}");
+    assert!(stderr.contains("noise model from the repeated frames"), "{stderr}");
     let pairs: Vec<_> = std::fs::read_dir(&out).unwrap().map(|e| e.unwrap().path()).collect();
     assert_eq!(pairs.len(), 1, "{pairs:?}");
     let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(pairs[0].join("report.json")).unwrap()).unwrap();
     assert!(report["effects"].is_array());
+    // the noise model is the mock sensor's temporal noise over the 4 averaged frames: the
+    // variance of the average against the law of `rig-configs/mock.toml`'s sensor (gain 0 dB,
+    // full well and read noise from the mock optics), divided by the frame count
+    let noise = &report["noise"][0];
+    assert_eq!(noise["source"], "repeated frames", "{noise}");
+    let rig = lensrig::rig::config::load(&cfg).unwrap();
+    let sensor = &lensrig::rig::camera::mock::MockOptics::from_config(&rig).unwrap().sensor;
+    let g = 10f64.powf(rig.camera.gain / 20.0);
+    let mut checked = 0;
+    for bin in noise["curve"]["bins"].as_array().unwrap() {
+        let (level, var) = (bin[0].as_f64().unwrap(), bin[1].as_f64().unwrap());
+        if level > 0.05 {
+            checked += 1;
+            let want = (g * level / sensor.full_well_e + (sensor.read_noise_e * g / sensor.full_well_e).powi(2)) / 4.0;
+            assert!((var / want - 1.0).abs() < 0.10, "level {level:.3}: {var:.3e} vs {want:.3e}");
+        }
+    }
+    assert!(checked >= 4, "only {checked} noise bins above 5% of full scale");
     assert!(report["final"]["reduced_chi2"].as_f64().unwrap() <= report["base"]["reduced_chi2"].as_f64().unwrap() + 1e-9);
     let pair_dirs: Vec<_> = std::fs::read_dir(session.join("pairs")).unwrap().map(|e| e.unwrap().path()).collect();
     assert_eq!(pair_dirs.len(), 1, "{pair_dirs:?}");

@@ -4,6 +4,7 @@
 
 use super::proof::{floor_ratio, render_case, CaseSpec, CONCEALED};
 use super::report::{write_report, Sources};
+use super::noise::NoiseCurve;
 use super::{diagnose, DiagnoseOptions};
 use crate::estimate::EstimateOptions;
 use crate::image::io::read_pair;
@@ -58,7 +59,7 @@ pub struct DiagnoseArgs {
     /// Benchmark: only this effect (or "clean").
     #[arg(long, hide = true)]
     pub bench_effect: Option<String>,
-    /// Print progress.
+    /// No progress output.
     #[arg(long)]
     pub quiet: bool,
 }
@@ -67,6 +68,7 @@ fn options(a: &DiagnoseArgs) -> DiagnoseOptions {
     DiagnoseOptions {
         estimate: EstimateOptions { kernel_size: a.kernel, tile: a.tile, max_iterations: a.max_iterations, joint_iterations: 0, ..Default::default() },
         max_effects: a.max_effects,
+        progress: !a.quiet,
         ..Default::default()
     }
 }
@@ -144,21 +146,44 @@ fn run_session(a: &DiagnoseArgs, session: &std::path::Path, out: &std::path::Pat
         let transfer: Transfer = om.transfer.parse().map_err(|e| anyhow::anyhow!("{}: transfer: {e}", pd.join("open.toml").display()))?;
         o.transfer = transfer;
         p.transfer = transfer;
+        let mut dark_levels: Vec<f32> = Vec::new();
         if let (Some(dark), Transfer::Linear) = (&pair.dark, transfer) {
             let d = crate::image::io::read_image(&pd.join(dark))?;
+            dark_levels = (0..o.channel_count()).map(|c| d.planes.get(c).or(d.planes.first()).map_or(0.0, |q| q.mean() as f32)).collect();
             for img in [&mut o, &mut p] {
                 for (c, plane) in img.planes.iter_mut().enumerate() {
-                    let dp = d.planes.get(c).or(d.planes.first());
-                    let level = dp.map_or(0.0, |q| q.mean() as f32);
+                    let level = dark_levels.get(c).copied().unwrap_or(0.0);
                     plane.data.iter_mut().for_each(|v| *v = (*v - level).max(0.0));
                 }
             }
         }
         let mut opts = options(a);
         opts.pinhole_variance_scale = om.frames_averaged.max(1) as f64 / pm.frames_averaged.max(1) as f64;
+        // the temporal noise of one frame, over the averaged frames: the average's variance is
+        // that over the frame count; a dark level subtracted above shifts the levels
+        if let Some(t) = &om.temporal_noise {
+            let shift = if transfer == Transfer::Linear { dark_levels.clone() } else { vec![0.0; t.len()] };
+            let n = om.frames_averaged.max(1) as f64;
+            opts.repeat_noise = Some(
+                t.iter()
+                    .enumerate()
+                    .map(|(c, rows)| {
+                        let d = shift.get(c).or(shift.first()).copied().unwrap_or(0.0) as f64;
+                        NoiseCurve { bins: rows.iter().map(|r| ((r[0] - d).max(0.0), r[1] / n, r[2] as usize)).collect() }
+                    })
+                    .collect(),
+            );
+        }
         let dir = out.join(&pair.key);
         if !a.quiet {
-            eprintln!("diagnosing pair {} (stage {} mm; {} / {} frames averaged)", pair.key, pair.stage_mm, om.frames_averaged, pm.frames_averaged);
+            eprintln!(
+                "diagnosing pair {} (stage {} mm; {} / {} frames averaged; noise model from {})",
+                pair.key,
+                pair.stage_mm,
+                om.frames_averaged,
+                pm.frames_averaged,
+                if opts.repeat_noise.is_some() { "the repeated frames" } else { "the residual" }
+            );
         }
         diagnose_files(&o, &p, None, &opts, &open_p, &pin_p, None, &dir).with_context(|| format!("pair {}", pair.key))?;
     }

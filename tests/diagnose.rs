@@ -97,19 +97,21 @@ fn tone_curve_is_named() {
     assert_eq!(d.effects[0].parameters["transfer"], "srgb");
 }
 
-/// Known gap (session 2): since the estimator's rewrite the fitted fraction comes out about half
-/// the rendered one (the refitted kernels' tails take part of the halo); the bound is the
-/// current accuracy, not the goal.
+/// The glare fraction and width against the rendered ones. Both `veiling_glare` and
+/// `black_level` take the kernels' common flat floor (`fit::remove_common_floor`), so the halo
+/// is no longer split between the kernels and the glare term (the fraction came out at half
+/// the truth before). Measured (seed 6, and seeds 21/22 of the bench): fraction −11%, +15%,
+/// +19%; width −23%, −22%, −28% (a narrower halo with a little more light fits the same).
 #[test]
 fn veiling_glare_is_named_and_its_fraction_recovered() {
     let (d, c) = check_named("veiling_glare", 6);
-    let got = d.effects[0].parameters["fraction"].as_f64().unwrap();
-    let want = c.truth["fraction"].as_f64().unwrap();
-    assert!(got / want > 0.4 && got / want < 1.6, "glare fraction {got} vs {want}");
+    let p = &d.effects[0].parameters;
+    let (got, want) = (p["fraction"].as_f64().unwrap(), c.truth["fraction"].as_f64().unwrap());
+    assert!((got / want - 1.0).abs() < 0.25, "glare fraction {got} vs {want}");
+    let (got, want) = (p["sigma_px"].as_f64().unwrap(), c.truth["sigma_px"].as_f64().unwrap());
+    assert!((got / want - 1.0).abs() < 0.35, "glare width {got} vs {want} px");
 }
 
-/// Named, the rotation within 35% (the similarity search is biased towards the kernels'
-/// current positions), and the final residual at the floor.
 #[test]
 fn misregistration_is_named_and_its_rotation_recovered() {
     let (row, d, c) = case(Some("misregistration"), 7);

@@ -112,13 +112,17 @@ fn veiling_glare_is_named_and_its_fraction_recovered() {
     assert!((got / want - 1.0).abs() < 0.35, "glare width {got} vs {want} px");
 }
 
+/// Named, the rotation within 10% (the kernels' centroid fixed point; seed 7 measured +1.4%,
+/// bench seed 21 −4.6%), and the final residual at the floor. The scale is not checked: the
+/// lens's coma moves kernel centroids in proportion to the radius, like a magnification
+/// change, so one pair gives the scale only relative to the lens's own.
 #[test]
 fn misregistration_is_named_and_its_rotation_recovered() {
     let (row, d, c) = case(Some("misregistration"), 7);
     assert_eq!(d.effects.first().map(|e| e.name.as_str()), Some("misregistration"), "rounds {:?}", d.rounds);
     let got = d.effects[0].parameters["rotation_deg"].as_f64().unwrap();
     let want = c.truth["rotation_deg"].as_f64().unwrap();
-    assert!((got / want - 1.0).abs() < 0.35, "rotation {got} vs {want}");
+    assert!((got / want - 1.0).abs() < 0.10, "rotation {got} vs {want}");
     assert!(row.floor_ratio <= FLOOR, "final residual {:.3}× the floor", row.floor_ratio);
 }
 

@@ -274,7 +274,7 @@ fn bench(a: &DiagnoseArgs, seeds: u64) -> Result<()> {
         Some(e) => vec![Some(e)],
         None => std::iter::once(None).chain(CONCEALED.iter().map(|e| Some(*e))).collect(),
     };
-    println!("{:<22} {:>4} {:<22} {:>3} {:>10} {:>10} {:>8} {:>6}  {}", "effect", "seed", "named first", "ok", "base χ²", "final χ²", "floor×", "s", "fitted/true");
+    println!("{:<22} {:>4} {:<22} {:>3} {:>10} {:>10} {:>8} {:>6}  fitted/true", "effect", "seed", "named first", "ok", "base χ²", "final χ²", "floor×", "s");
     let (mut ok, mut total) = (0, 0);
     for e in effects {
         for seed in a.bench_first_seed..a.bench_first_seed + seeds {

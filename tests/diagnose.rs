@@ -97,26 +97,32 @@ fn tone_curve_is_named() {
     assert_eq!(d.effects[0].parameters["transfer"], "srgb");
 }
 
-/// Known gap (session 2): since the estimator's rewrite the fitted fraction comes out about half
-/// the rendered one (the refitted kernels' tails take part of the halo); the bound is the
-/// current accuracy, not the goal.
+/// The glare fraction and width against the rendered ones. Both `veiling_glare` and
+/// `black_level` take the kernels' common flat floor (`fit::remove_common_floor`), so the halo
+/// is no longer split between the kernels and the glare term (the fraction came out at half
+/// the truth before). Measured (seed 6, and seeds 21/22 of the bench): fraction −11%, +15%,
+/// +19%; width −23%, −22%, −28% (a narrower halo with a little more light fits the same).
 #[test]
 fn veiling_glare_is_named_and_its_fraction_recovered() {
     let (d, c) = check_named("veiling_glare", 6);
-    let got = d.effects[0].parameters["fraction"].as_f64().unwrap();
-    let want = c.truth["fraction"].as_f64().unwrap();
-    assert!(got / want > 0.4 && got / want < 1.6, "glare fraction {got} vs {want}");
+    let p = &d.effects[0].parameters;
+    let (got, want) = (p["fraction"].as_f64().unwrap(), c.truth["fraction"].as_f64().unwrap());
+    assert!((got / want - 1.0).abs() < 0.25, "glare fraction {got} vs {want}");
+    let (got, want) = (p["sigma_px"].as_f64().unwrap(), c.truth["sigma_px"].as_f64().unwrap());
+    assert!((got / want - 1.0).abs() < 0.35, "glare width {got} vs {want} px");
 }
 
-/// Named, the rotation within 35% (the similarity search is biased towards the kernels'
-/// current positions), and the final residual at the floor.
+/// Named, the rotation within 10% (the kernels' centroid fixed point; seed 7 measured +1.4%,
+/// bench seed 21 −4.6%), and the final residual at the floor. The scale is not checked: the
+/// lens's coma moves kernel centroids in proportion to the radius, like a magnification
+/// change, so one pair gives the scale only relative to the lens's own.
 #[test]
 fn misregistration_is_named_and_its_rotation_recovered() {
     let (row, d, c) = case(Some("misregistration"), 7);
     assert_eq!(d.effects.first().map(|e| e.name.as_str()), Some("misregistration"), "rounds {:?}", d.rounds);
     let got = d.effects[0].parameters["rotation_deg"].as_f64().unwrap();
     let want = c.truth["rotation_deg"].as_f64().unwrap();
-    assert!((got / want - 1.0).abs() < 0.35, "rotation {got} vs {want}");
+    assert!((got / want - 1.0).abs() < 0.10, "rotation {got} vs {want}");
     assert!(row.floor_ratio <= FLOOR, "final residual {:.3}× the floor", row.floor_ratio);
 }
 
@@ -250,10 +256,29 @@ fn diagnose_reads_a_capture_session() {
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "diagnose --session: {stderr}");
     assert!(stderr.contains("4 / 4 frames averaged"), "frame counts not read from the metadata: {stderr}");
+    assert!(stderr.contains("noise model from the repeated frames"), "{stderr}");
     let pairs: Vec<_> = std::fs::read_dir(&out).unwrap().map(|e| e.unwrap().path()).collect();
     assert_eq!(pairs.len(), 1, "{pairs:?}");
     let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(pairs[0].join("report.json")).unwrap()).unwrap();
     assert!(report["effects"].is_array());
+    // the noise model is the mock sensor's temporal noise over the 4 averaged frames: the
+    // variance of the average against the law of `rig-configs/mock.toml`'s sensor (gain 0 dB,
+    // full well and read noise from the mock optics), divided by the frame count
+    let noise = &report["noise"][0];
+    assert_eq!(noise["source"], "repeated frames", "{noise}");
+    let rig = lensrig::rig::config::load(&cfg).unwrap();
+    let sensor = &lensrig::rig::camera::mock::MockOptics::from_config(&rig).unwrap().sensor;
+    let g = 10f64.powf(rig.camera.gain / 20.0);
+    let mut checked = 0;
+    for bin in noise["curve"]["bins"].as_array().unwrap() {
+        let (level, var) = (bin[0].as_f64().unwrap(), bin[1].as_f64().unwrap());
+        if level > 0.05 {
+            checked += 1;
+            let want = (g * level / sensor.full_well_e + (sensor.read_noise_e * g / sensor.full_well_e).powi(2)) / 4.0;
+            assert!((var / want - 1.0).abs() < 0.10, "level {level:.3}: {var:.3e} vs {want:.3e}");
+        }
+    }
+    assert!(checked >= 4, "only {checked} noise bins above 5% of full scale");
     assert!(report["final"]["reduced_chi2"].as_f64().unwrap() <= report["base"]["reduced_chi2"].as_f64().unwrap() + 1e-9);
     let pair_dirs: Vec<_> = std::fs::read_dir(session.join("pairs")).unwrap().map(|e| e.unwrap().path()).collect();
     assert_eq!(pair_dirs.len(), 1, "{pair_dirs:?}");

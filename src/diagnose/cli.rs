@@ -4,6 +4,7 @@
 
 use super::proof::{floor_ratio, render_case, CaseSpec, CONCEALED};
 use super::report::{write_report, Sources};
+use super::noise::NoiseCurve;
 use super::{diagnose, DiagnoseOptions};
 use crate::estimate::EstimateOptions;
 use crate::image::io::read_pair;
@@ -58,7 +59,7 @@ pub struct DiagnoseArgs {
     /// Benchmark: only this effect (or "clean").
     #[arg(long, hide = true)]
     pub bench_effect: Option<String>,
-    /// Print progress.
+    /// No progress output.
     #[arg(long)]
     pub quiet: bool,
 }
@@ -67,6 +68,7 @@ fn options(a: &DiagnoseArgs) -> DiagnoseOptions {
     DiagnoseOptions {
         estimate: EstimateOptions { kernel_size: a.kernel, tile: a.tile, max_iterations: a.max_iterations, joint_iterations: 0, ..Default::default() },
         max_effects: a.max_effects,
+        progress: !a.quiet,
         ..Default::default()
     }
 }
@@ -144,21 +146,44 @@ fn run_session(a: &DiagnoseArgs, session: &std::path::Path, out: &std::path::Pat
         let transfer: Transfer = om.transfer.parse().map_err(|e| anyhow::anyhow!("{}: transfer: {e}", pd.join("open.toml").display()))?;
         o.transfer = transfer;
         p.transfer = transfer;
+        let mut dark_levels: Vec<f32> = Vec::new();
         if let (Some(dark), Transfer::Linear) = (&pair.dark, transfer) {
             let d = crate::image::io::read_image(&pd.join(dark))?;
+            dark_levels = (0..o.channel_count()).map(|c| d.planes.get(c).or(d.planes.first()).map_or(0.0, |q| q.mean() as f32)).collect();
             for img in [&mut o, &mut p] {
                 for (c, plane) in img.planes.iter_mut().enumerate() {
-                    let dp = d.planes.get(c).or(d.planes.first());
-                    let level = dp.map_or(0.0, |q| q.mean() as f32);
+                    let level = dark_levels.get(c).copied().unwrap_or(0.0);
                     plane.data.iter_mut().for_each(|v| *v = (*v - level).max(0.0));
                 }
             }
         }
         let mut opts = options(a);
         opts.pinhole_variance_scale = om.frames_averaged.max(1) as f64 / pm.frames_averaged.max(1) as f64;
+        // the temporal noise of one frame, over the averaged frames: the average's variance is
+        // that over the frame count; a dark level subtracted above shifts the levels
+        if let Some(t) = &om.temporal_noise {
+            let shift = if transfer == Transfer::Linear { dark_levels.clone() } else { vec![0.0; t.len()] };
+            let n = om.frames_averaged.max(1) as f64;
+            opts.repeat_noise = Some(
+                t.iter()
+                    .enumerate()
+                    .map(|(c, rows)| {
+                        let d = shift.get(c).or(shift.first()).copied().unwrap_or(0.0) as f64;
+                        NoiseCurve { bins: rows.iter().map(|r| ((r[0] - d).max(0.0), r[1] / n, r[2] as usize)).collect() }
+                    })
+                    .collect(),
+            );
+        }
         let dir = out.join(&pair.key);
         if !a.quiet {
-            eprintln!("diagnosing pair {} (stage {} mm; {} / {} frames averaged)", pair.key, pair.stage_mm, om.frames_averaged, pm.frames_averaged);
+            eprintln!(
+                "diagnosing pair {} (stage {} mm; {} / {} frames averaged; noise model from {})",
+                pair.key,
+                pair.stage_mm,
+                om.frames_averaged,
+                pm.frames_averaged,
+                if opts.repeat_noise.is_some() { "the repeated frames" } else { "the residual" }
+            );
         }
         diagnose_files(&o, &p, None, &opts, &open_p, &pin_p, None, &dir).with_context(|| format!("pair {}", pair.key))?;
     }
@@ -175,7 +200,32 @@ pub struct BenchRow {
     pub base_chi2: f64,
     pub final_chi2: f64,
     pub floor_ratio: f64,
+    /// The first effect's parameters against the rendered truth, for the keys both have
+    /// (`key fitted/true`; empty when the effect is misnamed or has no numeric truth).
+    pub recovered: String,
     pub seconds: f64,
+}
+
+/// `key fitted/true` for every numeric key of `truth` that `fitted` also has (arrays: the first
+/// element, the first channel).
+pub fn recovered_text(fitted: &serde_json::Value, truth: &serde_json::Value) -> String {
+    let num = |v: &serde_json::Value| v.as_f64().or_else(|| v.as_array().and_then(|a| a.first()).and_then(serde_json::Value::as_f64));
+    let Some(t) = truth.as_object() else { return String::new() };
+    t.iter()
+        .filter_map(|(k, tv)| Some(format!("{k} {}/{}", short(num(&fitted[k.as_str()])?), short(num(tv)?))))
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+fn short(v: f64) -> String {
+    if v == 0.0 {
+        "0".into()
+    } else if v.abs() >= 10.0 {
+        format!("{v:.1}")
+    } else {
+        let digits = (2 - v.abs().log10().floor() as i32).clamp(0, 6) as usize;
+        format!("{v:.digits$}")
+    }
 }
 
 /// Diagnoses one proof case and scores it against the truth.
@@ -193,6 +243,10 @@ pub fn bench_case(effect: Option<&str>, seed: u64, spec: &CaseSpec, opts: &Diagn
         None => d.effects.is_empty(),
     };
     let ratio = floor_ratio(&case, &d.final_fit.predicted, &d.final_fit.eval);
+    let recovered = match (correct, d.effects.first()) {
+        (true, Some(e)) => recovered_text(&e.parameters, &case.truth),
+        _ => String::new(),
+    };
     let row = BenchRow {
         effect: effect.unwrap_or("clean").to_string(),
         seed,
@@ -201,6 +255,7 @@ pub fn bench_case(effect: Option<&str>, seed: u64, spec: &CaseSpec, opts: &Diagn
         base_chi2: d.base.reduced_chi2(),
         final_chi2: d.final_fit.reduced_chi2(),
         floor_ratio: ratio,
+        recovered,
         seconds: t.elapsed().as_secs_f64(),
     };
     Ok((row, d, case))
@@ -219,7 +274,7 @@ fn bench(a: &DiagnoseArgs, seeds: u64) -> Result<()> {
         Some(e) => vec![Some(e)],
         None => std::iter::once(None).chain(CONCEALED.iter().map(|e| Some(*e))).collect(),
     };
-    println!("{:<22} {:>4} {:<22} {:>3} {:>10} {:>10} {:>8} {:>6}", "effect", "seed", "named first", "ok", "base χ²", "final χ²", "floor×", "s");
+    println!("{:<22} {:>4} {:<22} {:>3} {:>10} {:>10} {:>8} {:>6}  fitted/true", "effect", "seed", "named first", "ok", "base χ²", "final χ²", "floor×", "s");
     let (mut ok, mut total) = (0, 0);
     for e in effects {
         for seed in a.bench_first_seed..a.bench_first_seed + seeds {
@@ -237,9 +292,24 @@ fn bench(a: &DiagnoseArgs, seeds: u64) -> Result<()> {
             }
             total += 1;
             ok += r.correct as usize;
-            println!("{:<22} {:>4} {:<22} {:>3} {:>10.3} {:>10.3} {:>8.3} {:>6.1}", r.effect, r.seed, r.named, if r.correct { "yes" } else { "NO" }, r.base_chi2, r.final_chi2, r.floor_ratio, r.seconds);
+            println!("{:<22} {:>4} {:<22} {:>3} {:>10.3} {:>10.3} {:>8.3} {:>6.1}  {}", r.effect, r.seed, r.named, if r.correct { "yes" } else { "NO" }, r.base_chi2, r.final_chi2, r.floor_ratio, r.seconds, r.recovered);
         }
     }
     println!("{ok} of {total} cases named correctly");
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::recovered_text;
+    use serde_json::json;
+
+    #[test]
+    fn recovered_pairs_shared_numeric_keys() {
+        let fitted = json!({"fraction": 0.0886, "sigma_px": 17.6, "offset": [0.0282, 0.03]});
+        let truth = json!({"fraction": 0.0998, "sigma_px": 22.93, "offset": [0.02826], "f_number": 16.0});
+        // keys in the truth's order (serde_json sorts them); f_number has no fitted value
+        assert_eq!(recovered_text(&fitted, &truth), "fraction 0.0886/0.0998, offset 0.0282/0.0283, sigma_px 17.6/22.9");
+        assert_eq!(recovered_text(&fitted, &json!({"transfer": "srgb"})), "");
+    }
 }

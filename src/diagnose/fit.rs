@@ -8,7 +8,9 @@
 //! `G` the vignetting × gradient gain and `β_c` the offset (each present only when its
 //! correction is). The fit alternates: kernels by projected FISTA ([`super::kernels`]) with the
 //! other parameters fixed, then one Gauss–Newton step for the scalar parameters, then the
-//! weights `1/Var` from the new prediction. Three rounds.
+//! weights `1/Var` from the new prediction. Three rounds. Under `veiling_glare` or
+//! `black_level`, each kernel step hands the kernels' common flat floor to the additive term
+//! ([`remove_common_floor`]).
 //!
 //! # Noise and χ²
 //! `Var = Var_open(m) + ΣK²·s²·Var_pinhole(level)` on the linear axis, from the measured
@@ -186,6 +188,42 @@ pub fn solve_dense(mut a: Vec<Vec<f64>>, mut b: Vec<f64>) -> Option<Vec<f64>> {
 
 /// Fits `corrections` (their parameter values are starting points) to `data`, starting from
 /// `init`'s kernels and exposure ratios.
+/// The flat floor common to all `kernels` — the smallest, over kernels, of the median of each
+/// kernel's outer ring (a PSF is near zero at its support's edge) — taken out of every kernel.
+/// Returns the mass removed per kernel (`floor·k²`, less what the clamp at 0 keeps).
+///
+/// Why: over a target whose local mean varies slowly, a flat floor under every kernel,
+/// `c·(B_k * P)`, is interchangeable at low frequencies with any smooth additive term — a
+/// halo `c·k²·(G_σ * P)` or an offset. The base fit has no such term, so its kernels grow the
+/// floor to stand for whatever additive light the data hold; a candidate that adds one
+/// (`veiling_glare`, `black_level`) must get that light back from the kernels, or the kernel
+/// step (slow on a flat mode) leaves it there and the fitted fraction or offset comes out
+/// short. Both candidates get the same treatment, so neither wins by inheriting the other's
+/// share.
+pub fn remove_common_floor(kernels: &mut [Plane]) -> f64 {
+    let floor = kernels
+        .iter()
+        .map(|k| {
+            let (kw, kh) = (k.width, k.height);
+            let mut ring: Vec<f32> = (0..kw * kh).filter(|&i| i % kw == 0 || i % kw + 1 == kw || i / kw == 0 || i / kw + 1 == kh).map(|i| k.data[i]).collect();
+            ring.sort_by(|a, b| a.total_cmp(b));
+            ring.get(ring.len() / 2).copied().unwrap_or(0.0)
+        })
+        .fold(f32::INFINITY, f32::min);
+    if kernels.is_empty() || !(floor.is_finite() && floor > 0.0) {
+        return 0.0;
+    }
+    let mut moved = 0.0f64;
+    for k in kernels.iter_mut() {
+        for v in k.data.iter_mut() {
+            let d = v.min(floor);
+            *v -= d;
+            moved += d as f64;
+        }
+    }
+    moved / kernels.len() as f64
+}
+
 pub fn fit(data: &Data, corrections: &Corrections, init: &Model, settings: FitSettings) -> Fit {
     fit_masked(data, corrections, init, settings, &|_, _| true)
 }
@@ -308,6 +346,18 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
                 let (nu, _s) = fit_kernels(&ops[c], &y, &wt, &u[c], kset);
                 u[c] = nu;
                 a_parts[c] = blur_part(c, &u[c]);
+            }
+            // an additive smooth term takes the kernels' common floor (see
+            // [`remove_common_floor`]); the glare amplitude starts from its mass, the offset is
+            // refitted by the Gauss–Newton step below (linear in β and the sums)
+            if corr.veiling_glare.is_some() || corr.black_level.is_some() {
+                let moved = remove_common_floor(&mut u[c]);
+                if moved > 0.0 {
+                    if corr.veiling_glare.is_some() {
+                        glare_amp[c] += moved;
+                    }
+                    a_parts[c] = blur_part(c, &u[c]);
+                }
             }
         }
         // Gauss–Newton on the scalar parameters (shared ones couple the channels)

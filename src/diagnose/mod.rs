@@ -76,6 +76,14 @@ pub struct DiagnoseOptions {
     /// The reference's noise variance relative to the wide-open capture's at the same level:
     /// `frames averaged in the wide-open capture / frames averaged in the pinhole capture`.
     pub pinhole_variance_scale: f64,
+    /// The wide-open capture's noise curve per channel measured from repeated frames (the
+    /// variance of the *stored average*, i.e. one frame's temporal variance divided by the
+    /// frames averaged). When given it is the noise model; otherwise the curve is measured
+    /// from the residual of the base model ([`noise`]).
+    pub repeat_noise: Option<Vec<NoiseCurve>>,
+    /// Progress on stderr: the base estimate's bars, one bar per round over the candidates,
+    /// and a line per added effect.
+    pub progress: bool,
 }
 
 impl Default for DiagnoseOptions {
@@ -89,6 +97,8 @@ impl Default for DiagnoseOptions {
             min_gain: 0.01,
             consistent_noise: 0.10,
             pinhole_variance_scale: 1.0,
+            repeat_noise: None,
+            progress: false,
         }
     }
 }
@@ -141,6 +151,9 @@ pub struct NoiseReport {
     pub curve: NoiseCurve,
     /// Noise floor of the final model (predicted noise RMS in this channel, stored axis).
     pub floor_rms: f64,
+    /// Where the curve comes from: `"repeated frames"` (temporal variance over the averaged
+    /// frames of a session) or `"residual"` (the base model's residual, one capture).
+    pub source: &'static str,
 }
 
 /// One effect the diagnosis added.
@@ -233,7 +246,7 @@ pub fn diagnose(open: &Image, pinhole: &Image, profile: Option<&Profile>, opts: 
         }
         None => {
             // the base model keeps clipped pixels in the data term (that is a catalogue effect)
-            let eo = EstimateOptions { saturation: f32::INFINITY, ..opts.estimate.clone() };
+            let eo = EstimateOptions { saturation: f32::INFINITY, progress: opts.progress, ..opts.estimate.clone() };
             estimate(open, pinhole, &eo)?.profile
         }
     };
@@ -246,11 +259,16 @@ pub fn diagnose(open: &Image, pinhole: &Image, profile: Option<&Profile>, opts: 
     // the noise curve from the base model's residual (module docs of `noise`), then the base
     // model refitted with it; the curve stays fixed for every later model
     let mut data = data;
-    data.curves = (0..open.channel_count())
-        .map(|c| noise::measure_residual(&open.planes[c], &provisional.predicted[c], &provisional.eval[c], 16, 8))
-        .collect();
+    let repeat_noise = opts.repeat_noise.as_ref().filter(|r| r.len() == open.channel_count() && r.iter().all(|c| !c.bins.is_empty()));
+    data.curves = match repeat_noise {
+        Some(r) => r.clone(),
+        None => (0..open.channel_count()).map(|c| noise::measure_residual(&open.planes[c], &provisional.predicted[c], &provisional.eval[c], 16, 8)).collect(),
+    };
     let base = fit::fit(&data, &provisional.model.corrections, &provisional.model, FitSettings { rounds: 1, kernel_iterations: opts.base_fit.kernel_iterations });
     let base_analysis = analyse(&base);
+    if opts.progress {
+        eprintln!("base model: reduced χ² {:.3} (noise floor {:.3e} RMS)", base.reduced_chi2(), base.noise_rms());
+    }
 
     let mut current_analysis = base_analysis.clone();
     let mut current = base.clone();
@@ -261,7 +279,10 @@ pub fn diagnose(open: &Image, pinhole: &Image, profile: Option<&Profile>, opts: 
         let null = fit::fit(&data, &current.model.corrections, &current.model, opts.candidate_fit);
         let mut scores = vec![CandidateScore { name: "(null refit)".into(), reduced_chi2: null.reduced_chi2(), parameters: serde_json::Value::Null, delta_bic: 0.0, note: "the current model refitted with the candidates' budget".into() }];
         let mut best: Option<(candidates::Candidate, Fit, f64)> = None;
-        for cand in candidates::propose(&data, &current, &current_analysis) {
+        let proposed = candidates::propose(&data, &current, &current_analysis);
+        let bar = crate::estimate::progress_bar(opts.progress, proposed.len() as u64, "testing effects");
+        for cand in proposed {
+            bar.inc(1);
             let f = fit::fit(&data, &cand.corrections, cand.init.as_ref().unwrap_or(&current.model), opts.candidate_fit);
             let dbic = f.bic() - null.bic();
             let total = |f: &Fit| f.chi2() + f.noise_chi2;
@@ -271,8 +292,17 @@ pub fn diagnose(open: &Image, pinhole: &Image, profile: Option<&Profile>, opts: 
                 best = Some((cand, f, dbic));
             }
         }
+        bar.finish_and_clear();
         rounds.push(scores);
-        let Some((cand, f, dbic)) = best else { break };
+        let Some((cand, f, dbic)) = best else {
+            if opts.progress {
+                eprintln!("round {}: no catalogue effect improves the fit", rounds.len());
+            }
+            break;
+        };
+        if opts.progress {
+            eprintln!("round {}: {} explains most (reduced χ² {:.3} → {:.3}, ΔBIC {:.0})", rounds.len(), cand.name, current.reduced_chi2(), f.reduced_chi2(), dbic);
+        }
         let before = Figures::of(&current);
         // polish the winner with the base budget
         let polished = fit::fit(&data, &f.model.corrections, &f.model, opts.base_fit);
@@ -288,8 +318,11 @@ pub fn diagnose(open: &Image, pinhole: &Image, profile: Option<&Profile>, opts: 
             after,
             delta_bic: dbic,
         });
-        // the better model's residual gives a cleaner noise curve; refigure with it
-        data.curves = (0..open.channel_count()).map(|c| noise::measure_residual(&open.planes[c], &f.predicted[c], &f.eval[c], 16, 8)).collect();
+        // the better model's residual gives a cleaner noise curve; refigure with it (a curve
+        // from repeated frames does not depend on the model)
+        if repeat_noise.is_none() {
+            data.curves = (0..open.channel_count()).map(|c| noise::measure_residual(&open.planes[c], &f.predicted[c], &f.eval[c], 16, 8)).collect();
+        }
         current = fit::fit(&data, &f.model.corrections, &f.model, FitSettings { rounds: 1, kernel_iterations: opts.candidate_fit.kernel_iterations });
         current_analysis = analyse(&current);
     }
@@ -350,6 +383,7 @@ pub fn diagnose(open: &Image, pinhole: &Image, profile: Option<&Profile>, opts: 
                 misfit_linear: pl.misfit,
                 curve: curve.clone(),
                 floor_rms: (current.var_channel[c] / current.n_channel[c].max(1) as f64).sqrt(),
+                source: if repeat_noise.is_some() { "repeated frames" } else { "residual" },
             }
         })
         .collect();

@@ -1,4 +1,8 @@
-//! The noise model, measured from the wide-open capture alone.
+//! The noise model, measured from the wide-open capture alone — or, when a capture session
+//! averaged several frames, from those frames' temporal variance (the sidecar's
+//! `temporal_noise`, [`crate::rig::camera::temporal_noise_curve`]: at every pixel the sample
+//! variance over the frames, binned by level, divided by the frame count for the average),
+//! which needs no model of the signal at all and is preferred by `diagnose --session`.
 //!
 //! # Method
 //! At every pixel whose 3×3 neighbourhood is neither clipped nor black, the high-pass

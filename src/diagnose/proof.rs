@@ -234,7 +234,18 @@ pub fn render_case(effect: Option<&str>, seed: u64, spec: &CaseSpec) -> Result<C
     let s = open_shot.exposure / pin_shot.exposure;
     let true_variance = (0..open.variance.len())
         .map(|c| {
-            let e: Vec<f32> = grid.kernels[c].iter().map(|kk| kk.data.iter().map(|v| v * v).sum()).collect();
+            // the reference's noise through the wide-open kernel, `ΣK²`; with a blurred
+            // reference, the error of the best prediction from it instead (see
+            // [`wiener_error_gain`])
+            let e: Vec<f32> = match &pinhole.psfs {
+                Some(pg) => {
+                    let nv = pinhole.variance[c].mean();
+                    let scene = sc[c.min(sc.len() - 1)].map(|v| v * pin_shot.exposure as f32);
+                    let psd = RadialPsd::of(&scene);
+                    grid.kernels[c].iter().zip(&pg.kernels[c]).map(|(kk, dk)| wiener_error_gain(kk, dk, &psd, nv) as f32).collect()
+                }
+                None => grid.kernels[c].iter().map(|kk| kk.data.iter().map(|v| v * v).sum()).collect(),
+            };
             let pin_local = crate::optics::forward::blur_channel(&pinhole.variance[c], &grid, c);
             let kq_plane = grid.blend_scalars(&e, w, h);
             Plane::from_fn(w, h, |x, y| {
@@ -251,6 +262,89 @@ pub fn render_case(effect: Option<&str>, seed: u64, spec: &CaseSpec) -> Result<C
         })
         .collect();
     Ok(Case { open, pinhole, effect: effect.map(str::to_string), truth, true_variance, pinhole_frames })
+}
+
+/// Radially averaged power spectral density of a plane (mean removed; per-pixel
+/// normalisation: the variance is the mean of the PSD over frequencies), in 64 bands of `|f|`
+/// up to `|f| = 0.71` cycles per pixel.
+pub struct RadialPsd {
+    bands: Vec<f64>,
+}
+
+impl RadialPsd {
+    const BANDS: usize = 64;
+    const FMAX: f64 = 0.7072;
+
+    pub fn of(p: &Plane) -> Self {
+        let (w, h) = (p.width, p.height);
+        let fft = crate::solve::fft::Fft2::plan(w, h);
+        let m = p.mean() as f32;
+        let spec = fft.forward(&p.data.iter().map(|v| v - m).collect::<Vec<_>>());
+        let (mut sum, mut cnt) = (vec![0.0f64; Self::BANDS], vec![0usize; Self::BANDS]);
+        for (i, z) in spec.iter().enumerate() {
+            let (fx, fy) = fft.frequency(i);
+            let b = Self::band((fx as f64).hypot(fy as f64));
+            sum[b] += z.norm_sqr() as f64 / (w * h) as f64;
+            cnt[b] += 1;
+        }
+        // empty bands take the nearest filled one below
+        let mut bands = vec![0.0; Self::BANDS];
+        let mut last = 0.0;
+        for b in 0..Self::BANDS {
+            if cnt[b] > 0 {
+                last = sum[b] / cnt[b] as f64;
+            }
+            bands[b] = last;
+        }
+        Self { bands }
+    }
+
+    fn band(f: f64) -> usize {
+        ((f / Self::FMAX * Self::BANDS as f64) as usize).min(Self::BANDS - 1)
+    }
+
+    pub fn at(&self, fx: f64, fy: f64) -> f64 {
+        self.bands[Self::band(fx.hypot(fy))]
+    }
+}
+
+/// The error gain of the best linear prediction of `K * S` from a reference `D * S + n`
+/// (white noise `n` of variance `σ²`, `S` with power spectrum `P_S`): per frequency the
+/// Wiener estimation error of `S` is `P_S·σ² / (|D̂|²·P_S + σ²)`, so the prediction's error
+/// variance is `σ²` times
+///
+/// `mean_f |K̂(f)|²·P_S(f) / (|D̂(f)|²·P_S(f) + σ²)`.
+///
+/// This is the true noise floor's pinhole term when the reference is blurred
+/// (`pinhole_diffraction`): beyond the reference's pass band no method can recover the detail
+/// the wide-open capture holds, and that loss counts like noise. For a sharp reference
+/// (`D̂ = 1`, `P_S ≫ σ²`) it is `ΣK²`, the plain propagated noise.
+pub fn wiener_error_gain(k: &Plane, d: &Plane, psd: &RadialPsd, noise_var: f64) -> f64 {
+    let side = k.width.max(k.height).max(d.width).max(d.height);
+    let n = crate::solve::fft::good_size((4 * side).max(64));
+    let fft = crate::solve::fft::Fft2::plan(n, n);
+    let place = |p: &Plane| {
+        let mut buf = vec![0.0f32; n * n];
+        for y in 0..p.height {
+            for x in 0..p.width {
+                buf[y * n + x] = p.get(x, y);
+            }
+        }
+        fft.forward(&buf)
+    };
+    let (ks, ds) = (place(k), place(d));
+    let dsum = d.sum().max(1e-30);
+    let mut e = 0.0f64;
+    for (i, (a, b)) in ks.iter().zip(&ds).enumerate() {
+        let (fx, fy) = fft.frequency(i);
+        let ps = psd.at(fx as f64, fy as f64);
+        // interior columns of the half spectrum count twice
+        let kx = i / n;
+        let mult = if kx == 0 || (n % 2 == 0 && kx == n / 2) { 1.0 } else { 2.0 };
+        let dd = b.norm_sqr() as f64 / (dsum * dsum);
+        e += mult * a.norm_sqr() as f64 * ps / (dd * ps + noise_var).max(1e-300);
+    }
+    e / (n * n) as f64
 }
 
 /// `sqrt(Σ(stored − predicted)² / ΣVar_true)` over `mask`: the residual relative to the true
@@ -271,6 +365,25 @@ pub fn floor_ratio(case: &Case, predicted: &[Plane], mask: &[Vec<bool>]) -> f64 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The Wiener error gain: a sharp reference (`D = δ`) with a strong signal gives the plain
+    /// `ΣK²`; a blurred reference gives more (the inverse of `D` amplifies its noise), and the
+    /// error variance `σ²·gain` grows with the noise.
+    #[test]
+    fn wiener_error_gain_is_the_propagated_noise_plus_the_lost_detail() {
+        let mut rng = Rng::new(5);
+        let white = Plane::from_fn(128, 128, |_, _| rng.normal() as f32);
+        let psd = RadialPsd::of(&white);
+        assert!((psd.at(0.1, 0.2) - 1.0).abs() < 0.15 && (psd.at(0.45, 0.0) - 1.0).abs() < 0.15, "white PSD {} {}", psd.at(0.1, 0.2), psd.at(0.45, 0.0));
+        let k = crate::optics::capture::gaussian_blur(&Plane::from_fn(15, 15, |x, y| ((x, y) == (7, 7)) as u8 as f32), 1.5);
+        let sum_k2: f64 = k.data.iter().map(|&v| (v as f64).powi(2)).sum();
+        let delta = Plane::from_fn(15, 15, |x, y| ((x, y) == (7, 7)) as u8 as f32);
+        let sharp = wiener_error_gain(&k, &delta, &psd, 1e-4);
+        assert!((sharp / sum_k2 - 1.0).abs() < 0.02, "sharp reference: {sharp:.4e} vs ΣK² {sum_k2:.4e}");
+        let d = crate::optics::capture::gaussian_blur(&delta, 1.2);
+        let (low, high) = (wiener_error_gain(&k, &d, &psd, 1e-4), wiener_error_gain(&k, &d, &psd, 1e-2));
+        assert!(low > 1.5 * sharp && high * 1e-2 > 10.0 * low * 1e-4, "blurred reference: {low:.3e} (σ² 1e-4), {high:.3e} (1e-2) vs sharp {sharp:.3e}");
+    }
 
     /// The softened pattern is band-limited before sampling: a rotated view equals (to well under
     /// the noise) a resampling of the unrotated one, which the sharp pattern blurred after

@@ -305,6 +305,12 @@ pub struct FrameRecord {
     pub transfer: String,
     pub fourcc: String,
     pub sequence: Option<u32>,
+    /// The temporal noise of one frame, per channel, measured from the averaged frames:
+    /// `[level, variance, pixels]` rows on the stored axis (equal-count level bins; see
+    /// [`super::camera::temporal_noise_curve`]). Absent for a single frame. `lensrig diagnose
+    /// --session` uses it as the noise model (divided by `frames_averaged`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub temporal_noise: Option<Vec<Vec<[f64; 3]>>>,
 }
 
 /// Reads `session.toml`.
@@ -594,6 +600,7 @@ fn write_frame(dir: &Path, role: &str, f: &Frame, rig: &Rig, a: &super::config::
         transfer: m.transfer.name().into(),
         fourcc: m.fourcc.to_string(),
         sequence: m.sequence,
+        temporal_noise: f.temporal_variance.as_ref().map(|v| f.image.planes.iter().zip(v).map(|(m, v)| super::camera::temporal_noise_curve(m, v, 16)).collect()),
     };
     let p = dir.join(format!("{role}.toml"));
     let text = toml::to_string_pretty(&r).map_err(|e| SessionError::Setup(format!("cannot encode {}: {e}", p.display())))?;

@@ -321,6 +321,7 @@ impl Camera for MockCamera {
         let white = self.white_level();
         let mut discarded = std::mem::take(&mut self.owed_discards);
         let mut sum: Vec<Vec<f64>> = clean.iter().map(|p| vec![0.0; p.data.len()]).collect();
+        let mut repeats = super::Repeats::default();
         let mut got = 0;
         while got < frames {
             let planes = self.one_frame(&clean, white);
@@ -335,6 +336,7 @@ impl Camera for MockCamera {
                     *a += v as f64;
                 }
             }
+            repeats.add(&planes);
             got += 1;
         }
         let planes: Vec<Plane> = clean
@@ -359,6 +361,7 @@ impl Camera for MockCamera {
                 fourcc: self.format.fourcc,
                 sequence: Some(self.captures as u32),
             },
+            temporal_variance: repeats.variance(),
         })
     }
 
@@ -429,6 +432,27 @@ mod tests {
         let f = c.capture(1).unwrap();
         assert!(f.image.planes[0].data.iter().filter(|&&v| v >= 1.0).count() > 100);
         assert_eq!(f.meta.frames_discarded, 2);
+    }
+
+    /// The temporal variance over averaged frames is the sensor's Poisson–Gaussian law
+    /// `Var = g·L/FW + (g·σ_read/FW)²` (single frame, full-scale axis), and a single frame has
+    /// none.
+    #[test]
+    fn repeated_frames_measure_the_sensor_noise_law() {
+        let (mut c, pos) = cam();
+        let o = c.optics().clone();
+        pos.lock().unwrap().set(o.aperture_axis, o.aperture_open);
+        assert!(c.capture(1).unwrap().temporal_variance.is_none());
+        let f = c.capture(8).unwrap();
+        let var = f.temporal_variance.as_ref().expect("8 frames give a temporal variance");
+        let curve = super::super::temporal_noise_curve(&f.image.planes[0], &var[0], 8);
+        assert_eq!(curve.len(), 8);
+        let g = 10f64.powf(c.gain / 20.0);
+        let (fw, rd) = (o.sensor.full_well_e, o.sensor.read_noise_e);
+        for [level, v, n] in curve {
+            let want = g * level / fw + (rd * g / fw).powi(2);
+            assert!(n > 100.0 && (v / want - 1.0).abs() < 0.12, "level {level:.3}: variance {v:.3e} vs law {want:.3e} ({n} px)");
+        }
     }
 
     #[test]

@@ -87,6 +87,76 @@ pub struct FrameMeta {
 pub struct Frame {
     pub image: Image,
     pub meta: FrameMeta,
+    /// Per channel, the temporal variance of *one* frame's stored values at every pixel (the
+    /// unbiased sample variance over the averaged frames; `None` for a single frame). The
+    /// variance of the stored average is this divided by `frames_averaged` (exactly for linear
+    /// data, to first order for encoded data).
+    pub temporal_variance: Option<Vec<Plane>>,
+}
+
+/// Per-pixel sums of stored values and their squares over repeated frames: the temporal
+/// variance behind [`Frame::temporal_variance`].
+#[derive(Debug, Default)]
+pub struct Repeats {
+    sum: Vec<Vec<f64>>,
+    sum_sq: Vec<Vec<f64>>,
+    dims: Vec<(usize, usize)>,
+    count: usize,
+}
+
+impl Repeats {
+    /// Adds one frame's planes (stored values); planes of another shape than the first frame's
+    /// are ignored (the averager reports that mismatch).
+    pub fn add(&mut self, planes: &[Plane]) {
+        if self.count == 0 {
+            self.sum = planes.iter().map(|p| vec![0.0; p.data.len()]).collect();
+            self.sum_sq = self.sum.clone();
+            self.dims = planes.iter().map(|p| (p.width, p.height)).collect();
+        } else if planes.len() != self.sum.len() || planes.iter().zip(&self.dims).any(|(p, d)| (p.width, p.height) != *d) {
+            return;
+        }
+        for ((s, q), p) in self.sum.iter_mut().zip(self.sum_sq.iter_mut()).zip(planes) {
+            for ((a, b), &v) in s.iter_mut().zip(q.iter_mut()).zip(&p.data) {
+                *a += v as f64;
+                *b += (v as f64) * (v as f64);
+            }
+        }
+        self.count += 1;
+    }
+
+    /// The unbiased per-pixel variance, `(Σv² − (Σv)²/n)/(n − 1)`; `None` below two frames.
+    pub fn variance(&self) -> Option<Vec<Plane>> {
+        if self.count < 2 {
+            return None;
+        }
+        let n = self.count as f64;
+        Some(
+            self.sum
+                .iter()
+                .zip(&self.sum_sq)
+                .zip(&self.dims)
+                .map(|((s, q), &(w, h))| Plane { width: w, height: h, data: s.iter().zip(q).map(|(&a, &b)| ((b - a * a / n) / (n - 1.0)).max(0.0) as f32).collect() })
+                .collect(),
+        )
+    }
+}
+
+/// The temporal noise curve of one frame: pixels binned by the level of the averaged image
+/// (equal counts, `bins` bins; clipped or black pixels left out), each bin's mean level and
+/// mean single-frame variance, both on the stored axis: `[level, variance, pixels]` rows.
+pub fn temporal_noise_curve(mean: &Plane, variance: &Plane, bins: usize) -> Vec<[f64; 3]> {
+    let mut px: Vec<(f32, f32)> = mean.data.iter().zip(&variance.data).filter(|(&m, _)| m > 0.002 && m < 0.995).map(|(&m, &v)| (m, v)).collect();
+    if px.is_empty() || bins == 0 {
+        return Vec::new();
+    }
+    px.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let per = px.len().div_ceil(bins);
+    px.chunks(per)
+        .map(|c| {
+            let n = c.len() as f64;
+            [c.iter().map(|p| p.0 as f64).sum::<f64>() / n, c.iter().map(|p| p.1 as f64).sum::<f64>() / n, n]
+        })
+        .collect()
 }
 
 /// A camera, as the capture code sees it.
@@ -240,6 +310,27 @@ mod tests {
         let e = CameraError::UnsupportedFormat { device: "/dev/video3".into(), wanted: FourCc(*b"Y16 "), offered: vec![FourCc(*b"H264"), FourCc(*b"NV12")] };
         let m = e.to_string();
         assert!(m.contains("/dev/video3") && m.contains("'Y16 '") && m.contains("'H264', 'NV12'") && m.contains("'YUYV'"), "{m}");
+    }
+
+    #[test]
+    fn repeats_give_the_unbiased_variance_and_binned_curve() {
+        let mut r = Repeats::default();
+        assert!(r.variance().is_none());
+        for v in [0.1f32, 0.3, 0.2] {
+            r.add(&[Plane::filled(4, 1, v), Plane::filled(4, 1, 2.0 * v)]);
+        }
+        // a frame of another shape is ignored
+        r.add(&[Plane::filled(3, 1, 9.0)]);
+        let var = r.variance().unwrap();
+        // sample variance of 0.1, 0.3, 0.2 is 0.01; doubled values: 0.04
+        assert!((var[0].data[0] - 0.01).abs() < 1e-6 && (var[1].data[3] - 0.04).abs() < 1e-6, "{var:?}");
+        let mean = Plane { width: 4, height: 1, data: vec![0.1, 0.2, 0.3, 1.0] };
+        let v = Plane { width: 4, height: 1, data: vec![1.0, 2.0, 3.0, 99.0] };
+        // the clipped pixel is left out; two bins of the three others (equal counts, by level)
+        let c = temporal_noise_curve(&mean, &v, 2);
+        assert_eq!(c.len(), 2);
+        assert!((c[0][0] - 0.15).abs() < 1e-6 && (c[0][1] - 1.5).abs() < 1e-6 && c[0][2] == 2.0, "{c:?}");
+        assert!((c[1][0] - 0.3).abs() < 1e-6 && (c[1][1] - 3.0).abs() < 1e-6, "{c:?}");
     }
 
     #[test]

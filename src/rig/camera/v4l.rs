@@ -33,7 +33,7 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, SystemTime};
 
 use super::decode::{self, ColorMode};
-use super::{Averager, Camera, CameraError, Frame, FrameFormat, FrameMeta, FourCc};
+use super::{Averager, Camera, CameraError, Frame, FrameFormat, FrameMeta, FourCc, Repeats};
 
 /// `V4L2_CID_EXPOSURE_AUTO` (camera class); 1 = `V4L2_EXPOSURE_MANUAL`.
 pub const CID_EXPOSURE_AUTO: u32 = 0x009a_0901;
@@ -291,6 +291,7 @@ impl Camera for V4lCamera {
         self.owed = 0;
         let f = self.format;
         let mut avg = Averager::new();
+        let mut repeats = Repeats::default();
         let mut first: Option<(SystemTime, u32)> = None;
         for _ in 0..frames {
             let (bytes, seq) = self.next_raw()?;
@@ -300,6 +301,7 @@ impl Camera for V4lCamera {
             let img = decode::decode(f.fourcc, f.width as usize, f.height as usize, self.stride, &bytes, self.color)
                 .map_err(|source| CameraError::Decode { device: self.device.clone(), source })?;
             avg.add(&img).map_err(|what| CameraError::InvalidArgument { device: self.device.clone(), what })?;
+            repeats.add(&img.planes);
         }
         let (time, seq) = first.unwrap_or((SystemTime::now(), 0));
         let image = avg.finish().ok_or_else(|| CameraError::InvalidArgument { device: self.device.clone(), what: "no frame averaged".into() })?;
@@ -315,6 +317,7 @@ impl Camera for V4lCamera {
                 sequence: Some(seq),
             },
             image,
+            temporal_variance: repeats.variance(),
         })
     }
 

@@ -339,11 +339,15 @@ pub fn denoise(planes: &[Plane], opts: &DenoiseOptions) -> Vec<Plane> {
         };
         (y0, out)
     };
-    let parts: Vec<(usize, Vec<Vec<f32>>)> = if opts.parallel { starts.par_iter().map(work).collect() } else { starts.iter().map(work).collect() };
+    // a few strips per worker at a time, copied out at once: the strips' results never add up
+    // to a second copy of the image
     let mut out: Vec<Plane> = (0..nch).map(|_| Plane::new(w, h)).collect();
-    for (y0, p) in parts {
-        for (c, v) in p.into_iter().enumerate() {
-            out[c].data[y0 * w..y0 * w + v.len()].copy_from_slice(&v);
+    for batch in starts.chunks(2 * rayon::current_num_threads().max(1)) {
+        let parts: Vec<(usize, Vec<Vec<f32>>)> = if opts.parallel { batch.par_iter().map(work).collect() } else { batch.iter().map(work).collect() };
+        for (y0, p) in parts {
+            for (c, v) in p.into_iter().enumerate() {
+                out[c].data[y0 * w..y0 * w + v.len()].copy_from_slice(&v);
+            }
         }
     }
     out

@@ -167,6 +167,7 @@ fn experiment(out: &Path, scene: &Path) -> anyhow::Result<()> {
         denoise_threshold: env("LR_DNTHR").map_or(d.denoise_threshold, |v| v as f32),
         denoise_chroma: env("LR_DNCHROMA").map_or(d.denoise_chroma, |v| v as f32),
         denoise_search: env("LR_BMS").map_or(d.denoise_search, |v| v as usize),
+        denoise_bm_channels: env("LR_BMCH").map_or(d.denoise_bm_channels, |v| v as usize),
         denoise_search_step: env("LR_BMSTEP").map_or(d.denoise_search_step, |v| v as usize),
         denoise_group: env("LR_BMG").map_or(d.denoise_group, |v| v as usize),
         denoise_match_tau: env("LR_BMTAU").map_or(d.denoise_match_tau, |v| v as f32),

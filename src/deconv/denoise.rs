@@ -38,9 +38,12 @@ pub struct DenoiseOptions {
     pub chroma: f32,
     /// Run the Wiener stage.
     pub wiener: bool,
-    /// Block matching on the luminance plane (BM3D-style groups): search radius in pixels
+    /// Block matching (BM3D-style groups): search radius in pixels
     /// (0: sliding-window DCT only).
     pub search: usize,
+    /// How many of the decorrelated channels (luminance first) are filtered with block matching;
+    /// the others use single sliding blocks.
+    pub bm_channels: usize,
     /// Search step (pixels) inside the window.
     pub search_step: usize,
     /// Most blocks per group (rounded down to a power of 2).
@@ -176,6 +179,7 @@ pub fn denoise(planes: &[Plane], opts: &DenoiseOptions) -> Vec<Plane> {
     let bm = opts.search > 0 && opts.group > 1;
     let sr = if bm { opts.search } else { 0 };
     let strip = if bm { 128usize } else { 64usize };
+    let nbm = opts.bm_channels.max(1);
     let halo = 2 * B + 4 * sr;
     let starts: Vec<usize> = (0..h).step_by(strip).collect();
     let opponent = nch == 3;
@@ -240,7 +244,7 @@ pub fn denoise(planes: &[Plane], opts: &DenoiseOptions) -> Vec<Plane> {
             for &px in &xs {
                 let g = block_sigma(ly, px);
                 for (ch, plane) in noisy.iter().enumerate() {
-                    if bm && ch == 0 {
+                    if bm && ch < nbm {
                         continue;
                     }
                     let sg = sig_lin[ch] * g;
@@ -273,8 +277,10 @@ pub fn denoise(planes: &[Plane], opts: &DenoiseOptions) -> Vec<Plane> {
         let ctx = BmContext { w, h, a, b, xs: &xs, opts };
         if bm {
             let refs = blocks(y0 as isize - 2 * B as isize + 2 - 3 * srs, y1 as isize + 3 * srs + B as isize - 1);
-            let sigma = |ly: usize, px: usize| sig_lin[0] * block_sigma(ly, px);
-            bm_stage(&ctx, &noisy[0], None, &refs, &sigma, &mut pilot[0], &mut wsum[0]);
+            for ch in 0..nbm.min(noisy.len()) {
+                let sigma = |ly: usize, px: usize| sig_lin[ch] * block_sigma(ly, px);
+                bm_stage(&ctx, &noisy[ch], None, &refs, &sigma, &mut pilot[ch], &mut wsum[ch]);
+            }
         }
         for (p, s) in pilot.iter_mut().zip(&wsum) {
             p.iter_mut().zip(s).for_each(|(p, s)| *p = if *s > 0.0 { *p / s } else { 0.0 });
@@ -289,7 +295,7 @@ pub fn denoise(planes: &[Plane], opts: &DenoiseOptions) -> Vec<Plane> {
                 for &px in &xs {
                     let g = block_sigma(ly, px);
                     for ch in 0..noisy.len() {
-                        if bm && ch == 0 {
+                        if bm && ch < nbm {
                             continue;
                         }
                         let sg = sig_lin[ch] * g;
@@ -322,8 +328,10 @@ pub fn denoise(planes: &[Plane], opts: &DenoiseOptions) -> Vec<Plane> {
             }
             if bm {
                 let refs = blocks(y0 as isize - B as isize + 1 - srs, y1 as isize + srs);
-                let sigma = |ly: usize, px: usize| sig_lin[0] * block_sigma(ly, px);
-                bm_stage(&ctx, &noisy[0], Some(&pilot[0]), &refs, &sigma, &mut num[0], &mut den[0]);
+                for ch in 0..nbm.min(noisy.len()) {
+                    let sigma = |ly: usize, px: usize| sig_lin[ch] * block_sigma(ly, px);
+                    bm_stage(&ctx, &noisy[ch], Some(&pilot[ch]), &refs, &sigma, &mut num[ch], &mut den[ch]);
+                }
             }
             num.iter_mut().zip(&den).for_each(|(n, d)| n.iter_mut().zip(d).for_each(|(n, d)| *n = if *d > 0.0 { *n / d } else { 0.0 }));
             num

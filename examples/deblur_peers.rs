@@ -161,6 +161,18 @@ fn experiment(out: &Path, scene: &Path) -> anyhow::Result<()> {
         cross_local: env("LR_BLOC").map_or(d.cross_local, |v| v as f32),
         unknown_boundary: env("LR_UB").map_or(d.unknown_boundary, |v| v > 0.0),
         data_split_rho: env("LR_VRHO").map_or(d.data_split_rho, |v| v as f32),
+        denoise: env("LR_DN").map_or(d.denoise, |v| v as f32),
+        denoise_lambda_per_variance: env("LR_DNKAPPA").map_or(d.denoise_lambda_per_variance, |v| v as f32),
+        denoise_step: env("LR_DNSTEP").map_or(d.denoise_step, |v| v as usize),
+        denoise_threshold: env("LR_DNTHR").map_or(d.denoise_threshold, |v| v as f32),
+        denoise_chroma: env("LR_DNCHROMA").map_or(d.denoise_chroma, |v| v as f32),
+        denoise_search: env("LR_BMS").map_or(d.denoise_search, |v| v as usize),
+        denoise_bm_channels: env("LR_BMCH").map_or(d.denoise_bm_channels, |v| v as usize),
+        denoise_search_step: env("LR_BMSTEP").map_or(d.denoise_search_step, |v| v as usize),
+        denoise_group: env("LR_BMG").map_or(d.denoise_group, |v| v as usize),
+        denoise_match_tau: env("LR_BMTAU").map_or(d.denoise_match_tau, |v| v as f32),
+        denoise_slope_power: env("LR_DNSP").map_or(d.denoise_slope_power, |v| v as f32),
+        denoise_wiener: env("LR_DNW").map_or(d.denoise_wiener, |v| v > 0.0),
         saturation: match env("LR_SAT") {
             Some(v) if v > 1.0 => None,
             Some(v) => Some(v as f32),
@@ -178,7 +190,7 @@ fn experiment(out: &Path, scene: &Path) -> anyhow::Result<()> {
     let sharp = read_image(scene)?;
     let peer = |m: &str| read_image(&dir.join(format!("{m}.tiff"))).map(|i| psnr(&i, &sharp)).unwrap_or(f64::NAN);
     println!(
-        "{:<18} lensrig {:.2} dB  RL {:.2}  Wiener {:.2}  blurred {:.2} | {secs:.2} s wall {cpu:.2} s CPU | tiles {} window {:?} cp {} λ {:?}",
+        "{:<18} lensrig {:.3} dB  RL {:.2}  Wiener {:.2}  blurred {:.2} | {secs:.2} s wall {cpu:.2} s CPU | tiles {} window {:?} cp {} λ {:?}",
         scene_name(scene),
         psnr(&enc, &sharp),
         peer("richardson_lucy"),

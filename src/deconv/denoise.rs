@@ -1,12 +1,16 @@
-//! Sliding-window DCT shrinkage of a deconvolved image (the "regularised inverse + coloured-noise
-//! denoising" stage of DEB-BM3D, Dabov et al. 2008, without block matching).
+//! Block-DCT shrinkage of a deconvolved image (the "regularised inverse + coloured-noise
+//! denoising" stage of DEB-BM3D, Dabov et al. 2008): a light BM3D on luminance (groups of
+//! similar blocks, 2-D DCT + Haar across the group; [`DenoiseOptions::search`]) and sliding
+//! single blocks on the chroma planes.
 //!
 //! The image is denoised in the domain its result is delivered in (gamma-encoded values, where
 //! the benchmark measures PSNR) and in an orthonormal opponent colour space
 //! (`Y = (R+G+B)/√3`, `C₁ = (R−B)/√2`, `C₂ = (R−2G+B)/√6`), so the strongly correlated channels
 //! of a photograph share their structure in `Y` and the chroma planes are nearly flat.
-//! Two stages on every 8×8 block of a lattice with step `s` (Foi, Katkovnik & Egiazarian's
-//! sliding-window DCT, the 2-D analogue of BM3D's two steps):
+//! Other channel counts (monochrome, multispectral) are denoised channel by channel, each with
+//! its own noise level (block matching on the first `bm_channels` of them).
+//! Two stages on every 8×8 block (or group) of a lattice with step `s` (Foi, Katkovnik &
+//! Egiazarian's sliding-window DCT; BM3D's two steps):
 //! 1. hard thresholding of the block's DCT coefficients at `τ σ_b` (DC kept); the inverse is
 //!    aggregated with weight `1 / (σ_b² N_b)`, `N_b` the retained coefficients;
 //! 2. empirical Wiener shrinkage `Ŷ = P²/(P² + σ_b²) · Z` with the stage-1 result `P` as pilot,

@@ -163,16 +163,22 @@ fn experiment(out: &Path, scene: &Path) -> anyhow::Result<()> {
         data_split_rho: env("LR_VRHO").map_or(d.data_split_rho, |v| v as f32),
         denoise: env("LR_DN").map_or(d.denoise, |v| v as f32),
         denoise_lambda_per_variance: env("LR_DNKAPPA").map_or(d.denoise_lambda_per_variance, |v| v as f32),
-        denoise_step: env("LR_DNSTEP").map_or(d.denoise_step, |v| v as usize),
-        denoise_threshold: env("LR_DNTHR").map_or(d.denoise_threshold, |v| v as f32),
-        denoise_chroma: env("LR_DNCHROMA").map_or(d.denoise_chroma, |v| v as f32),
-        denoise_search: env("LR_BMS").map_or(d.denoise_search, |v| v as usize),
-        denoise_bm_channels: env("LR_BMCH").map_or(d.denoise_bm_channels, |v| v as usize),
-        denoise_search_step: env("LR_BMSTEP").map_or(d.denoise_search_step, |v| v as usize),
-        denoise_group: env("LR_BMG").map_or(d.denoise_group, |v| v as usize),
-        denoise_match_tau: env("LR_BMTAU").map_or(d.denoise_match_tau, |v| v as f32),
-        denoise_slope_power: env("LR_DNSP").map_or(d.denoise_slope_power, |v| v as f32),
-        denoise_wiener: env("LR_DNW").map_or(d.denoise_wiener, |v| v > 0.0),
+        denoiser: {
+            let n = &d.denoiser;
+            lensrig::deconv::denoise::DenoiseOptions {
+                step: env("LR_DNSTEP").map_or(n.step, |v| v as usize),
+                threshold: env("LR_DNTHR").map_or(n.threshold, |v| v as f32),
+                chroma: env("LR_DNCHROMA").map_or(n.chroma, |v| v as f32),
+                search: env("LR_BMS").map_or(n.search, |v| v as usize),
+                bm_channels: env("LR_BMCH").map_or(n.bm_channels, |v| v as usize),
+                search_step: env("LR_BMSTEP").map_or(n.search_step, |v| v as usize),
+                group: env("LR_BMG").map_or(n.group, |v| v as usize),
+                match_tau: env("LR_BMTAU").map_or(n.match_tau, |v| v as f32),
+                slope_power: env("LR_DNSP").map_or(n.slope_power, |v| v as f32),
+                wiener: env("LR_DNW").map_or(n.wiener, |v| v > 0.0),
+                ..n.clone()
+            }
+        },
         saturation: match env("LR_SAT") {
             Some(v) if v > 1.0 => None,
             Some(v) => Some(v as f32),

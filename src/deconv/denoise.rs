@@ -62,6 +62,28 @@ pub struct DenoiseOptions {
     pub parallel: bool,
 }
 
+impl Default for DenoiseOptions {
+    /// The defaults `deblur` uses ([`super::DeconvOptions::denoiser`]); `sigma`, `transfer` and
+    /// `parallel` are set per call from the noise estimate and the output encoding.
+    fn default() -> Self {
+        Self {
+            sigma: Vec::new(),
+            transfer: Transfer::Linear,
+            step: 3,
+            threshold: 2.7,
+            chroma: 1.5,
+            wiener: true,
+            search: 6,
+            bm_channels: 1,
+            search_step: 2,
+            group: 8,
+            match_tau: 10.0,
+            slope_power: 0.0,
+            parallel: true,
+        }
+    }
+}
+
 /// The orthonormal DCT-II matrix (reference for the fast transforms).
 #[cfg(test)]
 fn dct_matrix() -> [f32; B * B] {

@@ -82,7 +82,7 @@
 //!    per-frequency noise level estimated from the image (quantiles of the DCT coefficients)
 //!    lost 0.3–1.5 dB; a Kaiser window, a frequency tilt of ±0.5, step 2 and larger groups or
 //!    search windows changed ≤ 0.03 dB. Block matching on the chroma planes as well
-//!    ([`DeconvOptions::denoise_bm_channels`] = 3): astronaut +0.06, chelsea +0.03, coffee
+//!    ([`denoise::DenoiseOptions::bm_channels`] = 3): astronaut +0.06, chelsea +0.03, coffee
 //!    +0.05, hubble −0.05, rocket +0.03 dB for +31 % CPU on 1 MP (21 → 27.5 CPU-s back to back
 //!    under load), which would take the 1-MP budget to its limit, so it is off (1).
 //!    The stage runs in strips of rows with a halo, a few
@@ -221,27 +221,9 @@ pub struct DeconvOptions {
     /// `κ` used instead of [`DeconvOptions::lambda_per_variance`] while the denoising stage is
     /// on (a weaker prior keeps texture and leaves the noise to the denoiser).
     pub denoise_lambda_per_variance: f32,
-    /// Block lattice step of the denoiser (1..=8).
-    pub denoise_step: usize,
-    /// Hard threshold of the denoiser's first stage (in noise standard deviations).
-    pub denoise_threshold: f32,
-    /// Chroma noise relative to luminance noise in the denoiser.
-    pub denoise_chroma: f32,
-    /// Run the denoiser's Wiener stage.
-    pub denoise_wiener: bool,
-    /// Block-matching search radius of the denoiser (0: sliding DCT only).
-    pub denoise_search: usize,
-    /// Decorrelated channels filtered with block matching (1: luminance only, 3: all); each is
-    /// matched on itself.
-    pub denoise_bm_channels: usize,
-    /// Search step of the block matching.
-    pub denoise_search_step: usize,
-    /// Largest group of the block matching.
-    pub denoise_group: usize,
-    /// Matching threshold (mean squared difference in units of the block's noise variance).
-    pub denoise_match_tau: f32,
-    /// Exponent `p` of the denoiser's noise model `σ g'(0.18) (g'(v̄)/g'(0.18))^p`.
-    pub denoise_slope_power: f32,
+    /// The denoiser's block, threshold, matching and noise-model settings ([`denoise`]); its
+    /// `sigma`, `transfer` and `parallel` are set by [`deblur`].
+    pub denoiser: denoise::DenoiseOptions,
 }
 
 impl Default for DeconvOptions {
@@ -277,16 +259,7 @@ impl Default for DeconvOptions {
             data_split_rho: 1.0,
             denoise: 7.0,
             denoise_lambda_per_variance: 2.5,
-            denoise_step: 3,
-            denoise_threshold: 2.7,
-            denoise_chroma: 1.5,
-            denoise_wiener: true,
-            denoise_search: 6,
-            denoise_bm_channels: 1,
-            denoise_search_step: 2,
-            denoise_group: 8,
-            denoise_match_tau: 10.0,
-            denoise_slope_power: 0.0,
+            denoiser: denoise::DenoiseOptions::default(),
         }
     }
 }
@@ -462,17 +435,8 @@ pub fn deblur(
         let d = denoise::DenoiseOptions {
             sigma: noise.iter().map(|s| opts.denoise * s).collect(),
             transfer: opts.output_transfer.unwrap_or(crate::image::Transfer::Linear),
-            step: opts.denoise_step,
-            threshold: opts.denoise_threshold,
-            chroma: opts.denoise_chroma,
-            wiener: opts.denoise_wiener,
-            search: opts.denoise_search,
-            bm_channels: opts.denoise_bm_channels,
-            search_step: opts.denoise_search_step,
-            group: opts.denoise_group,
-            match_tau: opts.denoise_match_tau,
-            slope_power: opts.denoise_slope_power,
             parallel: opts.parallel,
+            ..opts.denoiser.clone()
         };
         out = denoise::denoise(&out, &d);
     }

@@ -672,6 +672,19 @@ mod tests {
         assert!((fu - e).abs() <= 1e-3 * e, "f {fu} vs ½⟨u, Nu⟩ {e}");
     }
 
+    /// RMS of `a − b` over the pixels at least `m` from the border.
+    fn interior_rms(a: &Plane, b: &Plane, m: usize) -> f64 {
+        let (w, h) = (a.width, a.height);
+        let (mut ss, mut n) = (0.0f64, 0usize);
+        for y in m..h - m {
+            for x in m..w - m {
+                ss += ((a.get(x, y) - b.get(x, y)) as f64).powi(2);
+                n += 1;
+            }
+        }
+        (ss / n as f64).sqrt()
+    }
+
     /// With the data subsampled to a third, every tile keeps data and the joint fit still
     /// brings the prediction of an independent pair to within 10% of the noise.
     #[test]
@@ -697,18 +710,7 @@ mod tests {
         super::refine_channel(&est.open_linear[0], &sharp_s, &est.valid_masks[0], &grid, &mut kernels, &fits, &o, &mut Vec::new(), &indicatif::ProgressBar::hidden(), cap);
         let mut refined = grid.clone();
         refined.kernels[0] = kernels;
-        let cv = |gr: &PsfGrid| {
-            let pred = blur_channel(&sharp2.map(|v| v * s), gr, 0);
-            let m = k / 2;
-            let (mut ss, mut n) = (0.0f64, 0usize);
-            for y in m..h - m {
-                for x in m..w - m {
-                    ss += ((pred.get(x, y) - open2.get(x, y)) as f64).powi(2);
-                    n += 1;
-                }
-            }
-            (ss / n as f64).sqrt() / noise as f64
-        };
+        let cv = |gr: &PsfGrid| interior_rms(&blur_channel(&sharp2.map(|v| v * s), gr, 0), &open2, k / 2) / noise as f64;
         let (cv0, cv1) = (cv(&grid), cv(&refined));
         assert!(cv1 < 1.10 && cv1 < cv0 - 0.05, "subsampled joint cv {cv1} vs window fits {cv0}");
     }
@@ -727,16 +729,7 @@ mod tests {
             let est = estimate(&img(&open), &img(&sharp), &opts).expect("estimate");
             let grid = &est.profile.grid;
             let s = est.profile.meta.exposure_ratio[0] as f32;
-            let pred = blur_channel(&sharp2.map(|v| v * s), grid, 0);
-            let m = k / 2;
-            let (mut ss, mut n) = (0.0f64, 0usize);
-            for y in m..h - m {
-                for x in m..w - m {
-                    ss += ((pred.get(x, y) - open2.get(x, y)) as f64).powi(2);
-                    n += 1;
-                }
-            }
-            let ratio = (ss / n as f64).sqrt() / noise as f64;
+            let ratio = interior_rms(&blur_channel(&sharp2.map(|v| v * s), grid, 0), &open2, k / 2) / noise as f64;
             let mut errs: Vec<f64> = (0..grid.tile_count()).map(|t| relative_error(&grid.kernels[0][t], &g.kernels[0][t])).collect();
             errs.sort_by(|a, b| a.total_cmp(b));
             (ratio, errs[errs.len() / 2])

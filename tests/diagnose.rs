@@ -136,20 +136,24 @@ fn psf_field_variation_is_named() {
     check_named("psf_field_variation", 9);
 }
 
-/// Named first and at the floor: the reference's blur is modelled as the Airy pattern times a
-/// Gaussian of the lens's residual aberrations at the stop (`aberration_sigma_px`); the Airy
-/// radius still comes out above the diffraction radius alone (the aberrations vary across the
-/// field, the model has one Gaussian).
+/// Named first and at the floor: the reference's blur is modelled as the band-averaged Airy
+/// pattern times a Gaussian of the lens's residual aberrations at the stop
+/// (`aberration_sigma_px`). At f/11 (this seed) the aberrations are not Gaussian and trade off
+/// against the Airy radius (a smaller core with a wider Gaussian blurs alike), so the figure
+/// checked against the rendered PSFs is the one the data determine: the reference's MTF50
+/// (the radius alone comes out within 2 % at f/17–f/21, README table).
 #[test]
-fn pinhole_diffraction_is_named_and_its_radius_estimated() {
+fn pinhole_diffraction_is_named_and_its_mtf_estimated() {
     let (row, d, c) = case(Some("pinhole_diffraction"), 1);
     assert_eq!(d.effects.first().map(|e| e.name.as_str()), Some("pinhole_diffraction"), "rounds {:?}", d.rounds);
     let e = &d.effects[0];
     assert!(e.after.reduced_chi2 < 0.85 * e.before.reduced_chi2, "{:?} → {:?}", e.before.reduced_chi2, e.after.reduced_chi2);
     assert!(e.evidence.contains("non-negative kernel"), "{}", e.evidence);
-    let got = e.parameters["airy_radius_px"][0].as_f64().unwrap();
-    let want = c.truth["airy_radius_px"].as_f64().unwrap();
-    assert!(got / want > 0.8 && got / want < 1.6, "Airy radius {got:.2} px vs diffraction alone {want:.2} px");
+    let got = e.parameters["mtf50_cycles_per_px"][0].as_f64().unwrap();
+    let want = c.truth["mtf50_cycles_per_px"].as_f64().unwrap();
+    assert!((got / want - 1.0).abs() < 0.10, "reference MTF50 {got:.3} vs rendered {want:.3} cycles/px");
+    let r = e.parameters["airy_radius_px"][0].as_f64().unwrap();
+    assert!(r > 0.0 && r < 2.0 * c.truth["airy_radius_px"].as_f64().unwrap(), "Airy radius {r}");
     assert!(e.parameters["aberration_sigma_px"].as_f64().is_some_and(|v| (0.0..=1.5).contains(&v)), "{}", e.parameters);
     assert!(row.floor_ratio <= FLOOR, "final residual {:.3}× the floor", row.floor_ratio);
 }

@@ -361,6 +361,9 @@ pub fn parameters_json(name: &str, c: &Corrections) -> serde_json::Value {
             if let Some(d) = &c.pinhole_diffraction {
                 // the f-number this radius means at 550 nm for each micrometre of pixel pitch
                 v["f_number_per_um_pitch"] = json!(d.airy_radius_px.first().map(|r| r / (1.22 * 0.55)));
+                // the reference's MTF50 per channel: what the data determine (the radius and
+                // σ_a trade off; [`super::diffraction::ReferencePsf::mtf50`])
+                v["mtf50_cycles_per_px"] = json!((0..d.airy_radius_px.len()).map(|c| d.channel(c).0.mtf50()).collect::<Vec<_>>());
             }
             v
         }),
@@ -401,36 +404,45 @@ fn diffraction_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Can
     }
     let names: Vec<String> = data.open.channels.clone();
     let make = |r: f64, sa: f64| -> Corrections {
-        let radii: Vec<f64> = (0..nch).map(|c| r * super::diffraction::channel_wavelength_um(names.get(c).map_or("Y", |s| s.as_str())) / 0.55).collect();
+        let name = |c: usize| names.get(c).map_or("Y", |s| s.as_str());
+        let radii: Vec<f64> = (0..nch).map(|c| r * super::diffraction::channel_wavelength_um(name(c)) / 0.55).collect();
+        let bandwidth: Vec<f64> = (0..nch).map(|c| super::diffraction::channel_bandwidth(name(c))).collect();
         let eps: Vec<f64> = (0..nch)
             .map(|c| {
                 let p = &current.reference[c];
                 let vp = data.pinhole_variance_scale * data.curves[c].linear_variance(p.mean() as f32, transfer) as f64;
-                super::diffraction::epsilon(p, vp, radii[c], sa)
+                let psf = super::diffraction::ReferencePsf { radius_px: radii[c], aberration_px: sa, bandwidth: bandwidth[c] };
+                super::diffraction::epsilon(p, vp, &psf)
             })
             .collect();
-        Corrections { pinhole_diffraction: Some(super::model::DiffractionCorrection { airy_radius_px: radii, epsilon: eps, aberration_sigma_px: sa }), ..current.model.corrections.clone() }
+        Corrections { pinhole_diffraction: Some(super::model::DiffractionCorrection { airy_radius_px: radii, epsilon: eps, aberration_sigma_px: sa, bandwidth }), ..current.model.corrections.clone() }
     };
     // warm start: K ≈ K_current * D (module docs of `diffraction`)
     let init = |r: f64, sa: f64| -> Model {
         let corr = make(r, sa);
-        let d = corr.pinhole_diffraction.clone().unwrap_or(super::model::DiffractionCorrection { airy_radius_px: vec![r], epsilon: vec![1e-2], aberration_sigma_px: sa });
+        let d = corr.pinhole_diffraction.clone().unwrap_or(super::model::DiffractionCorrection { airy_radius_px: vec![r], epsilon: vec![1e-2], aberration_sigma_px: sa, bandwidth: Vec::new() });
         let mut m = current.model.clone();
         for (c, ks) in m.grid.kernels.iter_mut().enumerate() {
-            let rc = d.channel(c).0;
-            ks.iter_mut().for_each(|k| *k = super::diffraction::blur_kernel(k, rc, sa));
+            let psf = d.channel(c).0;
+            ks.iter_mut().for_each(|k| *k = super::diffraction::blur_kernel(k, &psf));
         }
         m.corrections = corr;
         m
     };
     let screen = FitSettings { rounds: 1, kernel_iterations: 30 };
-    let eval2 = |r: f64, sa: f64| {
+    let refine = FitSettings { rounds: 3, kernel_iterations: 150 };
+    let eval_with = |r: f64, sa: f64, settings: FitSettings| {
         let m = init(r, sa);
-        fit(data, &m.corrections, &m, screen).chi2()
+        fit(data, &m.corrections, &m, settings).chi2()
     };
+    let eval2 = |r: f64, sa: f64| eval_with(r, sa, refine);
     let eval = |r: f64| eval2(r, 0.0);
-    let scores: Vec<(f64, f64)> = AIRY_RADII.iter().map(|&r| (r, eval(r))).collect();
-    let (mut best_r, mut best_v) = scores.iter().copied().fold((AIRY_RADII[0], f64::INFINITY), |b, s| if s.1 < b.1 { s } else { b });
+    let scores: Vec<(f64, f64)> = AIRY_RADII.iter().map(|&r| (r, eval_with(r, 0.0, screen))).collect();
+    let mut best_r = scores.iter().copied().fold((AIRY_RADII[0], f64::INFINITY), |b, s| if s.1 < b.1 { s } else { b }).0;
+    // the screen's short fits only locate the basin (they favour too large a radius: the
+    // kernels have not yet shed the sharpening the unrestored reference forced on them); the
+    // refinement compares converged fits only
+    let mut best_v = f64::INFINITY;
     let (mut lo, mut hi) = ((best_r / 1.5).ln(), (best_r * 1.5).ln());
     let gr = 0.5 * (5f64.sqrt() - 1.0);
     let (mut x1, mut x2) = (hi - gr * (hi - lo), lo + gr * (hi - lo));

@@ -25,7 +25,19 @@
 //! `D̂_a(fx, fy) = D̂(fx, fy) · exp(−2π²·σ_a²·(fx² + fy²))`
 //!
 //! (`σ_a = 0`: diffraction alone). Without it the fitted Airy radius absorbs the aberrations
-//! and comes out too large. `D` below stands for `D_a`.
+//! and comes out too large.
+//!
+//! A colour channel integrates a band of wavelengths, and the Airy radius scales with `λ`: the
+//! channel's transfer function is the band's average, by a three-point quadrature of a band of
+//! relative half-width `δ` (`λ_c·(1 − δ)`, `λ_c`, `λ_c·(1 + δ)` with weights ¼, ½, ¼):
+//!
+//! `D̂_band(f) = ¼·D̂_a(f; r·(1 − δ)) + ½·D̂_a(f; r) + ¼·D̂_a(f; r·(1 + δ))`.
+//!
+//! The longer wavelengths cut off lower and the shorter ones higher, so a band passes more fine
+//! detail near the cut-off than one wavelength does; at a stop where the noise is low enough
+//! to restore up to the cut-off this matters. The nominal `δ` of a channel is
+//! [`channel_bandwidth`]. `D` below stands for `D_band`, and [`ReferencePsf`] holds its three
+//! parameters.
 //!
 //! # The model term
 //! The reference is restored before the kernels act, by the Wiener filter of `D`:
@@ -42,6 +54,69 @@
 
 use crate::image::Plane;
 use crate::solve::fft::{good_size, Fft2};
+
+/// Nominal relative half-width `δ` of a channel's band (module docs): a colour filter's band
+/// (`R`, `G`, `B`) about ±5 % of its centre wavelength; anything else (a monochrome channel
+/// behind a green-weighted filter) ±9 % (500–600 nm).
+pub fn channel_bandwidth(name: &str) -> f64 {
+    match name {
+        "R" => 0.045,
+        "G" | "B" => 0.055,
+        _ => 0.09,
+    }
+}
+
+/// The reference's PSF at the stop for one channel: Airy radius at the band's centre, residual
+/// aberration blur and band half-width (module docs).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ReferencePsf {
+    /// Airy radius `1.22·λ_c·N / p` (px) at the band's centre wavelength.
+    pub radius_px: f64,
+    /// `σ_a` (px) of the residual aberrations' Gaussian.
+    pub aberration_px: f64,
+    /// Relative half-width `δ` of the band (0: one wavelength).
+    pub bandwidth: f64,
+}
+
+impl ReferencePsf {
+    /// One wavelength, no aberrations.
+    pub fn airy(radius_px: f64) -> Self {
+        Self { radius_px, aberration_px: 0.0, bandwidth: 0.0 }
+    }
+    /// `D̂_band` at `(fx, fy)` (cycles per pixel).
+    pub fn transfer(&self, fx: f64, fy: f64) -> f64 {
+        if self.bandwidth <= 0.0 {
+            return reference_transfer(fx, fy, self.radius_px, self.aberration_px);
+        }
+        let (r, d) = (self.radius_px, self.bandwidth);
+        0.25 * reference_transfer(fx, fy, r * (1.0 - d), self.aberration_px) + 0.5 * reference_transfer(fx, fy, r, self.aberration_px) + 0.25 * reference_transfer(fx, fy, r * (1.0 + d), self.aberration_px)
+    }
+    /// MTF50: the frequency (cycles per pixel, along a pixel row) at which `D̂_band` falls to
+    /// one half, by bisection; 0.5 (Nyquist) when it is still above one half there. Unlike the
+    /// radius and `σ_a`, which trade off against each other when the aberrations are not
+    /// Gaussian (a wider Airy core or a wider Gaussian blur the reference alike), this is
+    /// what the data determine.
+    pub fn mtf50(&self) -> f64 {
+        if self.transfer(0.5, 0.0) >= 0.5 {
+            return 0.5;
+        }
+        let (mut lo, mut hi) = (0.0, 0.5);
+        for _ in 0..50 {
+            let mid = 0.5 * (lo + hi);
+            if self.transfer(mid, 0.0) > 0.5 {
+                lo = mid;
+            } else {
+                hi = mid;
+            }
+        }
+        0.5 * (lo + hi)
+    }
+    /// Support (px) beyond which the PSF is negligible: several Airy radii of the band's
+    /// longest wavelength plus the Gaussian's.
+    fn margin(&self) -> usize {
+        (6.0 * self.radius_px * (1.0 + self.bandwidth) + 4.0 * self.aberration_px).ceil() as usize + 8
+    }
+}
 
 /// Nominal centre wavelength (µm) of a channel name, for scaling the Airy radius across
 /// channels (`R`, `G`, `B`; anything else counts as green).
@@ -85,9 +160,9 @@ pub fn reference_transfer(fx: f64, fy: f64, radius_px: f64, aberration_px: f64) 
 
 /// The Wiener restoration `S̃` of a reference plane (module docs). Mirror-padded by a margin
 /// of several Airy radii; returns a plane of the input's size.
-pub fn restore(p: &Plane, radius_px: f64, aberration_px: f64, epsilon: f64) -> Plane {
+pub fn restore(p: &Plane, psf: &ReferencePsf, epsilon: f64) -> Plane {
     let (w, h) = (p.width, p.height);
-    let m = ((6.0 * radius_px + 4.0 * aberration_px).ceil() as usize + 8).min(w.max(h));
+    let m = psf.margin().min(w.max(h));
     let (pw, ph) = (good_size(w + 2 * m), good_size(h + 2 * m));
     let fft = Fft2::plan(pw, ph);
     let win = p.window_reflect(-(m as isize), -(m as isize), pw, ph);
@@ -96,7 +171,7 @@ pub fn restore(p: &Plane, radius_px: f64, aberration_px: f64, epsilon: f64) -> P
     let mut spec = fft.forward(&centred);
     for (i, s) in spec.iter_mut().enumerate() {
         let (fx, fy) = fft.frequency(i);
-        let d = reference_transfer(fx as f64, fy as f64, radius_px, aberration_px);
+        let d = psf.transfer(fx as f64, fy as f64);
         *s *= (d / (d * d + epsilon)) as f32;
     }
     let full = fft.inverse(spec);
@@ -106,7 +181,7 @@ pub fn restore(p: &Plane, radius_px: f64, aberration_px: f64, epsilon: f64) -> P
 /// The noise-to-signal ratio `ε = σ²_P / σ²_S` of a reference plane with noise variance
 /// `noise_var`, the target's variance taken from the plane's spectrum (`σ²_S = (var P − σ²_P) /
 /// mean D̂²`), at least `1e-4`.
-pub fn epsilon(p: &Plane, noise_var: f64, radius_px: f64, aberration_px: f64) -> f64 {
+pub fn epsilon(p: &Plane, noise_var: f64, psf: &ReferencePsf) -> f64 {
     let n = p.data.len().max(1) as f64;
     let mean = p.sum() / n;
     let var = p.data.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / n;
@@ -117,7 +192,7 @@ pub fn epsilon(p: &Plane, noise_var: f64, radius_px: f64, aberration_px: f64) ->
         for i in 0..steps {
             let fx = (i as f64 + 0.5) / steps as f64 - 0.5;
             let fy = (j as f64 + 0.5) / steps as f64 - 0.5;
-            acc += reference_transfer(fx, fy, radius_px, aberration_px).powi(2);
+            acc += psf.transfer(fx, fy).powi(2);
         }
     }
     let md2 = (acc / (steps * steps) as f64).max(1e-9);
@@ -127,7 +202,7 @@ pub fn epsilon(p: &Plane, noise_var: f64, radius_px: f64, aberration_px: f64) ->
 
 /// Energy `Σ (K * W)²` of the combined kernel through which the reference's noise reaches the
 /// prediction (`Ŵ = D̂/(D̂² + ε)`), computed on a periodic grid of side `good_size(4k)`.
-pub fn noise_gain(kernel: &Plane, radius_px: f64, aberration_px: f64, epsilon: f64) -> f32 {
+pub fn noise_gain(kernel: &Plane, psf: &ReferencePsf, epsilon: f64) -> f32 {
     let k = kernel.width.max(kernel.height);
     let n = good_size((4 * k).max(64));
     let fft = Fft2::plan(n, n);
@@ -142,7 +217,7 @@ pub fn noise_gain(kernel: &Plane, radius_px: f64, aberration_px: f64, epsilon: f
     let mut e = 0.0f64;
     for (i, s) in spec.iter().enumerate() {
         let (fx, fy) = fft.frequency(i);
-        let d = reference_transfer(fx as f64, fy as f64, radius_px, aberration_px);
+        let d = psf.transfer(fx as f64, fy as f64);
         let g = d / (d * d + epsilon);
         let kx = i / n;
         let mult = if kx == 0 || (n % 2 == 0 && kx == n / 2) { 1.0 } else { 2.0 };
@@ -212,7 +287,7 @@ pub fn excess_detail(open: &Plane, reference: &Plane, s: f64, var_open: f64, var
 /// `K * D` cropped to the kernel's support, clamped non-negative and rescaled to `K`'s sum: the
 /// wide-open kernel that a kernel fitted against the unrestored reference (`K_base ≈ K * D⁻¹`)
 /// implies, the warm start of the refit once the reference is restored.
-pub fn blur_kernel(kernel: &Plane, radius_px: f64, aberration_px: f64) -> Plane {
+pub fn blur_kernel(kernel: &Plane, psf: &ReferencePsf) -> Plane {
     let (kw, kh) = (kernel.width, kernel.height);
     let n = good_size(2 * kw.max(kh) + 16);
     let fft = Fft2::plan(n, n);
@@ -220,7 +295,7 @@ pub fn blur_kernel(kernel: &Plane, radius_px: f64, aberration_px: f64) -> Plane 
     let mut spec = fft.forward(&padded);
     for (i, s) in spec.iter_mut().enumerate() {
         let (fx, fy) = fft.frequency(i);
-        *s *= reference_transfer(fx as f64, fy as f64, radius_px, aberration_px) as f32;
+        *s *= psf.transfer(fx as f64, fy as f64) as f32;
     }
     let full = fft.inverse(spec);
     let mut out = crate::solve::conv::kernel_from_origin(&full, n, n, kw, kh);
@@ -330,7 +405,7 @@ mod tests {
         let sharp = crate::optics::capture::gaussian_blur(&Plane::from_fn(w, h, |_, _| r.uniform() as f32), 1.2);
         // blur with D by FFT on a large periodic grid (periodic sharp image)
         let blurred = periodic_blur(&sharp, |fx, fy| transfer(fx, fy, 2.0));
-        let restored = restore(&blurred, 2.0, 0.0, 1e-4);
+        let restored = restore(&blurred, &ReferencePsf::airy(2.0), 1e-4);
         let err = |a: &Plane| interior_error(a, &sharp, 16);
         assert!(err(&restored) < 0.25 * err(&blurred), "restored {:.4} vs blurred {:.4}", err(&restored), err(&blurred));
     }
@@ -347,16 +422,34 @@ mod tests {
         let sharp = crate::optics::capture::gaussian_blur(&Plane::from_fn(w, h, |_, _| r.uniform() as f32), 1.0);
         let blurred = periodic_blur(&sharp, |fx, fy| reference_transfer(fx, fy, 1.5, 0.7));
         let err = |a: &Plane| interior_error(a, &sharp, 16);
-        let (with, without) = (err(&restore(&blurred, 1.5, 0.7, 1e-4)), err(&restore(&blurred, 1.5, 0.0, 1e-4)));
+        let (with, without) = (err(&restore(&blurred, &ReferencePsf { aberration_px: 0.7, ..ReferencePsf::airy(1.5) }, 1e-4)), err(&restore(&blurred, &ReferencePsf::airy(1.5), 1e-4)));
         assert!(with < 0.7 * without, "with the Gaussian {with:.4}, Airy alone {without:.4}");
+    }
+
+    /// MTF50 of an Airy pattern: `OTF(ν) = ½` at `ν ≈ 0.4040`, times the pixel's sinc; it falls
+    /// as the radius, the aberrations or the band grow.
+    #[test]
+    fn mtf50_of_the_reference() {
+        let r = 2.5;
+        let f = ReferencePsf::airy(r).mtf50();
+        assert!((ReferencePsf::airy(r).transfer(f, 0.0) - 0.5).abs() < 1e-9);
+        // the pixel's sinc pulls it below the OTF's own half point 0.4040·f_c
+        let nu = 0.4040 * 1.22 / r;
+        assert!(f < nu && f > 0.8 * nu, "{f} vs {nu}");
+        let wider = ReferencePsf { aberration_px: 0.5, ..ReferencePsf::airy(r) }.mtf50();
+        let band = ReferencePsf { bandwidth: 0.09, ..ReferencePsf::airy(r) }.mtf50();
+        assert!(wider < f && ReferencePsf::airy(1.2 * r).mtf50() < f, "{wider} {f}");
+        // the band averages a longer and a shorter wavelength: close to the centre's
+        assert!((band / f - 1.0).abs() < 0.02, "{band} {f}");
+        assert_eq!(ReferencePsf::airy(0.1).mtf50(), 0.5);
     }
 
     #[test]
     fn noise_gain_grows_as_epsilon_falls_and_matches_a_delta_kernel() {
         let mut delta = Plane::new(9, 9);
         delta.set(4, 4, 1.0);
-        let big = noise_gain(&delta, 2.5, 0.0, 1e-3);
-        let small = noise_gain(&delta, 2.5, 0.0, 1e-1);
+        let big = noise_gain(&delta, &ReferencePsf::airy(2.5), 1e-3);
+        let small = noise_gain(&delta, &ReferencePsf::airy(2.5), 1e-1);
         assert!(big > small && small > 0.0, "{big} {small}");
         // a delta kernel: Σ W² = mean over frequencies of Ŵ²
         let n = good_size(64);
@@ -408,7 +501,7 @@ mod simulator_tests {
         let e0 = err(&stopped.clean[0]);
         let mut rows = vec![];
         for r in [0.6 * r_true, r_true, 1.6 * r_true] {
-            rows.push((r, err(&restore(&stopped.clean[0], r, 0.0, 1e-3))));
+            rows.push((r, err(&restore(&stopped.clean[0], &ReferencePsf::airy(r), 1e-3))));
         }
         eprintln!("unrestored {e0:.4}; {rows:?}");
         // with a 16-frame average's noise and the measured ε
@@ -417,8 +510,9 @@ mod simulator_tests {
         let nv = noisy.variance[0].mean();
         let mut nrows = vec![];
         for r in [0.6 * r_true, 0.9 * r_true, r_true, 1.1 * r_true, 1.35 * r_true, 1.6 * r_true] {
-            let e = epsilon(&noisy.image.planes[0], nv, r, 0.0);
-            nrows.push((r, e, err(&restore(&noisy.image.planes[0], r, 0.0, e))));
+            let psf = ReferencePsf::airy(r);
+            let e = epsilon(&noisy.image.planes[0], nv, &psf);
+            nrows.push((r, e, err(&restore(&noisy.image.planes[0], &psf, e))));
         }
         eprintln!("noisy: unrestored {:.4}; {nrows:?}", err(&noisy.image.planes[0]));
         assert!(rows[1].1 < 0.5 * e0, "{rows:?} vs {e0}");

@@ -306,8 +306,8 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
             .iter()
             .map(|kk| match &diffraction {
                 Some(d) => {
-                    let (r, eps) = d.channel(c);
-                    super::diffraction::noise_gain(kk, r, d.aberration_sigma_px, eps)
+                    let (psf, eps) = d.channel(c);
+                    super::diffraction::noise_gain(kk, &psf, eps)
                 }
                 None => kk.data.iter().map(|v| v * v).sum::<f32>(),
             })

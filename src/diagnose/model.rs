@@ -83,7 +83,8 @@ pub struct GradientCorrection {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct DiffractionCorrection {
-    /// Radius of the Airy pattern's first dark ring, `1.22·λ·N / pitch`, pixels.
+    /// Radius of the Airy pattern's first dark ring at the band's centre wavelength,
+    /// `1.22·λ·N / pitch`, pixels.
     pub airy_radius_px: Vec<f64>,
     /// Wiener noise-to-signal ratio of the restoration.
     pub epsilon: Vec<f64>,
@@ -91,18 +92,25 @@ pub struct DiffractionCorrection {
     /// stop, on top of diffraction (0: diffraction alone).
     #[serde(default)]
     pub aberration_sigma_px: f64,
+    /// Relative half-width of each channel's band of wavelengths
+    /// ([`super::diffraction::channel_bandwidth`]; empty: one wavelength).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub bandwidth: Vec<f64>,
 }
 
 impl DiffractionCorrection {
+    fn pick(v: &[f64], c: usize, default: f64) -> f64 {
+        v.get(c).or(v.first()).copied().unwrap_or(default)
+    }
     /// Restores channel `c` of a linear reference.
     pub fn restore(&self, c: usize, p: &Plane) -> Plane {
-        let r = self.airy_radius_px.get(c).or(self.airy_radius_px.first()).copied().unwrap_or(1.0);
-        let e = self.epsilon.get(c).or(self.epsilon.first()).copied().unwrap_or(1e-2);
-        super::diffraction::restore(p, r, self.aberration_sigma_px, e)
+        let (psf, e) = self.channel(c);
+        super::diffraction::restore(p, &psf, e)
     }
-    /// `(radius, epsilon)` of channel `c`.
-    pub fn channel(&self, c: usize) -> (f64, f64) {
-        (self.airy_radius_px.get(c).or(self.airy_radius_px.first()).copied().unwrap_or(1.0), self.epsilon.get(c).or(self.epsilon.first()).copied().unwrap_or(1e-2))
+    /// The PSF and the Wiener `ε` of channel `c`.
+    pub fn channel(&self, c: usize) -> (super::diffraction::ReferencePsf, f64) {
+        let psf = super::diffraction::ReferencePsf { radius_px: Self::pick(&self.airy_radius_px, c, 1.0), aberration_px: self.aberration_sigma_px, bandwidth: Self::pick(&self.bandwidth, c, 0.0) };
+        (psf, Self::pick(&self.epsilon, c, 1e-2))
     }
 }
 

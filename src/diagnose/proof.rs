@@ -203,13 +203,19 @@ pub fn render_case(effect: Option<&str>, seed: u64, spec: &CaseSpec) -> Result<C
             // a real stop: f/11–f/22 through the same lens (its residual aberrations included);
             // the reference averages 16 frames, as the rig's pinhole captures do
             let n = rng.range(11.0, 22.0);
-            pin_shot = Shot::lens(n, 0.7, spec.grid.0, spec.grid.1, k);
+            let (lw, ww) = lens.bands.iter().flat_map(|b| b.wavelengths.iter()).fold((0.0, 0.0), |(a, b), (l, w)| (a + l * w, b + w));
+            let lam = lw / ww / 1000.0;
+            let airy = 1.22 * lam * n / lens.pixel_pitch_um;
+            // the Airy pattern's tails fall off as r⁻³ and carry energy far out (2/(π·v) beyond
+            // v = 3.83·ρ/r_Airy): the reference's PSF is rendered out to 10 Airy radii (< 2 %
+            // of its energy beyond), not on the wide-open kernel's support, which cuts the
+            // tails and flattens the transfer function's low-frequency fall
+            let pin_k = (2 * (10.0 * airy).ceil() as usize + 1).max(k);
+            pin_shot = Shot::lens(n, 0.7, spec.grid.0, spec.grid.1, pin_k);
             pinhole_frames = 16;
             pin_sensor.full_well_e *= pinhole_frames as f64;
             pin_sensor.read_noise_e *= (pinhole_frames as f64).sqrt();
-            let (lw, ww) = lens.bands.iter().flat_map(|b| b.wavelengths.iter()).fold((0.0, 0.0), |(a, b), (l, w)| (a + l * w, b + w));
-            let lam = lw / ww / 1000.0;
-            json!({"f_number": n, "airy_radius_px": 1.22 * lam * n / lens.pixel_pitch_um})
+            json!({"f_number": n, "airy_radius_px": airy})
         }
         Some("psf_field_variation") => {
             open_shot.blur = Blur::Lens { f_number: spec.f_number, columns: 9, rows: 7, kernel_size: k };
@@ -226,6 +232,11 @@ pub fn render_case(effect: Option<&str>, seed: u64, spec: &CaseSpec) -> Result<C
         None => sc.clone(),
     };
     let mut pinhole = render(&pin_scene, &lens, &pin_shot, &pin_sensor, &mut Rng::new(seed * 2 + 2));
+    let mut truth = truth;
+    if let (Some(pg), Some(t)) = (&pinhole.psfs, truth.as_object_mut()) {
+        // the rendered reference PSFs' MTF50, averaged over the tiles (first channel)
+        t.insert("mtf50_cycles_per_px".into(), json!(kernel_mtf50(&pg.kernels[0])));
+    }
     // concealed: the files are declared linear whatever the sensor did
     open.image.transfer = Transfer::Linear;
     pinhole.image.transfer = Transfer::Linear;
@@ -262,6 +273,43 @@ pub fn render_case(effect: Option<&str>, seed: u64, spec: &CaseSpec) -> Result<C
         })
         .collect();
     Ok(Case { open, pinhole, effect: effect.map(str::to_string), truth, true_variance, pinhole_frames })
+}
+
+/// MTF50 of a set of kernels along a pixel row: the frequency (cycles per pixel) at which
+/// the tiles' mean modulation `mean_t |Σ K_t(x, y)·e^{−2πi·f·x}| / ΣK_t` falls to one half
+/// (bisection; 0.5 when still above one half at Nyquist).
+pub fn kernel_mtf50(kernels: &[Plane]) -> f64 {
+    let m = |f: f64| {
+        kernels
+            .iter()
+            .map(|k| {
+                let (mut re, mut im) = (0.0f64, 0.0f64);
+                for y in 0..k.height {
+                    for x in 0..k.width {
+                        let a = -2.0 * std::f64::consts::PI * f * x as f64;
+                        let v = k.get(x, y) as f64;
+                        re += v * a.cos();
+                        im += v * a.sin();
+                    }
+                }
+                re.hypot(im) / k.sum().max(1e-30)
+            })
+            .sum::<f64>()
+            / kernels.len().max(1) as f64
+    };
+    if m(0.5) >= 0.5 {
+        return 0.5;
+    }
+    let (mut lo, mut hi) = (0.0, 0.5);
+    for _ in 0..40 {
+        let mid = 0.5 * (lo + hi);
+        if m(mid) > 0.5 {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    0.5 * (lo + hi)
 }
 
 /// Radially averaged power spectral density of a plane (mean removed; per-pixel
@@ -369,6 +417,20 @@ mod tests {
     /// The Wiener error gain: a sharp reference (`D = δ`) with a strong signal gives the plain
     /// `ΣK²`; a blurred reference gives more (the inverse of `D` amplifies its noise), and the
     /// error variance `σ²·gain` grows with the noise.
+    /// A sampled Gaussian of standard deviation σ has the modulation `exp(−2π²σ²f²)`, one half
+    /// at `f = √(ln 2 / 2) / (π·σ)`.
+    #[test]
+    fn kernel_mtf50_of_a_gaussian() {
+        let sigma = 1.5f64;
+        let k = Plane::from_fn(21, 21, |x, y| (-((x as f64 - 10.0).powi(2) + (y as f64 - 10.0).powi(2)) / (2.0 * sigma * sigma)).exp() as f32);
+        let want = (std::f64::consts::LN_2 / 2.0).sqrt() / (std::f64::consts::PI * sigma);
+        let got = kernel_mtf50(&[k.clone(), k]);
+        assert!((got / want - 1.0).abs() < 1e-3, "{got} vs {want}");
+        let mut delta = Plane::new(5, 5);
+        delta.set(2, 2, 1.0);
+        assert_eq!(kernel_mtf50(&[delta]), 0.5);
+    }
+
     #[test]
     fn wiener_error_gain_is_the_propagated_noise_plus_the_lost_detail() {
         let mut rng = Rng::new(5);

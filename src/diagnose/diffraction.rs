@@ -203,6 +203,22 @@ pub fn epsilon(p: &Plane, noise_var: f64, psf: &ReferencePsf) -> f64 {
 /// Energy `Σ (K * W)²` of the combined kernel through which the reference's noise reaches the
 /// prediction (`Ŵ = D̂/(D̂² + ε)`), computed on a periodic grid of side `good_size(4k)`.
 pub fn noise_gain(kernel: &Plane, psf: &ReferencePsf, epsilon: f64) -> f32 {
+    propagated_energy(kernel, Some((psf, epsilon)), false)
+}
+
+/// The high-pass `d = (4·c − n − s − e − w)/√20` of the noise measurement
+/// ([`super::noise`]): `|Ĥ(f)|² = (4 − 2·cos 2πfx − 2·cos 2πfy)² / 20` (unit gain on white
+/// noise).
+pub fn highpass_power(fx: f64, fy: f64) -> f64 {
+    let tau = 2.0 * std::f64::consts::PI;
+    (4.0 - 2.0 * (tau * fx).cos() - 2.0 * (tau * fy).cos()).powi(2) / 20.0
+}
+
+/// `mean_f |K̂|²·|Ŵ|²·(|Ĥ|² if highpass)`: the variance gain from white reference noise to the
+/// prediction (`Ŵ` the restoration of `reference`, 1 without), or to the prediction's
+/// high-pass `d` — the share of the residual's high-pass that is the reference's noise, which
+/// the noise measurement must not count as the wide-open capture's own.
+pub fn propagated_energy(kernel: &Plane, reference: Option<(&ReferencePsf, f64)>, highpass: bool) -> f32 {
     let k = kernel.width.max(kernel.height);
     let n = good_size((4 * k).max(64));
     let fft = Fft2::plan(n, n);
@@ -217,8 +233,14 @@ pub fn noise_gain(kernel: &Plane, psf: &ReferencePsf, epsilon: f64) -> f32 {
     let mut e = 0.0f64;
     for (i, s) in spec.iter().enumerate() {
         let (fx, fy) = fft.frequency(i);
-        let d = psf.transfer(fx as f64, fy as f64);
-        let g = d / (d * d + epsilon);
+        let g = match reference {
+            Some((psf, epsilon)) => {
+                let d = psf.transfer(fx as f64, fy as f64);
+                d / (d * d + epsilon)
+            }
+            None => 1.0,
+        };
+        let g = if highpass { g * highpass_power(fx as f64, fy as f64).sqrt() } else { g };
         let kx = i / n;
         let mult = if kx == 0 || (n % 2 == 0 && kx == n / 2) { 1.0 } else { 2.0 };
         e += mult * (s.norm_sqr() as f64) * g * g;
@@ -442,6 +464,19 @@ mod tests {
         // the band averages a longer and a shorter wavelength: close to the centre's
         assert!((band / f - 1.0).abs() < 0.02, "{band} {f}");
         assert_eq!(ReferencePsf::airy(0.1).mtf50(), 0.5);
+    }
+
+    /// Without a restoration the propagated energy is `ΣK²` (Parseval); the high-pass passes
+    /// a delta's white noise at unit gain and a smooth kernel's far less.
+    #[test]
+    fn propagated_energy_parseval_and_highpass() {
+        let mut delta = Plane::new(9, 9);
+        delta.set(4, 4, 1.0);
+        assert!((propagated_energy(&delta, None, true) - 1.0).abs() < 1e-4);
+        let g = Plane::from_fn(9, 9, |x, y| (-((x as f32 - 4.0).powi(2) + (y as f32 - 4.0).powi(2)) / 4.5).exp());
+        let k2: f32 = g.data.iter().map(|v| v * v).sum();
+        assert!((propagated_energy(&g, None, false) / k2 - 1.0).abs() < 1e-4);
+        assert!(propagated_energy(&g, None, true) < 0.05 * k2);
     }
 
     #[test]

@@ -97,6 +97,12 @@ pub struct Fit {
     pub noise_misfit: f64,
     /// The registered linear reference planes the model used.
     pub reference: Vec<Plane>,
+    /// Per channel, the variance that the reference's noise, propagated through the
+    /// restoration and the kernels, contributes to the high-pass `d` of the residual
+    /// ([`super::diffraction::propagated_energy`]), relative to the wide-open capture's own
+    /// noise variance at that pixel: what [`super::noise::measure_residual`] must not count
+    /// as the wide-open capture's noise.
+    pub reference_highpass: Vec<Plane>,
 }
 
 impl Fit {
@@ -514,8 +520,22 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
     let (mut chi2_channel, mut n_channel, mut sq_channel, mut var_channel) = (vec![], vec![], vec![], vec![]);
     let clip = corr.saturation.map(|s| s.clip_level);
     let back = corr.misregistration.as_ref().map(super::model::misregistration_map);
+    let mut reference_highpass = Vec::with_capacity(nch);
     for c in 0..nch {
         let mut vl = update_variance(c, &a_parts[c], &u[c], &g, glare_amp[c], beta[c]);
+        let mut hp = {
+            let reference = diffraction.as_ref().map(|d| d.channel(c));
+            let e: Vec<f32> = u[c].iter().map(|kk| super::diffraction::propagated_energy(kk, reference.as_ref().map(|(p, e)| (p, *e)), true)).collect();
+            let eq = grid0.blend_scalars(&e, w, h);
+            let s = u[c].iter().map(|kk| kk.sum()).sum::<f64>() / u[c].len().max(1) as f64;
+            Plane::from_fn(w, h, |x, y| {
+                let i = y * w + x;
+                let level = (a_parts[c].data[i] as f64 / s.max(1e-12)) as f32;
+                let lp = glare_planes.as_ref().map_or(0.0, |gp| gp[c].data[i]);
+                let m = g.data[i] * (a_parts[c].data[i] + glare_amp[c] as f32 * lp) + beta[c] as f32;
+                g.data[i] * g.data[i] * eq.data[i] * data.pinhole_variance_scale as f32 * lin_var(&data.curves[c], level) / lin_var(&data.curves[c], m)
+            })
+        };
         let mut mlin = Plane::from_fn(w, h, |x, y| {
             let i = y * w + x;
             let lp = glare_planes.as_ref().map_or(0.0, |gp| gp[c].data[i]);
@@ -532,6 +552,7 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
             }
             mlin = super::model::resample(&mlin, m).0;
             vl = super::model::resample(&vl, m).0;
+            hp = super::model::resample(&hp, m).0;
         }
         let mut pred = Plane::new(w, h);
         let mut norm = Plane::new(w, h);
@@ -568,6 +589,7 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
             vs += v as f64;
             n += 1;
         }
+        reference_highpass.push(hp);
         predicted.push(pred);
         normalized.push(norm);
         variance.push(var_s);
@@ -594,5 +616,6 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
         noise_chi2: laws.iter().map(|l| l.chi2).sum(),
         noise_misfit: laws.iter().map(|l| l.misfit).fold(0.0, f64::max),
         reference,
+        reference_highpass,
     }
 }

@@ -262,7 +262,7 @@ pub fn diagnose(open: &Image, pinhole: &Image, profile: Option<&Profile>, opts: 
     let repeat_noise = opts.repeat_noise.as_ref().filter(|r| r.len() == open.channel_count() && r.iter().all(|c| !c.bins.is_empty()));
     data.curves = match repeat_noise {
         Some(r) => r.clone(),
-        None => (0..open.channel_count()).map(|c| noise::measure_residual(&open.planes[c], &provisional.predicted[c], &provisional.eval[c], 16, 8)).collect(),
+        None => (0..open.channel_count()).map(|c| noise::measure_residual(&open.planes[c], &provisional.predicted[c], &provisional.eval[c], 16, 8, Some(&provisional.reference_highpass[c]))).collect(),
     };
     let base = fit::fit(&data, &provisional.model.corrections, &provisional.model, FitSettings { rounds: 1, kernel_iterations: opts.base_fit.kernel_iterations });
     let base_analysis = analyse(&base);
@@ -321,7 +321,7 @@ pub fn diagnose(open: &Image, pinhole: &Image, profile: Option<&Profile>, opts: 
         // the better model's residual gives a cleaner noise curve; refigure with it (a curve
         // from repeated frames does not depend on the model)
         if repeat_noise.is_none() {
-            data.curves = (0..open.channel_count()).map(|c| noise::measure_residual(&open.planes[c], &f.predicted[c], &f.eval[c], 16, 8)).collect();
+            data.curves = (0..open.channel_count()).map(|c| noise::measure_residual(&open.planes[c], &f.predicted[c], &f.eval[c], 16, 8, Some(&f.reference_highpass[c]))).collect();
         }
         current = fit::fit(&data, &f.model.corrections, &f.model, FitSettings { rounds: 1, kernel_iterations: opts.candidate_fit.kernel_iterations });
         current_analysis = analyse(&current);

@@ -120,7 +120,21 @@ pub fn measure(p: &Plane, bins: usize) -> NoiseCurve {
 /// windows are binned by level and each bin takes the lower quartile of its windows'
 /// variances, divided by the lower quartile of `χ²_{n−1}/(n−1)`, so windows that still hold
 /// model error do not inflate the noise. `mask` marks usable pixels.
-pub fn measure_residual(open: &Plane, predicted: &Plane, mask: &[bool], win: usize, bins: usize) -> NoiseCurve {
+///
+/// The prediction carries the reference's noise (propagated through the kernel and, with
+/// `pinhole_diffraction`, amplified by the restoration); `reference_hp` is the variance it
+/// adds to `d` at each pixel relative to the wide-open noise variance `v` there
+/// ([`super::fit::Fit::reference_highpass`], ρ). With `q` that noise's high-pass, `e` the
+/// wide-open noise's and `s` the prediction's signal high-pass, a window of `n` pixels holds
+/// `a = e + γ·s − q` (residual) and `b = s + q` (prediction); with `Q = Σq² = v·Σρ`,
+///
+/// `Σa² = (n − 1)·v + (Σab + Q)²/(Σb² − Q) + Q`
+///
+/// (no regression term where `Σb² ≤ Q`: no signal), solved for `v` by fixed-point iteration.
+/// `Q` scales with `v`, so the estimate divides by `n − 1 + Σρ` instead of subtracting a
+/// separately estimated `Q`: well conditioned even where the reference's noise dominates
+/// (a restored reference).
+pub fn measure_residual(open: &Plane, predicted: &Plane, mask: &[bool], win: usize, bins: usize, reference_hp: Option<&Plane>) -> NoiseCurve {
     let (w, h) = (open.width, open.height);
     let hp = |p: &dyn Fn(usize) -> f32, x: usize, y: usize| (4.0 * p(y * w + x) - p(y * w + x - 1) - p(y * w + x + 1) - p((y - 1) * w + x) - p((y + 1) * w + x)) / 20f32.sqrt();
     let res = |i: usize| open.data[i] - predicted.data[i];
@@ -128,7 +142,7 @@ pub fn measure_residual(open: &Plane, predicted: &Plane, mask: &[bool], win: usi
     let mut windows: Vec<(f64, f64)> = Vec::new();
     for wy in 0..h / win {
         for wx in 0..w / win {
-            let (mut n, mut rr, mut pp, mut rp, mut lv) = (0usize, 0.0f64, 0.0f64, 0.0f64, 0.0f64);
+            let (mut n, mut rr, mut pp, mut rp, mut lv, mut qq) = (0usize, 0.0f64, 0.0f64, 0.0f64, 0.0f64, 0.0f64);
             for y in (wy * win).max(1)..((wy + 1) * win).min(h - 1) {
                 for x in (wx * win).max(1)..((wx + 1) * win).min(w - 1) {
                     let ok = [y * w + x, y * w + x - 1, y * w + x + 1, (y - 1) * w + x, (y + 1) * w + x].iter().all(|&i| mask[i] && open.data[i] < 0.995 && open.data[i] > 0.0);
@@ -138,6 +152,7 @@ pub fn measure_residual(open: &Plane, predicted: &Plane, mask: &[bool], win: usi
                     let a = hp(&res, x, y) as f64;
                     let b = hp(&prd, x, y) as f64;
                     n += 1;
+                    qq += reference_hp.map_or(0.0, |q| q.data[y * w + x] as f64);
                     rr += a * a;
                     pp += b * b;
                     rp += a * b;
@@ -147,7 +162,21 @@ pub fn measure_residual(open: &Plane, predicted: &Plane, mask: &[bool], win: usi
             if n * 5 < win * win * 4 || n < 16 {
                 continue;
             }
-            let v = (rr - if pp > 0.0 { rp * rp / pp } else { 0.0 }) / (n - 1) as f64;
+            let explained = |q: f64| {
+                let signal = pp - q;
+                if signal > 1e-3 * pp && pp > 0.0 {
+                    ((rp + q).powi(2) / signal).min(rr)
+                } else {
+                    0.0
+                }
+            };
+            let mut v = (rr - explained(0.0)) / (n as f64 - 1.0 + qq);
+            for _ in 0..8 {
+                v = (rr - explained(v * qq)).max(0.0) / (n as f64 - 1.0 + qq);
+            }
+            if v <= 0.0 {
+                continue;
+            }
             windows.push((lv / n as f64, v));
         }
     }

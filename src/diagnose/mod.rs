@@ -65,8 +65,11 @@ pub struct DiagnoseOptions {
     pub candidate_fit: FitSettings,
     /// At most this many effects are added.
     pub max_effects: usize,
-    /// A reduced χ² at or below this is consistent with noise (the noise curve is measured, not
-    /// known: a few percent of slack).
+    /// A reduced χ² at or below this is consistent with noise: a residual RMS within 5 % of
+    /// the measured floor. The slack covers the noise curve being measured, not known, and the
+    /// budgeted kernel fit's own error: on clean proof data the base model ends 4–5 % above
+    /// the true floor in RMS (reduced χ² 1.07–1.08 against a noise curve that no longer counts
+    /// the reference's propagated noise as the wide-open capture's).
     pub consistent: f64,
     /// An effect must remove at least this fraction of the null refit's χ².
     pub min_gain: f64,
@@ -93,7 +96,7 @@ impl Default for DiagnoseOptions {
             base_fit: FitSettings { rounds: 3, kernel_iterations: 80 },
             candidate_fit: FitSettings { rounds: 2, kernel_iterations: 40 },
             max_effects: 4,
-            consistent: 1.06,
+            consistent: 1.10,
             min_gain: 0.01,
             consistent_noise: 0.10,
             pinhole_variance_scale: 1.0,

@@ -5,8 +5,8 @@
 //! 1. `tone_curve` — both captures are encoded: `L_p = T⁻¹(P)` (`transfer = "srgb"`), and the
 //!    prediction is encoded back at the end. Without it the profile's source transfer is used.
 //!    Then `pinhole_diffraction` — the reference is restored by the Wiener filter of its own
-//!    PSF at the stop (`airy_radius_px`, `epsilon` per channel, `aberration_sigma_px`;
-//!    [`super::diffraction`]).
+//!    PSF at the stop (`airy_radius_px`, `epsilon` and `bandwidth` per channel,
+//!    `aberration_sigma_px`; [`super::diffraction`]).
 //! 2. `misregistration` — the reference is resampled onto the wide-open geometry with the fitted
 //!    similarity (`matrix`, `translation`; the convention of [`crate::profile::RegistrationInfo`]).
 //! 3. **blur** — `A = Σ_t w_t·(K_t * L_p)`, the profile's kernels (sum 1), hat-interpolated.

@@ -16,7 +16,10 @@
 //!
 //! The curve is a property of the sensor, so the same curve describes the pinhole capture
 //! (same camera): its noise is propagated through the kernel as
-//! `Var_pred = s²·ΣK²·Var_pinhole` ([`super::fit`]).
+//! `Var_pred = s²·ΣK²·Var_pinhole` ([`super::fit`]). Measured from a model's residual, the
+//! curve must not count that propagated noise as the wide-open capture's: with a restored
+//! reference (`pinhole_diffraction`) it dominates the residual's high-pass
+//! ([`measure_residual`]).
 //!
 //! All variances are on the full-scale axis squared ([`crate::image`]).
 

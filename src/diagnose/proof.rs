@@ -7,6 +7,14 @@
 //! The printed noise target ([`crate::target`]) framed by a dimmer background (the paper does
 //! not fill the frame), so large-scale brightness varies and stray light has something to show.
 //!
+//! # Stopped-down reference (`pinhole_diffraction`)
+//! The reference is rendered through the same lens at f/11–f/22 (diffraction, its residual
+//! aberrations, the mono band's three wavelengths), with PSFs out to 10 Airy radii: the
+//! Airy pattern's tails carry a few per cent of its energy far from the core, and cutting them
+//! at the wide-open kernel's 15 px would flatten its transfer function at low frequencies,
+//! which no lens does. The truth records the Airy radius at the band's mean wavelength and the
+//! rendered PSFs' MTF50 ([`kernel_mtf50`]).
+//!
 //! # Truth noise floor
 //! `Var_true = Var_open + s²·ΣK²·Var_pinhole` from the simulator's per-pixel variances and the
 //! true kernels, mapped to the stored axis by the encoding's slope.

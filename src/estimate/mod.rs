@@ -47,6 +47,17 @@ pub enum EstimateError {
     Cancelled,
 }
 
+/// Below this standard deviation (fraction of full scale; a quarter of one 8-bit level) an
+/// image plane counts as blank.
+pub const TEXTURE_MIN: f64 = 1e-3;
+
+/// Standard deviation of a plane's values.
+fn textureless_deviation(p: &Plane) -> f64 {
+    let n = p.data.len().max(1) as f64;
+    let m = p.sum() / n;
+    (p.data.iter().map(|&v| (v as f64 - m).powi(2)).sum::<f64>() / n).sqrt()
+}
+
 /// Estimation settings; `None` means "chosen from the data".
 #[derive(Clone, Debug)]
 pub struct EstimateOptions {
@@ -221,6 +232,19 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
     let nch = open.channel_count();
     let open_lin = linear_planes(open, &opts.black_level);
     let pin_lin = linear_planes(pinhole, &opts.black_level);
+    // a blank frame (lens cap, target out of view, a dead camera) has nothing to estimate a
+    // PSF from: without this it would give a delta-like profile and no complaint
+    for (name, planes) in [("wide-open", &open_lin), ("pinhole", &pin_lin)] {
+        for (c, p) in planes.iter().enumerate() {
+            let sd = textureless_deviation(p);
+            if sd < TEXTURE_MIN {
+                return Err(EstimateError::Data(format!(
+                    "the {name} image has no texture in channel {} (standard deviation {sd:.1e} of full scale, below {TEXTURE_MIN:.0e}): is the target in view and the lens cap off?",
+                    open.channels.get(c).map_or("?", |s| s.as_str())
+                )));
+            }
+        }
+    }
     let sat = |img: &Image, c: usize| -> Vec<bool> { img.planes[c].data.iter().map(|&v| v >= opts.saturation).collect() };
 
     // registration on the sum of channels
@@ -471,6 +495,26 @@ pub fn relative_error(a: &Plane, b: &Plane) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A blank frame (constant, as with the lens cap on) is refused with a clear error naming
+    /// the image, not turned into a delta-like profile; a textured pair passes the check.
+    #[test]
+    fn a_blank_frame_is_refused() {
+        let (w, h) = (64, 48);
+        let mut r = crate::rng::Rng::new(9);
+        let textured = Image::new(vec![Plane::from_fn(w, h, |_, _| r.uniform() as f32 * 0.5 + 0.2)]);
+        let blank = Image::new(vec![Plane::filled(w, h, 0.4)]);
+        let opts = EstimateOptions { kernel_size: Some(5), max_iterations: 5, joint_iterations: 0, ..Default::default() };
+        match estimate(&textured, &blank, &opts) {
+            Err(EstimateError::Data(m)) => assert!(m.contains("pinhole image has no texture"), "{m}"),
+            other => panic!("expected a data error, got {:?}", other.map(|_| ())),
+        }
+        match estimate(&blank, &textured, &opts) {
+            Err(EstimateError::Data(m)) => assert!(m.contains("wide-open image has no texture"), "{m}"),
+            other => panic!("expected a data error, got {:?}", other.map(|_| ())),
+        }
+        assert!(estimate(&textured, &textured, &opts).is_ok());
+    }
 
     #[test]
     fn dilate_matches_brute_force() {

@@ -291,6 +291,29 @@ mod tests {
         }
     }
 
+    /// The residual's high-pass holds the wide-open noise `e` (variance `v`) and the
+    /// prediction's copy of the reference's noise `q` (here white, variance `3v`: a restored
+    /// reference dominates). Told `ρ = 3`, [`measure_residual`] recovers `v`. Not told, it
+    /// reads high: about 1.4·v, not 4·v, because regressing on the prediction's high-pass (the
+    /// local-gain term) removes part of `q` by chance. A local gain error (the prediction's
+    /// signal scaled by 1.02) is regressed out either way.
+    #[test]
+    fn residual_noise_does_not_count_the_reference_noise() {
+        let (w, h) = (320, 240);
+        let mut r = Rng::new(8);
+        let signal = crate::optics::capture::gaussian_blur(&Plane::from_fn(w, h, |_, _| (0.2 + 0.6 * r.uniform()) as f32), 1.5);
+        let v = 4e-5f64;
+        let open = Plane::from_fn(w, h, |x, y| signal.get(x, y) * 1.02 + (v.sqrt() * r.normal()) as f32);
+        let predicted = Plane::from_fn(w, h, |x, y| signal.get(x, y) + ((3.0 * v).sqrt() * r.normal()) as f32);
+        let mask = vec![true; w * h];
+        let rho = Plane::filled(w, h, 3.0);
+        let mean = |c: &NoiseCurve| c.bins.iter().map(|b| b.1).sum::<f64>() / c.bins.len() as f64;
+        let told = mean(&measure_residual(&open, &predicted, &mask, 16, 4, Some(&rho)));
+        let untold = mean(&measure_residual(&open, &predicted, &mask, 16, 4, None));
+        assert!((told / v - 1.0).abs() < 0.10, "told: {told:.3e} vs {v:.3e}");
+        assert!(untold > 1.25 * v, "untold: {untold:.3e} vs {v:.3e}");
+    }
+
     #[test]
     fn srgb_data_misfits_a_linear_law_and_fits_after_decoding() {
         let mut r = Rng::new(5);

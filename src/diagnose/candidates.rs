@@ -11,8 +11,7 @@
 //! | `misregistration` | similarity (rotation, scale) between the captures | 2 beyond the base translation |
 //! | `saturation` | clipped pixels censored, reference-clipped pixels out of the data term | 1 |
 //! | `psf_field_variation` | a finer kernel grid (twice the tiles per axis, at most one tile per two kernel widths; may be proposed again) | the extra kernels |
-//!
-//! | `pinhole_diffraction` | the reference restored by the Wiener filter of its Airy ⊛ Gaussian PSF ([`super::diffraction`]) | 2 (the Airy radius, channels scaling by wavelength; the Gaussian `σ_a` of the residual aberrations) |
+//! | `pinhole_diffraction` | the reference restored by the Wiener filter of its band-averaged Airy ⊛ Gaussian PSF ([`super::diffraction`]) | 2 (the Airy radius, channels scaling by wavelength; the Gaussian `σ_a` of the residual aberrations); reported with the MTF50 they imply |
 
 use super::analysis::{curve, where_text, Analysis};
 use super::fit::{fit, Data, Fit, FitSettings, Model, CLIP};

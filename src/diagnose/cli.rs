@@ -22,7 +22,7 @@ pub struct DiagnoseArgs {
     #[arg(long, required_unless_present_any = ["bench_seeds", "session"], conflicts_with = "session")]
     pub pinhole: Option<PathBuf>,
     /// A capture session (from `lensrig capture`): every finished pair is diagnosed into
-    /// OUT/<pair key>/, with the transfer curve, dark level and frame counts from its metadata.
+    /// `OUT/<pair key>/`, with the transfer curve, dark level and frame counts from its metadata.
     #[arg(long)]
     pub session: Option<PathBuf>,
     /// Frames averaged in the wide-open and the pinhole capture (`--frames 1,16`): the

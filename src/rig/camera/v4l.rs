@@ -7,7 +7,7 @@
 //! [`super::decode`].
 //!
 //! The camera logic talks to the device only through [`V4lDevice`], the handful of V4L2 calls
-//! it makes. With cargo feature `v4l2`, [`V4lCamera::open`] runs them as ioctls through `v4l`
+//! it makes. With cargo feature `v4l2`, `V4lCamera::open` runs them as ioctls through `v4l`
 //! 0.14; without it (and in the unit tests, which use a fake device that behaves like a UVC
 //! camera) the logic still builds and is tested: [`V4lCamera::with_device`].
 //!

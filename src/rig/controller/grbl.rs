@@ -9,7 +9,7 @@
 //!
 //! # Conventions
 //! - The transport's `read` must return within a few tens of milliseconds when no data
-//!   arrives (`TimedOut`/`WouldBlock`); the client keeps its own deadlines from [`Timeouts`].
+//!   arrives (`TimedOut`/`WouldBlock`); the client keeps its own deadlines from [`Timeouts`](super::Timeouts).
 //!   `Ok(0)`, `BrokenPipe`, `ConnectionReset`, `NotConnected` and `UnexpectedEof` mean the
 //!   link is gone ([`ControllerError::Disconnected`]).
 //! - `?` is polled at most every 200 ms (grbl recommends ≤ 5 Hz) and **never during homing**

@@ -194,6 +194,8 @@ fn report_profile_cli_and_browser() {
         assert!(!report[key].is_null(), "report.json lacks {key}");
     }
     assert!(report["final"]["reduced_chi2"].as_f64().unwrap() < report["base"]["reduced_chi2"].as_f64().unwrap());
+    let html = std::fs::read_to_string(out.join("index.html")).unwrap();
+    assert!(html.contains("residual power spectrum"), "index.html lacks the residual spectrum");
     let o = read_image(&open).unwrap();
     for f in ["predicted_base.png", "predicted_final.png"] {
         let p = read_image(&out.join(f)).unwrap();

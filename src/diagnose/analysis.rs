@@ -7,7 +7,12 @@
 //!   centre over half the tile diagonal), the local gradient of the prediction, and the
 //!   large-scale brightness of the reference (Gaussian σ = 1/16 of the image diagonal);
 //! - a histogram of `z` against the standard normal, skewness and excess kurtosis;
-//! - a planar trend of `z` (`z ≈ a + bx·x̂ + by·ŷ`).
+//! - a planar trend of `z` (`z ≈ a + bx·x̂ + by·ŷ`);
+//! - the radial power spectrum of `z` ([`radial_spectrum`]): its mean over all frequencies is
+//!   the reduced χ²; white noise at the floor gives 1 in every band. The floor is not quite
+//!   white: the reference's noise comes through the kernel (and, restored, is amplified near
+//!   the cut-off), so its share is coloured. Stray light shows as excess at low frequencies,
+//!   a blurred reference (`pinhole_diffraction`) at high ones.
 
 use super::fit::Fit;
 use crate::optics::capture::gaussian_blur;
@@ -68,6 +73,36 @@ pub struct Analysis {
     pub planar: [f64; 3],
     /// The worst tile (highest reduced χ²).
     pub worst: Option<TileStat>,
+    /// `(band centre in cycles/px, power)`: the radial power spectrum of `z`, channels
+    /// averaged ([`radial_spectrum`]).
+    pub spectrum: Vec<(f64, f64)>,
+}
+
+/// Radial power spectrum of `z` on the evaluation set `mask` (zero elsewhere):
+/// `mean_{|f| in band} |Ẑ(f)|² / N_mask` in `bands` bands of `|f|` over (0, 0.5] cycles/px.
+/// Unit white noise gives 1 in every band; a residual that is smooth (stray light, gains) puts
+/// its power in the low bands, one that is missing fine detail in the high ones.
+pub fn radial_spectrum(z: &Plane, mask: &[bool], bands: usize) -> Vec<(f64, f64)> {
+    let (w, h) = (z.width, z.height);
+    let n = mask.iter().filter(|&&m| m).count();
+    if n == 0 || bands == 0 {
+        return Vec::new();
+    }
+    let fft = crate::solve::fft::Fft2::plan(w, h);
+    let masked: Vec<f32> = z.data.iter().zip(mask).map(|(&v, &m)| if m { v } else { 0.0 }).collect();
+    let spec = fft.forward(&masked);
+    let (mut sum, mut cnt) = (vec![0.0f64; bands], vec![0usize; bands]);
+    for (i, c) in spec.iter().enumerate() {
+        let (fx, fy) = fft.frequency(i);
+        let f = (fx as f64).hypot(fy as f64);
+        if f <= 0.0 || f > 0.5 {
+            continue;
+        }
+        let b = ((f / 0.5 * bands as f64) as usize).min(bands - 1);
+        sum[b] += c.norm_sqr() as f64;
+        cnt[b] += 1;
+    }
+    (0..bands).filter(|&b| cnt[b] > 0).map(|b| ((b as f64 + 0.5) * 0.5 / bands as f64, sum[b] / cnt[b] as f64 / n as f64)).collect()
 }
 
 fn binned(name: &str, vals: &[(f32, f32)], bins: usize, quantile: bool) -> Curve {
@@ -195,6 +230,11 @@ pub fn analyse(fit: &Fit) -> Analysis {
         (-0.5 * x * x).exp() / (2.0 * std::f64::consts::PI).sqrt()
     }).collect();
     let planar = solve3(ata, atb).unwrap_or([0.0; 3]);
+    let per_channel: Vec<Vec<(f64, f64)>> = (0..nch).map(|c| radial_spectrum(&fit.normalized[c], &fit.eval[c], 16)).collect();
+    let spectrum: Vec<(f64, f64)> = match per_channel.first() {
+        Some(first) => first.iter().enumerate().map(|(b, &(f, _))| (f, per_channel.iter().map(|s| s.get(b).map_or(0.0, |q| q.1)).sum::<f64>() / nch as f64)).collect(),
+        None => Vec::new(),
+    };
     let worst = tiles.iter().max_by(|a, b| a.reduced_chi2.total_cmp(&b.reduced_chi2)).cloned();
     Analysis {
         reduced_chi2: fit.reduced_chi2(),
@@ -208,6 +248,7 @@ pub fn analyse(fit: &Fit) -> Analysis {
         excess_kurtosis: m4 / m2.max(1e-300).powi(2) - 3.0,
         planar,
         worst,
+        spectrum,
     }
 }
 
@@ -248,4 +289,28 @@ pub fn where_text(a: &Analysis) -> String {
 /// Normalised residual map as a displayable plane: `z` mapped from [−5, 5] to [0, 1].
 pub fn residual_image(z: &Plane) -> Plane {
     z.map(|v| ((v + 5.0) / 10.0).clamp(0.0, 1.0))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rng::Rng;
+
+    /// Unit white noise is flat at 1; blurred noise (a smooth residual) has its power in the
+    /// low bands and almost none in the high ones. A mask leaves the normalisation right.
+    #[test]
+    fn radial_spectrum_of_white_and_smooth_residuals() {
+        let (w, h) = (160, 120);
+        let mut r = Rng::new(12);
+        let white = Plane::from_fn(w, h, |_, _| r.normal() as f32);
+        let mask: Vec<bool> = (0..w * h).map(|i| (i % w) >= 10 && (i % w) < w - 10).collect();
+        let s = radial_spectrum(&white, &mask, 8);
+        assert_eq!(s.len(), 8);
+        for &(f, p) in &s {
+            assert!((p - 1.0).abs() < 0.15, "band {f:.3}: {p:.3}");
+        }
+        let smooth = gaussian_blur(&white, 2.0).map(|v| v * 5.0);
+        let s = radial_spectrum(&smooth, &vec![true; w * h], 8);
+        assert!(s[0].1 > 2.0 && s[7].1 < 0.01, "{s:?}");
+    }
 }

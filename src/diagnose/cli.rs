@@ -284,6 +284,9 @@ fn bench(a: &DiagnoseArgs, seeds: u64) -> Result<()> {
                 for n in &d.noise {
                     eprintln!("noise {}: a {:.3e} b {:.3e} misfit {:.3} | linear law misfit {:.3}; bins {:?}", n.channel, n.a, n.b, n.misfit, n.misfit_linear, n.curve.bins);
                 }
+                let sp = |a: &super::analysis::Analysis| a.spectrum.iter().map(|(f, p)| format!("{f:.2}:{p:.2}")).collect::<Vec<_>>().join(" ");
+                eprintln!("residual spectrum, base:  {}", sp(&d.base_analysis));
+                eprintln!("residual spectrum, final: {}", sp(&d.final_analysis));
                 for r in &d.rounds {
                     for c in r {
                         eprintln!("  {} {:.4} {:.1} {} {}", c.name, c.reduced_chi2, c.delta_bic, c.note, c.parameters);

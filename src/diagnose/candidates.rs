@@ -402,7 +402,7 @@ fn diffraction_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Can
         return None;
     }
     let names: Vec<String> = data.open.channels.clone();
-    let make = |r: f64, sa: f64| -> Corrections {
+    let correction = |r: f64, sa: f64| -> super::model::DiffractionCorrection {
         let name = |c: usize| names.get(c).map_or("Y", |s| s.as_str());
         let radii: Vec<f64> = (0..nch).map(|c| r * super::diffraction::channel_wavelength_um(name(c)) / 0.55).collect();
         let bandwidth: Vec<f64> = (0..nch).map(|c| super::diffraction::channel_bandwidth(name(c))).collect();
@@ -414,18 +414,18 @@ fn diffraction_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Can
                 super::diffraction::epsilon(p, vp, &psf)
             })
             .collect();
-        Corrections { pinhole_diffraction: Some(super::model::DiffractionCorrection { airy_radius_px: radii, epsilon: eps, aberration_sigma_px: sa, bandwidth }), ..current.model.corrections.clone() }
+        super::model::DiffractionCorrection { airy_radius_px: radii, epsilon: eps, aberration_sigma_px: sa, bandwidth }
     };
+    let make = |r: f64, sa: f64| -> Corrections { Corrections { pinhole_diffraction: Some(correction(r, sa)), ..current.model.corrections.clone() } };
     // warm start: K ≈ K_current * D (module docs of `diffraction`)
     let init = |r: f64, sa: f64| -> Model {
-        let corr = make(r, sa);
-        let d = corr.pinhole_diffraction.clone().unwrap_or(super::model::DiffractionCorrection { airy_radius_px: vec![r], epsilon: vec![1e-2], aberration_sigma_px: sa, bandwidth: Vec::new() });
+        let d = correction(r, sa);
         let mut m = current.model.clone();
         for (c, ks) in m.grid.kernels.iter_mut().enumerate() {
             let psf = d.channel(c).0;
             ks.iter_mut().for_each(|k| *k = super::diffraction::blur_kernel(k, &psf));
         }
-        m.corrections = corr;
+        m.corrections = Corrections { pinhole_diffraction: Some(d), ..current.model.corrections.clone() };
         m
     };
     let screen = FitSettings { rounds: 1, kernel_iterations: 30 };

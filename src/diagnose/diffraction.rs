@@ -97,25 +97,31 @@ impl ReferencePsf {
     /// Gaussian (a wider Airy core or a wider Gaussian blur the reference alike), this is
     /// what the data determine.
     pub fn mtf50(&self) -> f64 {
-        if self.transfer(0.5, 0.0) >= 0.5 {
-            return 0.5;
-        }
-        let (mut lo, mut hi) = (0.0, 0.5);
-        for _ in 0..50 {
-            let mid = 0.5 * (lo + hi);
-            if self.transfer(mid, 0.0) > 0.5 {
-                lo = mid;
-            } else {
-                hi = mid;
-            }
-        }
-        0.5 * (lo + hi)
+        half_modulation(|f| self.transfer(f, 0.0))
     }
     /// Support (px) beyond which the PSF is negligible: several Airy radii of the band's
     /// longest wavelength plus the Gaussian's.
     fn margin(&self) -> usize {
         (6.0 * self.radius_px * (1.0 + self.bandwidth) + 4.0 * self.aberration_px).ceil() as usize + 8
     }
+}
+
+/// The frequency in (0, 0.5] cycles/px at which a falling modulation `m(f)` (1 at 0) drops to
+/// one half, by bisection; 0.5 (Nyquist) when it is still above one half there.
+pub fn half_modulation(m: impl Fn(f64) -> f64) -> f64 {
+    if m(0.5) >= 0.5 {
+        return 0.5;
+    }
+    let (mut lo, mut hi) = (0.0, 0.5);
+    for _ in 0..50 {
+        let mid = 0.5 * (lo + hi);
+        if m(mid) > 0.5 {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    0.5 * (lo + hi)
 }
 
 /// Nominal centre wavelength (µm) of a channel name, for scaling the Airy radius across
@@ -182,9 +188,7 @@ pub fn restore(p: &Plane, psf: &ReferencePsf, epsilon: f64) -> Plane {
 /// `noise_var`, the target's variance taken from the plane's spectrum (`σ²_S = (var P − σ²_P) /
 /// mean D̂²`), at least `1e-4`.
 pub fn epsilon(p: &Plane, noise_var: f64, psf: &ReferencePsf) -> f64 {
-    let n = p.data.len().max(1) as f64;
-    let mean = p.sum() / n;
-    let var = p.data.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / n;
+    let var = p.variance();
     // mean of D̂² over the Nyquist square
     let steps = 64;
     let mut acc = 0.0;

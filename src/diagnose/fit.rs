@@ -523,24 +523,23 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
     let mut reference_highpass = Vec::with_capacity(nch);
     for c in 0..nch {
         let mut vl = update_variance(c, &a_parts[c], &u[c], &g, glare_amp[c], beta[c]);
-        let mut hp = {
-            let reference = diffraction.as_ref().map(|d| d.channel(c));
-            let e: Vec<f32> = u[c].iter().map(|kk| super::diffraction::propagated_energy(kk, reference.as_ref().map(|(p, e)| (p, *e)), true)).collect();
-            let eq = grid0.blend_scalars(&e, w, h);
-            let s = u[c].iter().map(|kk| kk.sum()).sum::<f64>() / u[c].len().max(1) as f64;
-            Plane::from_fn(w, h, |x, y| {
-                let i = y * w + x;
-                let level = (a_parts[c].data[i] as f64 / s.max(1e-12)) as f32;
-                let lp = glare_planes.as_ref().map_or(0.0, |gp| gp[c].data[i]);
-                let m = g.data[i] * (a_parts[c].data[i] + glare_amp[c] as f32 * lp) + beta[c] as f32;
-                g.data[i] * g.data[i] * eq.data[i] * data.pinhole_variance_scale as f32 * lin_var(&data.curves[c], level) / lin_var(&data.curves[c], m)
-            })
-        };
         let mut mlin = Plane::from_fn(w, h, |x, y| {
             let i = y * w + x;
             let lp = glare_planes.as_ref().map_or(0.0, |gp| gp[c].data[i]);
             g.data[i] * (a_parts[c].data[i] + glare_amp[c] as f32 * lp) + beta[c] as f32
         });
+        // the reference noise's share of the residual's high-pass, relative to the open noise
+        let mut hp = {
+            let (psf, eps) = diffraction.as_ref().map(|d| d.channel(c)).unzip();
+            let e: Vec<f32> = u[c].iter().map(|kk| super::diffraction::propagated_energy(kk, psf.as_ref().zip(eps), true)).collect();
+            let eq = grid0.blend_scalars(&e, w, h);
+            let s = u[c].iter().map(|kk| kk.sum()).sum::<f64>() / u[c].len().max(1) as f64;
+            Plane::from_fn(w, h, |x, y| {
+                let i = y * w + x;
+                let level = (a_parts[c].data[i] as f64 / s.max(1e-12)) as f32;
+                g.data[i] * g.data[i] * eq.data[i] * data.pinhole_variance_scale as f32 * lin_var(&data.curves[c], level) / lin_var(&data.curves[c], mlin.data[i])
+            })
+        };
         if let Some(m) = back {
             // onto the wide-open geometry; the open's own noise there is unscaled
             if let Some(nf) = &noise_factor {

@@ -305,19 +305,7 @@ pub fn kernel_mtf50(kernels: &[Plane]) -> f64 {
             .sum::<f64>()
             / kernels.len().max(1) as f64
     };
-    if m(0.5) >= 0.5 {
-        return 0.5;
-    }
-    let (mut lo, mut hi) = (0.0, 0.5);
-    for _ in 0..40 {
-        let mid = 0.5 * (lo + hi);
-        if m(mid) > 0.5 {
-            lo = mid;
-        } else {
-            hi = mid;
-        }
-    }
-    0.5 * (lo + hi)
+    super::diffraction::half_modulation(m)
 }
 
 /// Radially averaged power spectral density of a plane (mean removed; per-pixel

@@ -51,13 +51,6 @@ pub enum EstimateError {
 /// image plane counts as blank.
 pub const TEXTURE_MIN: f64 = 1e-3;
 
-/// Standard deviation of a plane's values.
-fn textureless_deviation(p: &Plane) -> f64 {
-    let n = p.data.len().max(1) as f64;
-    let m = p.sum() / n;
-    (p.data.iter().map(|&v| (v as f64 - m).powi(2)).sum::<f64>() / n).sqrt()
-}
-
 /// Estimation settings; `None` means "chosen from the data".
 #[derive(Clone, Debug)]
 pub struct EstimateOptions {
@@ -236,7 +229,7 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
     // PSF from: without this it would give a delta-like profile and no complaint
     for (name, planes) in [("wide-open", &open_lin), ("pinhole", &pin_lin)] {
         for (c, p) in planes.iter().enumerate() {
-            let sd = textureless_deviation(p);
+            let sd = p.variance().sqrt();
             if sd < TEXTURE_MIN {
                 return Err(EstimateError::Data(format!(
                     "the {name} image has no texture in channel {} (standard deviation {sd:.1e} of full scale, below {TEXTURE_MIN:.0e}): is the target in view and the lens cap off?",

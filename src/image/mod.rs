@@ -127,6 +127,12 @@ impl Plane {
         if self.data.is_empty() { 0.0 } else { self.sum() / self.data.len() as f64 }
     }
 
+    /// Variance of the values about their mean (population; 0 when empty).
+    pub fn variance(&self) -> f64 {
+        let m = self.mean();
+        self.data.iter().map(|&v| (v as f64 - m).powi(2)).sum::<f64>() / self.data.len().max(1) as f64
+    }
+
     pub fn max(&self) -> f32 {
         self.data.iter().copied().fold(f32::NEG_INFINITY, f32::max)
     }

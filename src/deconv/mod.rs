@@ -100,7 +100,7 @@
 //! "`D_w` is a spatial mask that selects dark regions"). lensrig uses the blurred dark fraction
 //! itself, `w = (Σ β T(i_l) / Σ β) * K_σ`, which is 1 where the other channels are dark.
 
-pub mod cli;
+pub mod capture;
 pub mod denoise;
 pub mod filters;
 pub mod noise;

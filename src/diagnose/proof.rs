@@ -30,6 +30,11 @@ use serde_json::json;
 /// The effects the proof suite conceals, in catalogue order.
 pub const CONCEALED: [&str; 9] = ["vignetting", "illumination_gradient", "tone_curve", "black_level", "veiling_glare", "misregistration", "saturation", "psf_field_variation", "pinhole_diffraction"];
 
+/// An effect name that is not one of [`CONCEALED`].
+#[derive(Debug, thiserror::Error)]
+#[error("unknown effect '{0}' (expected one of {list})", list = CONCEALED.join(", "))]
+pub struct UnknownEffect(pub String);
+
 /// Size and optics of a proof case.
 #[derive(Clone, Debug)]
 pub struct CaseSpec {
@@ -147,7 +152,7 @@ fn signed(r: &mut Rng, lo: f64, hi: f64) -> f64 {
 ///
 /// # Errors
 /// An unknown effect name.
-pub fn render_case(effect: Option<&str>, seed: u64, spec: &CaseSpec) -> Result<Case, String> {
+pub fn render_case(effect: Option<&str>, seed: u64, spec: &CaseSpec) -> Result<Case, UnknownEffect> {
     let (w, h) = (spec.width, spec.height);
     let mut lens = LensModel::demo(w, h);
     if spec.channels == 1 {
@@ -229,7 +234,7 @@ pub fn render_case(effect: Option<&str>, seed: u64, spec: &CaseSpec) -> Result<C
             open_shot.blur = Blur::Lens { f_number: spec.f_number, columns: 9, rows: 7, kernel_size: k };
             json!({"true_grid": [9, 7]})
         }
-        Some(other) => return Err(format!("unknown effect '{other}' (expected one of {})", CONCEALED.join(", "))),
+        Some(other) => return Err(UnknownEffect(other.to_string())),
     };
     // one camera records both captures: the reference shares the wide-open capture's encoding
     // (`pin_sensor` is cloned before the effect is chosen, so `tone_curve` must reach it here)

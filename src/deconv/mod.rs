@@ -114,7 +114,9 @@ use crate::optics::field_operator::FieldOperator;
 use crate::optics::psf_grid::PsfGrid;
 use crate::solve::conv::kernel_to_origin;
 use crate::solve::fft::Fft2;
-use crate::solve::primal_dual::{chambolle_pock, power_iteration, Options};
+use crate::solve::operator::{LinearOperator, PrimalDualOperator};
+use crate::solve::power::operator_norm;
+use crate::solve::primal_dual::{chambolle_pock, Options, NORM_SAFETY};
 use problem::{add_weighted_gradient_normal, gradients, ChannelProblem, CrossChannel, DarkTerm, KernelSpectrum};
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -674,7 +676,7 @@ pub fn restore_tile(windows: &[Vec<f32>], kernels: &[Plane], setup: &TileSetup) 
                     return x;
                 }
                 let mut y = vec![0.0; crate::solve::primal_dual::PrimalDual::dual_len(&p)];
-                let l = power_iteration(&p, 15).max(1e-12);
+                let l = operator_norm(&PrimalDualOperator(&p), 15, NORM_SAFETY).max(1e-12);
                 let cp = Options {
                     max_iterations: opts.cp_max_iterations,
                     min_iterations: 10,

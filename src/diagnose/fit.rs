@@ -23,7 +23,8 @@
 //!
 //! Parameters: `C·(T·(k² − 1) + 1)` for the kernels and sums plus each correction's own.
 
-use super::kernels::{fit_kernels, GatherOperator, KernelFitSettings};
+use super::kernels::{fit_kernels, KernelFitSettings};
+use crate::optics::kernel_operator::KernelOperator;
 use super::model::{model_transfer, reference_planes, Corrections, GlareCorrection};
 use super::noise::{srgb_slope, NoiseCurve};
 use crate::estimate::dilate;
@@ -290,7 +291,7 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
 
     let gain_plane = |corr: &Corrections| -> Plane { Plane::from_fn(w, h, |x, y| corr.gain(x, y, w, h) as f32) };
     let glare_planes: Option<Vec<Plane>> = corr.veiling_glare.map(|g| reference.iter().map(|p| gaussian_blur(p, g.sigma_px)).collect());
-    let ops: Vec<GatherOperator> = reference.iter().map(|p| GatherOperator::new(p, &grid0)).collect();
+    let ops: Vec<KernelOperator> = reference.iter().map(|p| KernelOperator::new(p, &grid0, usize::MAX)).collect();
 
     // free parameters
     let mut u: Vec<Vec<Plane>> = (0..nch)
@@ -304,7 +305,7 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
     let mut beta: Vec<f64> = (0..nch).map(|c| corr.black_level.as_ref().and_then(|b| b.offset.get(c).copied()).unwrap_or(0.0)).collect();
 
     // prediction pieces
-    let blur_part = |c: usize, u: &[Plane]| ops[c].apply(u);
+    let blur_part = |c: usize, u: &[Plane]| ops[c].apply_planes(u);
     // Σ_t w_t(x)·ΣU_t², the gain of the pinhole's noise through the interpolated kernel
     let diffraction = corr.pinhole_diffraction.clone();
     let kernel_energy = |c: usize, u: &[Plane]| -> Plane {

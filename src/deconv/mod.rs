@@ -110,6 +110,7 @@ pub mod synth;
 pub mod tiles;
 
 use crate::image::Plane;
+use crate::image::filter::gaussian_blur_periodic;
 use crate::optics::field_operator::FieldOperator;
 use crate::optics::psf_grid::PsfGrid;
 use crate::solve::conv::kernel_to_origin;
@@ -485,35 +486,6 @@ pub struct TileStats {
     pub levels: usize,
     /// Saturated window pixels (all channels).
     pub saturated: usize,
-}
-
-/// Periodic separable Gaussian blur (for the dark-region weight).
-fn gaussian_blur_periodic(v: &[f32], w: usize, h: usize, sigma: f32) -> Vec<f32> {
-    let r = (3.0 * sigma).ceil().max(1.0) as isize;
-    let taps: Vec<f32> = (-r..=r).map(|d| (-(d * d) as f32 / (2.0 * sigma * sigma)).exp()).collect();
-    let s: f32 = taps.iter().sum();
-    let taps: Vec<f32> = taps.iter().map(|t| t / s).collect();
-    let mut tmp = vec![0.0; w * h];
-    for y in 0..h {
-        for x in 0..w {
-            let mut acc = 0.0;
-            for (i, t) in taps.iter().enumerate() {
-                let xx = (x as isize + i as isize - r).rem_euclid(w as isize) as usize;
-                acc += t * v[y * w + xx];
-            }
-            tmp[y * w + x] = acc;
-        }
-    }
-    let mut out = vec![0.0; w * h];
-    for y in 0..h {
-        for (i, t) in taps.iter().enumerate() {
-            let yy = (y as isize + i as isize - r).rem_euclid(h as isize) as usize;
-            for x in 0..w {
-                out[y * w + x] += t * tmp[yy * w + x];
-            }
-        }
-    }
-    out
 }
 
 /// The per-pixel prior weight `(g'(v̄) / g'(0.18))^γ` for a `w × h` window of linear data

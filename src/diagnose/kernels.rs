@@ -124,17 +124,7 @@ mod tests {
     use crate::rng::Rng;
 
     fn grid(w: usize, h: usize, k: usize, seed: u64) -> PsfGrid {
-        let (cols, rows) = (3, 2);
-        let mut r = Rng::new(seed);
-        let kernels = vec![(0..cols * rows)
-            .map(|_| {
-                let mut p = Plane::from_fn(k, k, |_, _| r.uniform() as f32);
-                let s = p.sum() as f32;
-                p.scale(1.0 / s);
-                p
-            })
-            .collect()];
-        PsfGrid { kernel_size: k, columns: cols, rows, centers: PsfGrid::regular_centers(w, h, cols, rows), channels: vec!["Y".into()], kernels }
+        crate::optics::kernel_operator::tests::grid(w, h, k, 3, 2, seed)
     }
 
     #[test]

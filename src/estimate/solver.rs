@@ -36,6 +36,7 @@
 //! displacement, true convolution ([`crate::solve::conv`]).
 
 use crate::image::Plane;
+use crate::solve::conv::kernel_origin_index;
 use crate::solve::fft::{Fft2, FftScratch};
 use crate::solve::power::{kernel_start, power_iteration, remove_block_means};
 use crate::solve::primal_dual::{condat_vu, PrimalDual, SmoothPrimalDual, SplitOptions, Stats};
@@ -178,75 +179,82 @@ impl SmoothPrimalDual for KernelProblem {
     }
 }
 
+impl KernelProblem {
+    /// The problem of one window with the kernel size `k` (`λ = 0`, kernel sum 1 until set).
+    fn new(data: &TileData, k: usize) -> Self {
+        let (pw, ph) = (data.pw, data.ph);
+        let n = pw * ph;
+        let fft = Fft2::plan(pw, ph);
+        let mut scratch = fft.make_scratch();
+        let mut a_hat = vec![Complex32::new(0.0, 0.0); fft.spectrum_len()];
+        fft.forward_with(&data.sharp, &mut a_hat, &mut scratch);
+        let spec = vec![Complex32::new(0.0, 0.0); fft.spectrum_len()];
+        let index = kernel_origin_index(k, pw, ph);
+        let (blurred, mask) = (data.blurred.clone(), data.mask.clone());
+        Self { fft, scratch, k, r: k / 2, index, a_hat, blurred, mask, lambda: 0.0, total: 1.0, kbuf: vec![0.0; n], rbuf: vec![0.0; n], gbuf: vec![0.0; n], spec }
+    }
+
+    /// The kernel sum `σ_sum = (ρ + μ)/(1 + μ)` with `ρ = Σ_M j / Σ_M (I ⊛ u)` the sum the data
+    /// alone wants (`u` the uniform kernel), and the mean of `j` over the mask.
+    fn target_sum(&mut self, mu_relative: f32) -> (f32, f64) {
+        let k = self.k;
+        let buf = &mut self.rbuf;
+        buf.fill(0.0);
+        for &i in &self.index {
+            buf[i] = 1.0 / (k * k) as f32;
+        }
+        self.fft.forward_with(buf, &mut self.spec, &mut self.scratch);
+        self.spec.iter_mut().zip(&self.a_hat).for_each(|(x, a)| *x *= a);
+        self.fft.inverse_rows_with(&mut self.spec, buf, |_| true, &mut self.scratch);
+        let (mut sj, mut si, mut count) = (0.0f64, 0.0f64, 0usize);
+        for ((&m, &j), &b) in self.mask.iter().zip(&self.blurred).zip(buf.iter()) {
+            if m {
+                sj += j as f64;
+                si += b as f64;
+                count += 1;
+            }
+        }
+        let rho = if si > 0.0 { sj / si } else { 1.0 };
+        let mu = mu_relative.max(0.0) as f64;
+        let mean_j = if count > 0 { sj / count as f64 } else { 0.0 };
+        (((rho + mu) / (1.0 + mu)).max(1e-6) as f32, mean_j)
+    }
+
+    /// The warm start: ridge least squares with the unknown pixels filled by `mean_j`,
+    /// projected onto the constraint set.
+    fn warm_start(&mut self, mean_j: f64) -> Vec<f32> {
+        let (r, ph) = (self.r, self.fft.height);
+        let z: Vec<f32> = self.mask.iter().zip(&self.blurred).map(|(&m, &j)| if m { j } else { mean_j as f32 }).collect();
+        self.fft.forward_with(&z, &mut self.spec, &mut self.scratch);
+        let ridge = 1e-3 * self.a_hat.iter().map(|a| a.norm_sqr() as f64).sum::<f64>() as f32 / self.a_hat.len() as f32;
+        for (x, a) in self.spec.iter_mut().zip(&self.a_hat) {
+            *x = a.conj() * *x / (a.norm_sqr() + ridge);
+        }
+        self.fft.inverse_rows_with(&mut self.spec, &mut self.rbuf, |y| y <= r || y + r >= ph, &mut self.scratch);
+        let mut x: Vec<f32> = self.index.iter().map(|&i| self.rbuf[i]).collect();
+        project_simplex(&mut x, self.total);
+        x
+    }
+}
+
+/// Population standard deviation of `v`.
+fn std_dev(v: &[f32]) -> f64 {
+    let n = v.len().max(1) as f64;
+    let mean = v.iter().map(|&x| x as f64).sum::<f64>() / n;
+    (v.iter().map(|&x| (x as f64 - mean).powi(2)).sum::<f64>() / n).sqrt()
+}
+
 /// Solves one window. `on_check(iteration, relative_step)` may cancel by returning false.
 pub fn solve_tile(data: &TileData, s: &TileSettings, mut on_check: impl FnMut(usize, f64) -> bool) -> TileResult {
-    let (pw, ph) = (data.pw, data.ph);
-    let n = pw * ph;
-    let fft = Fft2::plan(pw, ph);
-    let mut scratch = fft.make_scratch();
-    let mut a_hat = vec![Complex32::new(0.0, 0.0); fft.spectrum_len()];
-    fft.forward_with(&data.sharp, &mut a_hat, &mut scratch);
     let k = s.kernel_size;
-    let r = k / 2;
-    let index: Vec<usize> = (0..k * k)
-        .map(|i| {
-            let (u, v) = ((i % k) as isize - r as isize, (i / k) as isize - r as isize);
-            (v.rem_euclid(ph as isize) as usize) * pw + u.rem_euclid(pw as isize) as usize
-        })
-        .collect();
     let data_pixels = data.mask.iter().filter(|&&b| b).count();
-    // the kernel sum the data alone wants: Σ_M j / Σ_M (I ⊛ u)
-    let mut spec = vec![Complex32::new(0.0, 0.0); fft.spectrum_len()];
-    let mut buf = vec![0.0f32; n];
-    for &i in &index {
-        buf[i] = 1.0 / (k * k) as f32;
-    }
-    fft.forward_with(&buf, &mut spec, &mut scratch);
-    spec.iter_mut().zip(&a_hat).for_each(|(x, a)| *x *= a);
-    fft.inverse_rows_with(&mut spec, &mut buf, |_| true, &mut scratch);
-    let (mut sj, mut si, mut sum_j) = (0.0f64, 0.0f64, 0.0f64);
-    for i in 0..n {
-        if data.mask[i] {
-            sj += data.blurred[i] as f64;
-            si += buf[i] as f64;
-            sum_j += data.blurred[i] as f64;
-        }
-    }
-    let rho = if si > 0.0 { sj / si } else { 1.0 };
-    let mu = s.mu_relative.max(0.0) as f64;
-    let total = ((rho + mu) / (1.0 + mu)).max(1e-6) as f32;
-    // warm start: ridge least squares with the unknown pixels filled by the mean, projected
-    let mean_j = if data_pixels > 0 { sum_j / data_pixels as f64 } else { 0.0 };
-    let z: Vec<f32> = (0..n).map(|i| if data.mask[i] { data.blurred[i] } else { mean_j as f32 }).collect();
-    fft.forward_with(&z, &mut spec, &mut scratch);
-    let ridge = 1e-3 * a_hat.iter().map(|a| a.norm_sqr() as f64).sum::<f64>() as f32 / a_hat.len() as f32;
-    for (x, a) in spec.iter_mut().zip(&a_hat) {
-        *x = a.conj() * *x / (a.norm_sqr() + ridge);
-    }
-    fft.inverse_rows_with(&mut spec, &mut buf, |y| y <= r || y + r >= ph, &mut scratch);
-    let mut x: Vec<f32> = index.iter().map(|&i| buf[i]).collect();
-    project_simplex(&mut x, total);
-
-    let mut p = KernelProblem {
-        fft: fft.clone(),
-        scratch,
-        k,
-        r,
-        index,
-        a_hat,
-        blurred: data.blurred.clone(),
-        mask: data.mask.clone(),
-        lambda: 0.0,
-        total,
-        kbuf: vec![0.0; n],
-        rbuf: vec![0.0; n],
-        gbuf: vec![0.0; n],
-        spec,
-    };
+    let mut p = KernelProblem::new(data, k);
+    let (total, mean_j) = p.target_sum(s.mu_relative);
+    p.total = total;
+    let mut x = p.warm_start(mean_j);
     let l_f = p.lipschitz(8);
     let l_k = 8f32.sqrt();
-    let mean_sharp = data.sharp.iter().map(|&v| v as f64).sum::<f64>() / n as f64;
-    let sd = (data.sharp.iter().map(|&v| (v as f64 - mean_sharp).powi(2)).sum::<f64>() / n as f64).sqrt();
+    let sd = std_dev(&data.sharp);
     let dof = (data_pixels as f64 - (k * k) as f64).max(data_pixels as f64 * 0.25);
     let dof_factor = (data_pixels as f64 / dof).sqrt();
     let weight = |sigma: f64| (s.lambda_scale as f64 * sigma.max(1e-7) * sd * (data_pixels.max(1) as f64).sqrt()) as f32;

@@ -24,6 +24,7 @@
 
 use super::psf_grid::{hat_weights_1d, PsfGrid};
 use crate::image::Plane;
+use crate::solve::conv::kernel_origin_index;
 use crate::solve::fft::{good_size, Fft2, FftScratch};
 use crate::solve::operator::LinearOperator;
 use rayon::prelude::*;
@@ -202,12 +203,7 @@ impl KernelOperator {
                 blocks_of[t].push(bi);
             }
         }
-        let index: Vec<usize> = (0..k * k)
-            .map(|i| {
-                let (u, v) = ((i % k) as isize - r as isize, (i / k) as isize - r as isize);
-                (v.rem_euclid(f as isize) as usize) * f + u.rem_euclid(f as isize) as usize
-            })
-            .collect();
+        let index = kernel_origin_index(k, f, f);
         Self { width: w, height: h, k, columns: grid.columns, fft, blocks, blocks_of, cx, cy, index, covered }
     }
 
@@ -377,12 +373,13 @@ impl LinearOperator for KernelOperator {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::optics::forward::blur_channel;
     use crate::rng::Rng;
 
-    fn grid(w: usize, h: usize, k: usize, cols: usize, rows: usize, seed: u64) -> PsfGrid {
+    /// A `cols × rows` grid of random normalised `k × k` kernels over a `w × h` image.
+    pub(crate) fn grid(w: usize, h: usize, k: usize, cols: usize, rows: usize, seed: u64) -> PsfGrid {
         let mut r = Rng::new(seed);
         let kernels = vec![(0..cols * rows)
             .map(|_| {

@@ -51,6 +51,19 @@ pub fn kernel_to_origin(k: &Plane, w: usize, h: usize) -> Vec<f32> {
     buf
 }
 
+/// The index of every coefficient of a `k × k` kernel (row-major, centre = zero displacement)
+/// in a row-major `w × h` circular buffer whose origin is the kernel centre (the layout of
+/// [`kernel_to_origin`]).
+pub fn kernel_origin_index(k: usize, w: usize, h: usize) -> Vec<usize> {
+    let r = (k / 2) as isize;
+    (0..k * k)
+        .map(|i| {
+            let (u, v) = ((i % k) as isize - r, (i / k) as isize - r);
+            (v.rem_euclid(h as isize) as usize) * w + u.rem_euclid(w as isize) as usize
+        })
+        .collect()
+}
+
 /// Reads a `kw × kh` kernel back out of a circular buffer whose origin is the kernel centre
 /// (the inverse of [`kernel_to_origin`] for kernels that fit).
 pub fn kernel_from_origin(buf: &[f32], w: usize, h: usize, kw: usize, kh: usize) -> Plane {

@@ -138,17 +138,26 @@ pub fn chambolle_pock<P: PrimalDual + ?Sized>(
                     residual_criterion(p, x, &x_old, y, &y_old, tau, sigma)
                 }
             };
-            stats.criterion = crit;
-            if !on_check(it, crit) {
-                break;
-            }
-            if it >= opts.min_iterations && crit < opts.tolerance {
-                stats.converged = true;
+            if stop(&mut stats, it, crit, opts.min_iterations, opts.tolerance, &mut on_check) {
                 break;
             }
         }
     }
     stats
+}
+
+/// Records `crit`, reports it to `on_check` and says whether the loop ends: cancelled, or
+/// converged (`crit < tolerance` after `min_iterations`).
+fn stop(stats: &mut Stats, it: usize, crit: f64, min_iterations: usize, tolerance: f64, on_check: &mut impl FnMut(usize, f64) -> bool) -> bool {
+    stats.criterion = crit;
+    if !on_check(it, crit) {
+        return true;
+    }
+    if it >= min_iterations && crit < tolerance {
+        stats.converged = true;
+        return true;
+    }
+    false
 }
 
 /// Relative primal/dual residuals (Goldstein, Esser & Baraniuk 2013), the larger of the two.
@@ -245,12 +254,7 @@ pub fn condat_vu<P: SmoothPrimalDual + ?Sized>(
         p.after_iteration(x, &x_bar);
         stats.iterations = it;
         let crit = (dx2 / x2.max(1e-300)).sqrt();
-        stats.criterion = crit;
-        if !on_check(it, crit) {
-            break;
-        }
-        if it >= opts.min_iterations && crit < opts.tolerance {
-            stats.converged = true;
+        if stop(&mut stats, it, crit, opts.min_iterations, opts.tolerance, &mut on_check) {
             break;
         }
     }

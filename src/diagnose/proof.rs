@@ -329,13 +329,8 @@ impl RadialPsd {
         let fft = crate::solve::fft::Fft2::plan(w, h);
         let m = p.mean() as f32;
         let spec = fft.forward(&p.data.iter().map(|v| v - m).collect::<Vec<_>>());
-        let (mut sum, mut cnt) = (vec![0.0f64; Self::BANDS], vec![0usize; Self::BANDS]);
-        for (i, z) in spec.iter().enumerate() {
-            let (fx, fy) = fft.frequency(i);
-            let b = Self::band((fx as f64).hypot(fy as f64));
-            sum[b] += z.norm_sqr() as f64 / (w * h) as f64;
-            cnt[b] += 1;
-        }
+        let (sum, cnt) = crate::image::spectrum::radial_power_sums(&fft, &[&spec], Self::BANDS, Self::FMAX, crate::image::spectrum::Range::All);
+        let sum: Vec<f64> = sum[0].iter().map(|s| s / (w * h) as f64).collect();
         // empty bands take the nearest filled one below
         let mut bands = vec![0.0; Self::BANDS];
         let mut last = 0.0;
@@ -438,12 +433,12 @@ mod tests {
         let white = Plane::from_fn(128, 128, |_, _| rng.normal() as f32);
         let psd = RadialPsd::of(&white);
         assert!((psd.at(0.1, 0.2) - 1.0).abs() < 0.15 && (psd.at(0.45, 0.0) - 1.0).abs() < 0.15, "white PSD {} {}", psd.at(0.1, 0.2), psd.at(0.45, 0.0));
-        let k = crate::optics::capture::gaussian_blur(&Plane::from_fn(15, 15, |x, y| ((x, y) == (7, 7)) as u8 as f32), 1.5);
+        let k = crate::image::filter::gaussian_blur(&Plane::from_fn(15, 15, |x, y| ((x, y) == (7, 7)) as u8 as f32), 1.5);
         let sum_k2: f64 = k.data.iter().map(|&v| (v as f64).powi(2)).sum();
         let delta = Plane::from_fn(15, 15, |x, y| ((x, y) == (7, 7)) as u8 as f32);
         let sharp = wiener_error_gain(&k, &delta, &psd, 1e-4);
         assert!((sharp / sum_k2 - 1.0).abs() < 0.02, "sharp reference: {sharp:.4e} vs ΣK² {sum_k2:.4e}");
-        let d = crate::optics::capture::gaussian_blur(&delta, 1.2);
+        let d = crate::image::filter::gaussian_blur(&delta, 1.2);
         let (low, high) = (wiener_error_gain(&k, &d, &psd, 1e-4), wiener_error_gain(&k, &d, &psd, 1e-2));
         assert!(low > 1.5 * sharp && high * 1e-2 > 10.0 * low * 1e-4, "blurred reference: {low:.3e} (σ² 1e-4), {high:.3e} (1e-2) vs sharp {sharp:.3e}");
     }
@@ -470,7 +465,7 @@ mod tests {
             (s / n as f64).sqrt()
         };
         let soft = err(&a, &b);
-        let blur = |p: Plane| crate::optics::capture::gaussian_blur(&p, 1.0);
+        let blur = |p: Plane| crate::image::filter::gaussian_blur(&p, 1.0);
         let after = err(&blur(scene_moved(w, h, 3, None, 1.6)), &blur(scene_moved(w, h, 3, Some(m), 1.6)));
         assert!(soft < 1e-3 && after > 10.0 * soft, "softened before sampling: RMS {soft:.2e}; blurred after sampling: {after:.2e}");
         // the blur conserves the mean reflectance

@@ -13,7 +13,10 @@
 //! - An [`Image`] is a list of equally sized planes with channel names (`R`,`G`,`B` or `Y`,
 //!   or any names for multispectral data).
 
+pub mod filter;
 pub mod io;
+pub mod resample;
+pub mod spectrum;
 
 use serde::{Deserialize, Serialize};
 

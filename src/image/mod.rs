@@ -14,6 +14,7 @@
 //!   or any names for multispectral data).
 
 pub mod io;
+pub mod validate;
 
 use serde::{Deserialize, Serialize};
 

@@ -108,6 +108,7 @@ fn prepare(out: &Path, scene: &Path) -> anyhow::Result<()> {
         residual_steps: d.residual_steps,
         iterations: env("LR_ITERS").map_or(d.max_iterations, |v| v as usize),
         saturation: 0.99,
+        mask_invalid: false,
         tile: env("LR_TILE").map(|v| v as usize),
         quiet: true,
         force: true,

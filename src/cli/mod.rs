@@ -7,13 +7,15 @@ pub mod bench;
 pub mod calibrate;
 pub mod capture;
 pub mod demo;
+pub mod panic;
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
 use lensrig::estimate::register::RegistrationModel;
 use lensrig::estimate::{estimate, EstimateOptions};
 use lensrig::fsutil::Overwrite;
-use lensrig::image::io::{read_image, read_pair, write_png16};
+use lensrig::image::io::{read_pair_with, write_png16};
+use lensrig::image::validate::InvalidPixels;
 use lensrig::image::{Image, Transfer};
 use lensrig::optics::forward::blur_channel;
 use lensrig::profile::Profile;
@@ -112,6 +114,9 @@ pub struct EstimateArgs {
     /// (at most; it stops when χ² stalls); 0 keeps the per-window fits.
     #[arg(long, default_value_t = 40)]
     pub joint_iterations: usize,
+    /// Exclude NaN/Inf pixels from the data term like saturated ones (default: refuse the image).
+    #[arg(long)]
+    pub mask_invalid: bool,
     /// Hide the progress bar.
     #[arg(long)]
     pub quiet: bool,
@@ -159,9 +164,14 @@ fn run_target(a: &TargetArgs) -> Result<()> {
     Ok(())
 }
 
-/// Reads a pair, tags the transfer function the user declared, and estimates.
-pub fn estimate_files(open: &Path, pinhole: &Path, opts: &EstimateOptions, transfer: Transfer) -> Result<lensrig::estimate::Estimate> {
-    let (mut o, mut p) = read_pair(open, pinhole)?;
+/// Reads a pair (non-finite pixels refused or masked per `invalid`; notes and warnings on
+/// stderr), tags the transfer function the user declared, and estimates.
+pub fn estimate_files(open: &Path, pinhole: &Path, opts: &EstimateOptions, transfer: Transfer, invalid: InvalidPixels) -> Result<lensrig::estimate::Estimate> {
+    let (lo, lp) = read_pair_with(open, pinhole, invalid)?;
+    for note in lo.values.notes(open).into_iter().chain(lp.values.notes(pinhole)) {
+        eprintln!("lensrig: note: {note}");
+    }
+    let (mut o, mut p) = (lo.image, lp.image);
     o.transfer = transfer;
     p.transfer = transfer;
     let mut est = estimate(&o, &p, opts)?;
@@ -198,7 +208,8 @@ fn run_estimate(a: &EstimateArgs) -> Result<()> {
         (Some(o), Some(p), None) => (o, p),
         _ => bail!("give --open and --pinhole, or --session"),
     };
-    let est = estimate_files(open, pinhole, &opts, a.transfer)?;
+    let invalid = if a.mask_invalid { InvalidPixels::Mask } else { InvalidPixels::Refuse };
+    let est = estimate_files(open, pinhole, &opts, a.transfer, invalid)?;
     est.profile.save(&a.out)?;
     let m = &est.profile.meta;
     println!(
@@ -264,7 +275,11 @@ fn run_simulate(a: &SimulateArgs) -> Result<()> {
         bail!("{} already exists and is never overwritten (use --force to replace it)", a.out.display());
     }
     let profile = Profile::load(&a.profile)?;
-    let mut sharp = read_image(&a.sharp)?;
+    let loaded = lensrig::image::io::read_image_with(&a.sharp, InvalidPixels::Refuse)?;
+    for note in loaded.values.notes(&a.sharp) {
+        eprintln!("lensrig: note: {note}");
+    }
+    let mut sharp = loaded.image;
     sharp.transfer = profile.meta.source.transfer;
     let out = predict(&profile, &sharp, &a.sharp)?;
     write_png16(&a.out, &out, if a.force { Overwrite::Replace } else { Overwrite::Never })?;

@@ -8,7 +8,7 @@
 
 use super::{deblur, DeconvOptions};
 use crate::fsutil::Overwrite;
-use crate::image::io::{read_image, write_png16};
+use crate::image::io::write_png16;
 use crate::image::Transfer;
 use crate::profile::Profile;
 use anyhow::{bail, Context};
@@ -50,6 +50,10 @@ pub struct DeblurArgs {
     /// Linear value at or above which pixels count as saturated (values > 1 disable).
     #[arg(long, default_value_t = 0.99)]
     pub saturation: f32,
+    /// Exclude NaN/Inf pixels of the input from the data term like saturated ones (default:
+    /// refuse the image); needs a saturation level ≤ 1.
+    #[arg(long)]
+    pub mask_invalid: bool,
     /// Largest tile core in pixels (default: from the kernel size and the PSF grid).
     #[arg(long)]
     pub tile: Option<usize>,
@@ -84,7 +88,15 @@ pub fn run(args: &DeblurArgs) -> anyhow::Result<()> {
         bail!("{} already exists and is never overwritten (use --force to replace it)", args.out.display());
     }
     let profile = Profile::load(&args.profile).with_context(|| format!("cannot load profile {}", args.profile.display()))?;
-    let mut img = read_image(&args.input)?;
+    let policy = if args.mask_invalid { crate::image::validate::InvalidPixels::Mask } else { crate::image::validate::InvalidPixels::Refuse };
+    let loaded = crate::image::io::read_image_with(&args.input, policy)?;
+    for note in loaded.values.notes(&args.input) {
+        eprintln!("lensrig: note: {note}");
+    }
+    if loaded.values.masked > 0 && args.saturation > 1.0 {
+        bail!("--mask-invalid drops pixels through the saturation mask; --saturation {} disables it (use a value ≤ 1)", args.saturation);
+    }
+    let mut img = loaded.image;
     let grid = &profile.grid;
     let src = &profile.meta.source;
     if img.channel_count() != grid.channels.len() {
@@ -119,6 +131,10 @@ pub fn run(args: &DeblurArgs) -> anyhow::Result<()> {
         if *b != 0.0 {
             p.data.iter_mut().for_each(|v| *v -= b);
         }
+    }
+    // masked samples must stay at or above the saturation level after the black level shift
+    for &(c, i) in &loaded.values.masked_samples {
+        lin.planes[c].data[i] = crate::image::validate::MASKED_VALUE.max(args.saturation);
     }
     let mut opts = args.options();
     // the result is re-encoded with `transfer`: weigh the prior as the encoded image will show it
@@ -197,6 +213,7 @@ mod tests {
             residual_steps: 1,
             iterations: 30,
             saturation: 0.99,
+            mask_invalid: false,
             tile: None,
             quiet: true,
             force: true,
@@ -227,7 +244,7 @@ mod tests {
         // a flat grey capture must come back as the same grey (decode, restore, re-encode)
         write(d.path(), "in.png", vec![Plane::filled(48, 40, 0.6); 3]);
         run(&args(d.path(), "in.png")).unwrap();
-        let out = read_image(&d.path().join("out.png")).unwrap();
+        let out = crate::image::io::read_image(&d.path().join("out.png")).unwrap();
         assert_eq!((out.width(), out.height(), out.channel_count()), (48, 40, 3));
         for p in &out.planes {
             assert!(p.data.iter().all(|v| (v - 0.6).abs() < 2e-3), "{} .. {}", p.min(), p.max());

@@ -66,6 +66,9 @@ pub struct ValueReport {
     pub first_negative: Option<PixelLocation>,
     /// Samples replaced by [`MASKED_VALUE`] (0 unless the policy was [`InvalidPixels::Mask`]).
     pub masked: usize,
+    /// The replaced samples as `(channel, y · width + x)`, for stages whose saturation test
+    /// runs after a shift of the values (a black level) and must re-mark them.
+    pub masked_samples: Vec<(usize, usize)>,
 }
 
 impl ValueReport {
@@ -175,12 +178,13 @@ pub fn check_values(img: &mut Image, policy: InvalidPixels) -> Result<ValueRepor
     match policy {
         InvalidPixels::Refuse => Err(refusal_message(&r)),
         InvalidPixels::Mask => {
-            for p in &mut img.planes {
-                for v in p.data.iter_mut().filter(|v| !v.is_finite()) {
+            for (c, p) in img.planes.iter_mut().enumerate() {
+                for (i, v) in p.data.iter_mut().enumerate().filter(|(_, v)| !v.is_finite()) {
                     *v = MASKED_VALUE;
+                    r.masked_samples.push((c, i));
                 }
             }
-            r.masked = r.non_finite();
+            r.masked = r.masked_samples.len();
             Ok(r)
         }
     }
@@ -221,6 +225,7 @@ mod tests {
         assert_eq!(r.masked, 2);
         assert_eq!(im.planes[0].data, vec![0.1, 0.2, MASKED_VALUE, 0.3]);
         assert_eq!(im.planes[2].data[3], MASKED_VALUE);
+        assert_eq!(r.masked_samples, vec![(0, 2), (2, 3)]);
         assert!(first_non_finite(&im).is_none());
         let notes = r.notes(Path::new("x.tiff"));
         assert!(notes.len() == 1 && notes[0].contains("masked 2"), "{notes:?}");

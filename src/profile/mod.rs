@@ -29,11 +29,17 @@ use std::path::{Path, PathBuf};
 /// The format version this build writes and reads.
 pub const FORMAT_VERSION: u32 = 1;
 
+/// Most PSF tiles a profile may have (a bound on what a file can make lensrig allocate).
+pub const MAX_TILES: usize = 1 << 16;
+
 /// A kernel sample below `-KERNEL_NEGATIVE_TOLERANCE · max|k|` is negative beyond round-off.
 pub const KERNEL_NEGATIVE_TOLERANCE: f64 = 1e-4;
 
-/// A kernel's sum may differ from 1 by this much (f32 storage and round-off).
-pub const KERNEL_SUM_TOLERANCE: f64 = 1e-3;
+/// A kernel's sum may differ from 1 by this much. The estimator's kernels sum to 1 only
+/// approximately (0.995 is typical: its sum constraint is soft and the exposure ratio is fitted
+/// separately), so this is a sanity bound that catches a wrong normalisation (0.5, 2), not
+/// round-off.
+pub const KERNEL_SUM_TOLERANCE: f64 = 0.05;
 
 /// Why a profile could not be read or written.
 #[derive(Debug, thiserror::Error)]
@@ -172,7 +178,7 @@ fn check_kernel(k: &Plane) -> Result<(), String> {
     }
     let sum: f64 = k.data.iter().map(|&v| v as f64).sum();
     if (sum - 1.0).abs() > KERNEL_SUM_TOLERANCE {
-        return Err(format!("kernel sums to {sum:.6}, not 1 (tolerance {KERNEL_SUM_TOLERANCE:e})"));
+        return Err(format!("kernel sums to {sum:.6}, not 1 (tolerance {KERNEL_SUM_TOLERANCE})"));
     }
     Ok(())
 }
@@ -235,8 +241,18 @@ impl Profile {
     /// Missing files, unknown keys, an unsupported version, inconsistent geometry (even kernel
     /// size, wrong number of centres, mosaics of the wrong size) — each naming the file.
     pub fn load(dir: &Path) -> Result<Profile, ProfileError> {
+        Self::load_with(dir, &|p| std::fs::read(p))
+    }
+
+    /// [`Profile::load`] with the files read by `read` (the fuzz targets feed bytes from
+    /// memory); `dir` names the files in errors and is joined to each file name.
+    ///
+    /// # Errors
+    /// As [`Profile::load`].
+    pub fn load_with(dir: &Path, read: &dyn Fn(&Path) -> std::io::Result<Vec<u8>>) -> Result<Profile, ProfileError> {
         let path = dir.join("profile.toml");
-        let text = std::fs::read_to_string(&path).map_err(|source| ProfileError::Io { path: path.clone(), source })?;
+        let bytes = read(&path).map_err(|source| ProfileError::Io { path: path.clone(), source })?;
+        let text = String::from_utf8(bytes).map_err(|_| invalid(&path, "is not UTF-8 text"))?;
         let meta: ProfileToml = toml::from_str(&text).map_err(|e| invalid(&path, crate::toml_error(&text, &e)))?;
         if meta.format != "lensrig-profile" {
             return Err(invalid(&path, format!("format is '{}', expected 'lensrig-profile'", meta.format)));
@@ -248,8 +264,14 @@ impl Profile {
         if p.kernel_size == 0 || p.kernel_size % 2 == 0 {
             return Err(invalid(&path, format!("psf.kernel_size must be odd, got {}", p.kernel_size)));
         }
-        if p.columns == 0 || p.rows == 0 || p.centers.len() != p.columns * p.rows {
-            return Err(invalid(&path, format!("psf.centers has {} entries but columns × rows = {}", p.centers.len(), p.columns * p.rows)));
+        // checked products: the numbers come from a file and may be anything
+        let tiles = p.columns.checked_mul(p.rows).filter(|&n| n > 0 && n <= MAX_TILES);
+        let mosaic = p.columns.checked_mul(p.kernel_size).zip(p.rows.checked_mul(p.kernel_size));
+        let (Some(tiles), Some(_)) = (tiles, mosaic) else {
+            return Err(invalid(&path, format!("psf grid {} × {} of kernels {} is empty or too large", p.columns, p.rows, p.kernel_size)));
+        };
+        if p.centers.len() != tiles {
+            return Err(invalid(&path, format!("psf.centers has {} entries but columns × rows = {tiles}", p.centers.len())));
         }
         let channels = meta.source.channels.clone();
         if meta.exposure_ratio.len() != channels.len() {
@@ -260,7 +282,7 @@ impl Profile {
         for ch in &channels {
             let file = p.files.get(ch).cloned().unwrap_or_else(|| psf_file_name(ch));
             let fpath = dir.join(&file);
-            let bytes = std::fs::read(&fpath).map_err(|source| ProfileError::Io { path: fpath.clone(), source })?;
+            let bytes = read(&fpath).map_err(|source| ProfileError::Io { path: fpath.clone(), source })?;
             // values are checked per tile below, where the error can name channel and tile
             let img = decode_image(&fpath, &bytes)?;
             if img.channel_count() != 1 || img.width() != p.columns * k || img.height() != p.rows * k {

@@ -163,15 +163,15 @@ fn deblur_and_simulate_refuse_or_mask_non_finite_inputs() {
     lensrig::profile::Profile { meta: lensrig::profile::Profile::new_meta(source, vec![1.0], table), grid: g }.save(&f.p("profile")).unwrap();
     let profile = f.s("profile");
     let at = [(50, 50), (10, 80)];
-    ok(&["deblur", "--profile", &profile, "--input", &f.s("open.tiff"), "--out", &f.s("clean.png"), "--quiet"]);
+    ok(&["deblur", "--profile", &profile, "--in", &f.s("open.tiff"), "--out", &f.s("clean.png"), "--quiet"]);
     let clean = lensrig::image::io::read_image(&f.p("clean.png")).unwrap();
     for (what, v) in BAD {
         let bad = f.damaged("open.tiff", &format!("photo-{what}.tiff"), v, &at);
         let out = f.s(&format!("out-{what}.png"));
-        let e = refused(&["deblur", "--profile", &profile, "--input", &bad, "--out", &out, "--quiet"]);
+        let e = refused(&["deblur", "--profile", &profile, "--in", &bad, "--out", &out, "--quiet"]);
         assert!(e.contains(&format!("photo-{what}.tiff")) && e.contains("pixel (x=50, y=50) channel Y"), "{e}");
         assert!(!Path::new(&out).exists());
-        let e = ok(&["deblur", "--profile", &profile, "--input", &bad, "--out", &out, "--quiet", "--mask-invalid"]);
+        let e = ok(&["deblur", "--profile", &profile, "--in", &bad, "--out", &out, "--quiet", "--mask-invalid"]);
         assert!(e.contains("masked 2 non-finite sample(s)"), "{e}");
         let got = lensrig::image::io::read_image(Path::new(&out)).unwrap();
         // away from the masked pixels the restoration is the clean run's
@@ -193,7 +193,7 @@ fn deblur_and_simulate_refuse_or_mask_non_finite_inputs() {
     // negative values in the photo and the sharp image: legal; many are reported
     let many: Vec<(usize, usize)> = (0..W).flat_map(|x| (0..3).map(move |y| (x, y))).collect();
     let neg = f.damaged("open.tiff", "photo-neg.tiff", -0.01, &many);
-    let e = ok(&["deblur", "--profile", &profile, "--input", &neg, "--out", &f.s("neg.png"), "--quiet"]);
+    let e = ok(&["deblur", "--profile", &profile, "--in", &neg, "--out", &f.s("neg.png"), "--quiet"]);
     assert!(e.contains("are negative"), "{e}");
     let neg = f.damaged("pinhole.tiff", "sharp-neg.tiff", -0.01, &many);
     let e = ok(&["simulate", "--profile", &profile, "--sharp", &neg, "--out", &f.s("neg-pred.png")]);

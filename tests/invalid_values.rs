@@ -175,16 +175,20 @@ fn deblur_and_simulate_refuse_or_mask_non_finite_inputs() {
         assert!(e.contains("masked 2 non-finite sample(s)"), "{e}");
         let got = lensrig::image::io::read_image(Path::new(&out)).unwrap();
         // away from the masked pixels the restoration is the clean run's
-        let (mut worst, mut far) = (0.0f32, 0usize);
+        let (mut worst, mut sq, mut far) = (0.0f32, 0.0f64, 0usize);
         for y in 0..H {
             for x in 0..W {
                 if at.iter().all(|&(ax, ay)| (x as isize - ax as isize).abs() > 8 || (y as isize - ay as isize).abs() > 8) {
-                    worst = worst.max((got.planes[0].get(x, y) - clean.planes[0].get(x, y)).abs());
+                    let d = (got.planes[0].get(x, y) - clean.planes[0].get(x, y)).abs();
+                    worst = worst.max(d);
+                    sq += (d as f64).powi(2);
                     far += 1;
                 }
             }
         }
-        assert!(far > W * H / 2 && worst < 0.02, "{what}: masked deblur differs from the clean one by {worst} away from the holes");
+        let rms = (sq / far as f64).sqrt();
+        eprintln!("{what}: masked vs clean deblur away from the holes: rms {rms:.4}, max {worst:.4}");
+        assert!(far > W * H / 2 && rms < 0.005 && worst < 0.05, "{what}: masked deblur differs from the clean one away from the holes: rms {rms:.4}, max {worst:.4}");
         // simulate: the sharp image has no data term; non-finite values are refused
         let sharp = f.damaged("pinhole.tiff", &format!("sharp-{what}.tiff"), v, &at);
         let e = refused(&["simulate", "--profile", &profile, "--sharp", &sharp, "--out", &f.s("pred.png")]);

@@ -11,8 +11,6 @@
 //! `LENSRIG_INJECT_PANIC=1` panics right after the hook is installed: the end-to-end test of
 //! the hook, and a way for a user to see what a bug report looks like.
 
-use std::panic::PanicHookInfo;
-
 /// Exit status after a panic (an internal error: a bug, not bad input).
 pub const PANIC_STATUS: i32 = 70;
 
@@ -30,10 +28,10 @@ pub fn report_line(doing: &str, message: &str, location: Option<String>) -> Stri
     )
 }
 
-fn message(info: &PanicHookInfo<'_>) -> String {
-    if let Some(s) = info.payload().downcast_ref::<&str>() {
+fn message(payload: &(dyn std::any::Any + Send)) -> String {
+    if let Some(s) = payload.downcast_ref::<&str>() {
         (*s).to_string()
-    } else if let Some(s) = info.payload().downcast_ref::<String>() {
+    } else if let Some(s) = payload.downcast_ref::<String>() {
         s.clone()
     } else {
         "panic with a non-text payload".to_string()
@@ -46,7 +44,7 @@ pub fn install(args: impl IntoIterator<Item = String>) {
     let doing = if doing.is_empty() { "lensrig".to_string() } else { format!("lensrig {doing}") };
     std::panic::set_hook(Box::new(move |info| {
         let loc = info.location().map(|l| format!("{}:{}", l.file(), l.line()));
-        eprintln!("{}", report_line(&doing, &message(info), loc));
+        eprintln!("{}", report_line(&doing, &message(info.payload()), loc));
         if std::env::var_os("RUST_BACKTRACE").is_some_and(|v| v != "0") {
             eprintln!("{}", std::backtrace::Backtrace::force_capture());
         }

@@ -183,24 +183,6 @@ fn check_kernel(k: &Plane) -> Result<(), String> {
     Ok(())
 }
 
-/// The dotted key of the first NaN or infinite number in the serialised metadata, if any.
-fn non_finite_key(meta: &ProfileToml) -> Option<String> {
-    fn walk(v: &toml::Value, key: &str) -> Option<String> {
-        match v {
-            toml::Value::Float(f) if !f.is_finite() => Some(key.to_string()),
-            toml::Value::Array(a) => a.iter().enumerate().find_map(|(i, x)| walk(x, &format!("{key}[{i}]"))),
-            toml::Value::Table(t) => {
-                t.iter().find_map(|(k, x)| walk(x, &if key.is_empty() { k.clone() } else { format!("{key}.{k}") }))
-            }
-            _ => None,
-        }
-    }
-    match toml::Value::try_from(meta) {
-        Ok(v) => walk(&v, ""),
-        Err(e) => Some(format!("(metadata that cannot be serialised: {e})")),
-    }
-}
-
 /// The mosaic file name for a channel.
 pub fn psf_file_name(channel: &str) -> String {
     format!("psf-{channel}.tiff")
@@ -313,7 +295,7 @@ impl Profile {
         let toml_path = dir.join("profile.toml");
         let m = &self.meta;
         let g = &self.grid;
-        if let Some(key) = non_finite_key(&m) {
+        if let Some(key) = crate::fsutil::first_non_finite(m) {
             return Err(invalid(&toml_path, format!("{key} is not a finite number")));
         }
         for (c, r) in m.exposure_ratio.iter().enumerate() {

@@ -5,6 +5,7 @@ mod cli;
 use clap::Parser;
 
 fn main() {
+    cli::panic::install(std::env::args());
     let parsed = match cli::Cli::try_parse() {
         Ok(c) => c,
         Err(e) => {

@@ -4,7 +4,8 @@
 use super::refuse_existing;
 use anyhow::Result;
 use clap::Args;
-use lensrig::deconv::capture::{restore_file, RestoreFile};
+use lensrig::deconv::capture::{restore_file, RestoreFile, Restored};
+use lensrig::image::validate::InvalidPixels;
 use lensrig::deconv::DeconvOptions;
 use lensrig::fsutil::Overwrite;
 use lensrig::image::Transfer;
@@ -46,6 +47,10 @@ pub struct DeblurArgs {
     /// Linear value at or above which pixels count as saturated (values > 1 disable).
     #[arg(long, default_value_t = 0.99)]
     pub saturation: f32,
+    /// Exclude NaN/Inf pixels of the input from the data term like saturated ones (default:
+    /// refuse the image); needs a saturation level ≤ 1.
+    #[arg(long)]
+    pub mask_invalid: bool,
     /// Largest tile core in pixels (default: from the kernel size and the PSF grid).
     #[arg(long)]
     pub tile: Option<usize>,
@@ -83,8 +88,12 @@ pub fn run(args: &DeblurArgs) -> Result<()> {
         transfer: args.transfer,
         overwrite: if args.force { Overwrite::Replace } else { Overwrite::Never },
         progress: !args.quiet,
+        invalid: if args.mask_invalid { InvalidPixels::Mask } else { InvalidPixels::Refuse },
     };
-    let report = restore_file(&job, &args.options())?;
+    let Restored { report, notes } = restore_file(&job, &args.options())?;
+    for note in notes {
+        eprintln!("lensrig: note: {note}");
+    }
     if !args.quiet {
         eprintln!(
             "deblur: {} tiles of {}x{}, noise σ {:?}, λ {:?}, {} CP / {} CG iterations, {} saturated px -> {}",

@@ -8,7 +8,8 @@ use clap::Args;
 use lensrig::estimate::register::RegistrationModel;
 use lensrig::estimate::session::estimate_session;
 use lensrig::estimate::{estimate, Estimate, EstimateOptions};
-use lensrig::image::io::read_pair;
+use lensrig::image::io::read_pair_with;
+use lensrig::image::validate::InvalidPixels;
 use lensrig::image::Transfer;
 use std::path::{Path, PathBuf};
 
@@ -37,6 +38,9 @@ pub struct EstimateCommandArgs {
     /// Global motion between the captures: none, translation, similarity.
     #[arg(long, default_value = "translation")]
     pub register: RegistrationModel,
+    /// Exclude NaN/Inf pixels from the data term like saturated ones (default: refuse the image).
+    #[arg(long)]
+    pub mask_invalid: bool,
     /// Hide the progress bar.
     #[arg(long)]
     pub quiet: bool,
@@ -54,9 +58,14 @@ impl EstimateCommandArgs {
     }
 }
 
-/// Reads a pair, tags the transfer function the user declared, and estimates.
-pub fn estimate_files(open: &Path, pinhole: &Path, opts: &EstimateOptions, transfer: Transfer) -> Result<Estimate> {
-    let (mut o, mut p) = read_pair(open, pinhole)?;
+/// Reads a pair (non-finite pixels refused or masked per `invalid`; notes and warnings on
+/// stderr), tags the transfer function the user declared, and estimates.
+pub fn estimate_files(open: &Path, pinhole: &Path, opts: &EstimateOptions, transfer: Transfer, invalid: InvalidPixels) -> Result<Estimate> {
+    let (lo, lp) = read_pair_with(open, pinhole, invalid)?;
+    for note in lo.values.notes(open).into_iter().chain(lp.values.notes(pinhole)) {
+        eprintln!("lensrig: note: {note}");
+    }
+    let (mut o, mut p) = (lo.image, lp.image);
     o.transfer = transfer;
     p.transfer = transfer;
     let mut est = estimate(&o, &p, opts)?;
@@ -79,7 +88,8 @@ pub fn run(a: &EstimateCommandArgs) -> Result<()> {
         (Some(o), Some(p), None) => (o, p),
         _ => bail!("give --open and --pinhole, or --session"),
     };
-    let est = estimate_files(open, pinhole, &opts, a.transfer)?;
+    let invalid = if a.mask_invalid { InvalidPixels::Mask } else { InvalidPixels::Refuse };
+    let est = estimate_files(open, pinhole, &opts, a.transfer, invalid)?;
     est.profile.save(&a.out)?;
     let m = &est.profile.meta;
     println!(

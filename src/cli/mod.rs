@@ -14,6 +14,7 @@ pub mod deblur;
 pub mod demo;
 pub mod diagnose;
 pub mod estimate;
+pub mod panic;
 pub mod report;
 pub mod simulate;
 pub mod target;

@@ -6,7 +6,7 @@ use anyhow::{Context, Result};
 use clap::Args;
 use lensrig::diagnose::simulate::predict;
 use lensrig::fsutil::Overwrite;
-use lensrig::image::io::{read_image, write_png16};
+use lensrig::image::io::write_png16;
 use lensrig::profile::Profile;
 use std::path::PathBuf;
 
@@ -28,7 +28,11 @@ pub struct SimulateArgs {
 pub fn run(a: &SimulateArgs) -> Result<()> {
     refuse_existing(&a.out, a.force)?;
     let profile = Profile::load(&a.profile)?;
-    let mut sharp = read_image(&a.sharp)?;
+    let loaded = lensrig::image::io::read_image_with(&a.sharp, lensrig::image::validate::InvalidPixels::Refuse)?;
+    for note in loaded.values.notes(&a.sharp) {
+        eprintln!("lensrig: note: {note}");
+    }
+    let mut sharp = loaded.image;
     sharp.transfer = profile.meta.source.transfer;
     let out = predict(&profile, &sharp).with_context(|| a.sharp.display().to_string())?;
     write_png16(&a.out, &out, if a.force { Overwrite::Replace } else { Overwrite::Never })?;

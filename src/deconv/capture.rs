@@ -8,7 +8,8 @@
 
 use super::{deblur, DeconvError, DeconvOptions, DeconvReport};
 use crate::fsutil::Overwrite;
-use crate::image::io::{read_image, write_png16, ImageError};
+use crate::image::io::{read_image_with, write_png16, ImageError};
+use crate::image::validate::{InvalidPixels, MASKED_VALUE};
 use crate::image::Transfer;
 use crate::profile::{Profile, ProfileError};
 use std::path::{Path, PathBuf};
@@ -26,6 +27,8 @@ pub enum RestoreError {
     Size { input: PathBuf, profile: PathBuf, got_width: usize, got_height: usize, width: usize, height: usize },
     #[error("{}: has {got} channels; PNG output holds 1 or 3", input.display())]
     PngChannels { input: PathBuf, got: usize },
+    #[error("{}: --mask-invalid drops pixels through the saturation mask, which is disabled (use a saturation level ≤ 1)", input.display())]
+    MaskWithoutSaturation { input: PathBuf },
     #[error("cannot restore {}", input.display())]
     Deconv { input: PathBuf, #[source] source: DeconvError },
 }
@@ -43,6 +46,17 @@ pub struct RestoreFile<'a> {
     pub overwrite: Overwrite,
     /// A progress bar on stderr.
     pub progress: bool,
+    /// What to do with NaN/Inf input samples: refuse the file, or drop them from the data term
+    /// through the saturation mask.
+    pub invalid: InvalidPixels,
+}
+
+/// What a restoration did: the solver's report and notes on the input's values (masked or
+/// negative samples) for the user.
+#[derive(Clone, Debug)]
+pub struct Restored {
+    pub report: DeconvReport,
+    pub notes: Vec<String>,
 }
 
 /// Restores `job.input` into `job.out` with `opts` (its `output_transfer` is set to the
@@ -52,9 +66,14 @@ pub struct RestoreFile<'a> {
 /// [`RestoreError`]: an unreadable profile or input, a channel count or size that does not
 /// match the profile (naming the file and both values), a failed restoration, an unwritable
 /// output.
-pub fn restore_file(job: &RestoreFile, opts: &DeconvOptions) -> Result<DeconvReport, RestoreError> {
+pub fn restore_file(job: &RestoreFile, opts: &DeconvOptions) -> Result<Restored, RestoreError> {
     let profile = Profile::load(job.profile).map_err(|source| RestoreError::Profile { path: job.profile.to_path_buf(), source })?;
-    let mut img = read_image(job.input)?;
+    let loaded = read_image_with(job.input, job.invalid)?;
+    if loaded.values.masked > 0 && opts.saturation.is_none() {
+        return Err(RestoreError::MaskWithoutSaturation { input: job.input.into() });
+    }
+    let notes = loaded.values.notes(job.input);
+    let mut img = loaded.image;
     let grid = &profile.grid;
     let src = &profile.meta.source;
     if img.channel_count() != grid.channels.len() {
@@ -73,6 +92,12 @@ pub fn restore_file(job: &RestoreFile, opts: &DeconvOptions) -> Result<DeconvRep
     for (p, b) in lin.planes.iter_mut().zip(&black) {
         if *b != 0.0 {
             p.data.iter_mut().for_each(|v| *v -= b);
+        }
+    }
+    // masked samples must stay at or above the saturation level after the black-level shift
+    if let Some(sat) = opts.saturation {
+        for &(c, i) in &loaded.values.masked_samples {
+            lin.planes[c].data[i] = MASKED_VALUE.max(sat);
         }
     }
     let mut opts = opts.clone();
@@ -98,7 +123,7 @@ pub fn restore_file(job: &RestoreFile, opts: &DeconvOptions) -> Result<DeconvRep
     lin.transfer = Transfer::Linear;
     let out = lin.encoded(transfer);
     write_png16(job.out, &out, job.overwrite)?;
-    Ok(report)
+    Ok(Restored { report, notes })
 }
 
 #[cfg(test)]
@@ -127,9 +152,9 @@ mod tests {
 
     /// The options `lensrig deblur` gave these tests (30 iterations, one residual step, no
     /// dark term).
-    fn run(dir: &Path, input: &str) -> Result<DeconvReport, RestoreError> {
+    fn run(dir: &Path, input: &str) -> Result<Restored, RestoreError> {
         let (profile, input, out) = (dir.join("profile"), dir.join(input), dir.join("out.png"));
-        let job = RestoreFile { profile: &profile, input: &input, out: &out, transfer: None, overwrite: Overwrite::Replace, progress: false };
+        let job = RestoreFile { profile: &profile, input: &input, out: &out, transfer: None, overwrite: Overwrite::Replace, progress: false, invalid: InvalidPixels::Refuse };
         let opts = DeconvOptions { cross_weight: 3.0, dark_weight: 0.0, residual_steps: 1, max_iterations: 30, saturation: Some(0.99), ..DeconvOptions::default() };
         restore_file(&job, &opts)
     }
@@ -158,7 +183,7 @@ mod tests {
         // a flat grey capture must come back as the same grey (decode, restore, re-encode)
         write(d.path(), "in.png", vec![Plane::filled(48, 40, 0.6); 3]);
         run(d.path(), "in.png").unwrap();
-        let out = read_image(&d.path().join("out.png")).unwrap();
+        let out = crate::image::io::read_image(&d.path().join("out.png")).unwrap();
         assert_eq!((out.width(), out.height(), out.channel_count()), (48, 40, 3));
         for p in &out.planes {
             assert!(p.data.iter().all(|v| (v - 0.6).abs() < 2e-3), "{} .. {}", p.min(), p.max());

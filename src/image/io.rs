@@ -5,8 +5,15 @@
 //! [`Image`]s on the full-scale axis described in [`crate::image`]. Writes 16-bit PNG and
 //! 32-bit float TIFF, atomically (see [`crate::fsutil`]).
 //!
-//! Values are read *as stored*; no transfer curve is applied here.
+//! Values are read *as stored*; no transfer curve is applied here. Every image is then checked
+//! for non-finite and negative samples ([`super::validate`]): [`read_image`] refuses NaN/±Inf,
+//! [`read_image_with`] takes an [`InvalidPixels`] policy and returns the [`ValueReport`].
+//! Writers refuse non-finite samples before anything is renamed into place.
+//!
+//! Decoding is bounded: the PNG and TIFF decoders run with [`MAX_DECODE_BYTES`] as their
+//! allocation limit, so a decompression bomb is refused instead of exhausting memory.
 
+use super::validate::{check_values, first_non_finite, InvalidPixels, ValueReport};
 use super::{Image, Plane, SampleFormat, Transfer};
 use crate::fsutil::{write_atomic_with, Overwrite};
 use std::io::{BufWriter, Cursor};
@@ -17,14 +24,33 @@ use std::path::{Path, PathBuf};
 pub enum ImageError {
     #[error("cannot read {path}: {source}")]
     Io { path: PathBuf, #[source] source: std::io::Error },
-    #[error("cannot decode {path}: {message}")]
-    Decode { path: PathBuf, message: String },
+    #[error("cannot decode {path}: {source}")]
+    Decode { path: PathBuf, #[source] source: Box<dyn std::error::Error + Send + Sync> },
     #[error("{path}: unsupported image format: {message}")]
     Unsupported { path: PathBuf, message: String },
     #[error("cannot write {path}: {source}")]
     Write { path: PathBuf, #[source] source: std::io::Error },
     #[error("{path}: {message}")]
     Mismatch { path: PathBuf, message: String },
+    /// Non-finite samples in an input refused under [`InvalidPixels::Refuse`], or in an image
+    /// about to be written (a bug upstream, caught before the file appears).
+    #[error("{path}: {message}")]
+    NonFinite { path: PathBuf, message: String },
+}
+
+/// Largest decoded sample buffer lensrig accepts, bytes (256 MiB: 16-bit RGB up to 44 Mpixel,
+/// float RGB up to 22 Mpixel).
+pub const MAX_DECODE_BYTES: u64 = 256 << 20;
+
+/// An image as loaded, with what the value check found.
+#[derive(Clone, Debug)]
+pub struct Loaded {
+    pub image: Image,
+    pub values: ValueReport,
+}
+
+fn decode_err(path: &Path, e: impl std::error::Error + Send + Sync + 'static) -> ImageError {
+    ImageError::Decode { path: path.into(), source: Box::new(e) }
 }
 
 /// Reads a PNG or TIFF file (chosen by content, not by extension).
@@ -33,12 +59,32 @@ pub enum ImageError {
 /// [`ImageError`] naming `path` for unreadable files, corrupt data, and unsupported layouts
 /// (alpha with transparency, 2 or more than 4 channels, sample types other than 8/16-bit
 /// integer or 32-bit float).
+/// Images with non-finite samples are refused ([`ImageError::NonFinite`] naming the first).
 pub fn read_image(path: &Path) -> Result<Image, ImageError> {
+    read_image_with(path, InvalidPixels::Refuse).map(|l| l.image)
+}
+
+/// Reads an image and applies `policy` to its non-finite samples (see [`super::validate`]).
+///
+/// # Errors
+/// As [`read_image`]; [`ImageError::NonFinite`] only under [`InvalidPixels::Refuse`].
+pub fn read_image_with(path: &Path, policy: InvalidPixels) -> Result<Loaded, ImageError> {
     let bytes = std::fs::read(path).map_err(|source| ImageError::Io { path: path.into(), source })?;
+    let mut image = decode_image(path, &bytes)?;
+    let values = check_values(&mut image, policy).map_err(|message| ImageError::NonFinite { path: path.into(), message })?;
+    Ok(Loaded { image, values })
+}
+
+/// Decodes PNG or TIFF bytes (chosen by content) without any value check; `path` only names
+/// the source in errors. The entry point of the fuzz targets.
+///
+/// # Errors
+/// As [`read_image`], without the I/O and value errors.
+pub fn decode_image(path: &Path, bytes: &[u8]) -> Result<Image, ImageError> {
     if bytes.starts_with(b"II*\0") || bytes.starts_with(b"MM\0*") {
-        read_tiff(path, &bytes)
+        read_tiff(path, bytes)
     } else if bytes.starts_with(b"\x89PNG") {
-        read_png(path, &bytes)
+        read_png(path, bytes)
     } else {
         Err(ImageError::Unsupported { path: path.into(), message: "not a PNG or TIFF file".into() })
     }
@@ -46,8 +92,11 @@ pub fn read_image(path: &Path) -> Result<Image, ImageError> {
 
 fn read_png(path: &Path, bytes: &[u8]) -> Result<Image, ImageError> {
     use image::DynamicImage as D;
-    let img = image::load_from_memory_with_format(bytes, image::ImageFormat::Png)
-        .map_err(|e| ImageError::Decode { path: path.into(), message: e.to_string() })?;
+    let mut reader = image::ImageReader::with_format(Cursor::new(bytes), image::ImageFormat::Png);
+    let mut limits = image::Limits::default();
+    limits.max_alloc = Some(MAX_DECODE_BYTES);
+    reader.limits(limits);
+    let img = reader.decode().map_err(|e| decode_err(path, e))?;
     let (w, h) = (img.width() as usize, img.height() as usize);
     let (format, nch, has_alpha, samples): (SampleFormat, usize, bool, Vec<f32>) = match img {
         D::ImageLuma8(b) => (SampleFormat::U8, 1, false, b.into_raw().into_iter().map(f32::from).collect()),
@@ -100,8 +149,11 @@ fn interleaved_to_image(
 fn read_tiff(path: &Path, bytes: &[u8]) -> Result<Image, ImageError> {
     use tiff::decoder::{Decoder, DecodingResult};
     use tiff::ColorType;
-    let err = |e: tiff::TiffError| ImageError::Decode { path: path.into(), message: e.to_string() };
-    let mut dec = Decoder::new(Cursor::new(bytes)).map_err(err)?;
+    let err = |e: tiff::TiffError| decode_err(path, e);
+    let mut limits = tiff::decoder::Limits::default();
+    limits.decoding_buffer_size = MAX_DECODE_BYTES as usize;
+    limits.intermediate_buffer_size = MAX_DECODE_BYTES as usize;
+    let mut dec = Decoder::new(Cursor::new(bytes)).map_err(err)?.with_limits(limits);
     let (w, h) = dec.dimensions().map_err(err)?;
     let ct = dec.colortype().map_err(err)?;
     let (nch, has_alpha) = match ct {
@@ -123,9 +175,20 @@ fn read_tiff(path: &Path, bytes: &[u8]) -> Result<Image, ImageError> {
         }
     };
     if samples.len() != w as usize * h as usize * nch {
-        return Err(ImageError::Decode { path: path.into(), message: "sample count does not match the dimensions".into() });
+        return Err(ImageError::Decode { path: path.into(), source: "sample count does not match the dimensions".into() });
     }
     interleaved_to_image(path, w as usize, h as usize, nch, has_alpha, format, &samples)
+}
+
+/// Refuses an image with non-finite samples before it is written.
+fn ensure_finite(path: &Path, img: &Image) -> Result<(), ImageError> {
+    match first_non_finite(img) {
+        None => Ok(()),
+        Some(at) => Err(ImageError::NonFinite {
+            path: path.into(),
+            message: format!("refusing to write an image with a non-finite value at {at} (a bug: please report it)"),
+        }),
+    }
 }
 
 fn interleave(img: &Image, scale: f32) -> Vec<f32> {
@@ -145,9 +208,11 @@ fn interleave(img: &Image, scale: f32) -> Vec<f32> {
 /// gamma-encoded values).
 ///
 /// # Errors
-/// [`ImageError::Unsupported`] for channel counts other than 1 or 3; [`ImageError::Write`] when
-/// the file cannot be written (nothing is left behind).
+/// [`ImageError::Unsupported`] for channel counts other than 1 or 3; [`ImageError::NonFinite`]
+/// for a NaN or ±Inf sample; [`ImageError::Write`] when the file cannot be written (nothing is
+/// left behind in either case).
 pub fn write_png16(path: &Path, img: &Image, overwrite: Overwrite) -> Result<(), ImageError> {
+    ensure_finite(path, img)?;
     let (w, h) = (img.width() as u32, img.height() as u32);
     let data: Vec<u16> = interleave(img, 65535.0).into_iter().map(|v| v.round().clamp(0.0, 65535.0) as u16).collect();
     let buf: Vec<u8> = {
@@ -172,6 +237,7 @@ pub fn write_png16(path: &Path, img: &Image, overwrite: Overwrite) -> Result<(),
 /// # Errors
 /// As [`write_png16`].
 pub fn write_png8(path: &Path, img: &Image, overwrite: Overwrite) -> Result<(), ImageError> {
+    ensure_finite(path, img)?;
     let (w, h) = (img.width() as u32, img.height() as u32);
     let data: Vec<u8> = interleave(img, 255.0).into_iter().map(|v| v.round().clamp(0.0, 255.0) as u8).collect();
     let ct = match img.channel_count() {
@@ -189,8 +255,10 @@ pub fn write_png8(path: &Path, img: &Image, overwrite: Overwrite) -> Result<(), 
 /// Writes a 32-bit float TIFF, gray for one plane, RGB for three; values are stored unclipped.
 ///
 /// # Errors
-/// [`ImageError::Unsupported`] for other channel counts, [`ImageError::Write`] on I/O errors.
+/// [`ImageError::Unsupported`] for other channel counts, [`ImageError::NonFinite`] for a NaN or
+/// ±Inf sample, [`ImageError::Write`] on I/O errors.
 pub fn write_tiff_f32(path: &Path, img: &Image, overwrite: Overwrite) -> Result<(), ImageError> {
+    ensure_finite(path, img)?;
     use tiff::encoder::{colortype, TiffEncoder};
     let (w, h) = (img.width() as u32, img.height() as u32);
     let data = interleave(img, 1.0);
@@ -216,8 +284,17 @@ pub fn write_tiff_f32(path: &Path, img: &Image, overwrite: Overwrite) -> Result<
 /// # Errors
 /// Read errors, or [`ImageError::Mismatch`] naming the second file and both sizes.
 pub fn read_pair(a: &Path, b: &Path) -> Result<(Image, Image), ImageError> {
-    let ia = read_image(a)?;
-    let ib = read_image(b)?;
+    read_pair_with(a, b, InvalidPixels::Refuse).map(|(a, b)| (a.image, b.image))
+}
+
+/// [`read_pair`] with a policy for non-finite samples.
+///
+/// # Errors
+/// As [`read_pair`] and [`read_image_with`].
+pub fn read_pair_with(a: &Path, b: &Path, policy: InvalidPixels) -> Result<(Loaded, Loaded), ImageError> {
+    let la = read_image_with(a, policy)?;
+    let lb = read_image_with(b, policy)?;
+    let (ia, ib) = (&la.image, &lb.image);
     if ia.width() != ib.width() || ia.height() != ib.height() {
         return Err(ImageError::Mismatch {
             path: b.into(),
@@ -237,7 +314,7 @@ pub fn read_pair(a: &Path, b: &Path) -> Result<(Image, Image), ImageError> {
             message: format!("has {} channels but {} has {}", ib.channel_count(), a.display(), ia.channel_count()),
         });
     }
-    Ok((ia, ib))
+    Ok((la, lb))
 }
 
 #[cfg(test)]
@@ -307,5 +384,64 @@ mod tests {
         let img = read_image(&p).unwrap();
         assert_eq!(img.format, SampleFormat::U8);
         assert_eq!(img.planes[0].data, vec![0.0, 1.0]);
+    }
+
+    /// A gray float TIFF written with the raw encoder (the lensrig writers refuse NaN).
+    fn raw_f32_tiff(path: &Path, w: u32, h: u32, data: &[f32]) {
+        let f = std::fs::File::create(path).unwrap();
+        let mut enc = tiff::encoder::TiffEncoder::new(BufWriter::new(f)).unwrap();
+        enc.write_image::<tiff::encoder::colortype::Gray32Float>(w, h, data).unwrap();
+    }
+
+    #[test]
+    fn non_finite_tiff_is_refused_naming_file_and_pixel() {
+        let d = tempfile::tempdir().unwrap();
+        let p = d.path().join("hdr.tiff");
+        let mut v = vec![0.25f32; 12];
+        v[5] = f32::NAN;
+        v[7] = f32::INFINITY;
+        v[8] = -0.5;
+        raw_f32_tiff(&p, 4, 3, &v);
+        let e = read_image(&p).unwrap_err();
+        assert!(matches!(e, ImageError::NonFinite { .. }));
+        let e = e.to_string();
+        assert!(e.contains("hdr.tiff") && e.contains("x=1, y=1") && e.contains("2 non-finite"), "{e}");
+        let l = read_image_with(&p, InvalidPixels::Mask).unwrap();
+        assert_eq!(l.values.masked, 2);
+        assert_eq!(l.values.negative, 1);
+        assert_eq!(l.image.planes[0].data[5], crate::image::validate::MASKED_VALUE);
+        assert_eq!(l.image.planes[0].data[8], -0.5);
+        let (a, _) = read_pair_with(&p, &p, InvalidPixels::Mask).unwrap();
+        assert_eq!(a.values.masked, 2);
+        assert!(read_pair(&p, &p).is_err());
+    }
+
+    #[test]
+    fn writers_refuse_non_finite_and_leave_nothing() {
+        let d = tempfile::tempdir().unwrap();
+        let mut img = rgb();
+        img.planes[1].data[9] = f32::NAN;
+        for (name, r) in [
+            ("a.png", write_png16(&d.path().join("a.png"), &img, Overwrite::Replace)),
+            ("b.png", write_png8(&d.path().join("b.png"), &img, Overwrite::Replace)),
+            ("c.tiff", write_tiff_f32(&d.path().join("c.tiff"), &img, Overwrite::Replace)),
+        ] {
+            let e = r.unwrap_err().to_string();
+            assert!(e.contains(name) && e.contains("x=2, y=1") && e.contains("channel G"), "{e}");
+        }
+        assert_eq!(std::fs::read_dir(d.path()).unwrap().count(), 0);
+    }
+
+    #[test]
+    fn decode_error_keeps_its_source() {
+        let d = tempfile::tempdir().unwrap();
+        let p = d.path().join("cut.png");
+        let mut bytes = Vec::new();
+        image::ImageEncoder::write_image(image::codecs::png::PngEncoder::new(&mut bytes), &[7u8; 64], 8, 8, image::ExtendedColorType::L8).unwrap();
+        bytes.truncate(bytes.len() - 20);
+        std::fs::write(&p, &bytes).unwrap();
+        let e = read_image(&p).unwrap_err();
+        assert!(matches!(e, ImageError::Decode { .. }));
+        assert!(std::error::Error::source(&e).is_some());
     }
 }

@@ -17,6 +17,7 @@ pub mod filter;
 pub mod io;
 pub mod resample;
 pub mod spectrum;
+pub mod validate;
 
 use serde::{Deserialize, Serialize};
 

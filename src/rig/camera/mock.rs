@@ -19,7 +19,8 @@
 //! `bands` (`"rgb"` or `"mono"`, default `"mono"`), `seed` (1), and the fault
 //! `timeout_after_captures` (a capture after that many returns [`CameraError::Timeout`],
 //! for resume tests; the environment variable `LENSRIG_MOCK_TIMEOUT_AFTER_CAPTURES` does the
-//! same without changing the config). `focal_length_mm`, `pixel_pitch_um` are accepted and informational.
+//! same without changing the config; `LENSRIG_MOCK_PANIC_AFTER_CAPTURES` makes the capture after
+//! that many *panic*, for the panic-consistency test). `focal_length_mm`, `pixel_pitch_um` are accepted and informational.
 //!
 //! Clean images are cached per (f-number, stage position), so repeated frames only redraw noise.
 
@@ -51,6 +52,8 @@ pub struct CameraFaults {
     pub drop_frames: AtomicUsize,
     /// When > 0: captures after this many succeeded time out (simulates a hang mid-session).
     pub timeout_after_captures: AtomicUsize,
+    /// When > 0: the capture after this many succeeded panics (a bug mid-session; test-only).
+    pub panic_after_captures: AtomicUsize,
 }
 
 /// The simulated optics and sensor a mock rig uses, from the config's `[lens]` table.
@@ -206,6 +209,10 @@ impl MockCamera {
         if let Some(v) = std::env::var("LENSRIG_MOCK_TIMEOUT_AFTER_CAPTURES").ok().and_then(|v| v.parse().ok()) {
             faults.timeout_after_captures.store(v, Ordering::SeqCst);
         }
+        // Test hook: a panic mid-session (tests/rig_panic.rs).
+        if let Some(v) = std::env::var("LENSRIG_MOCK_PANIC_AFTER_CAPTURES").ok().and_then(|v| v.parse().ok()) {
+            faults.panic_after_captures.store(v, Ordering::SeqCst);
+        }
         let format = FrameFormat { width: cfg.camera.width, height: cfg.camera.height, fourcc: FourCc(*b"Y16 "), transfer: Transfer::Linear };
         Ok(Self {
             rng: Rng::new(optics.seed.wrapping_mul(7919) + 17),
@@ -312,6 +319,10 @@ impl Camera for MockCamera {
         let limit = self.faults.timeout_after_captures.load(Ordering::SeqCst);
         if self.faults.timeout.load(Ordering::SeqCst) || (limit > 0 && self.captures >= limit) {
             return Err(CameraError::Timeout { device: self.device(), after });
+        }
+        let panic_after = self.faults.panic_after_captures.load(Ordering::SeqCst);
+        if panic_after > 0 && self.captures >= panic_after {
+            panic!("mock camera: injected panic after {} captures (test fault)", self.captures);
         }
         if frames == 0 {
             return Err(CameraError::InvalidArgument { device: self.device(), what: "capture needs at least one frame".into() });

@@ -20,10 +20,10 @@ pub struct DeblurArgs {
     /// Lens profile directory (written by `lensrig estimate`).
     #[arg(long, value_name = "PROFILE_DIR")]
     pub profile: PathBuf,
-    /// Blurred capture (PNG or TIFF) taken through the profiled lens.
+    /// Blurred capture (PNG, TIFF, or a camera raw/DNG with the `raw` feature) taken through the profiled lens.
     #[arg(long = "in", value_name = "BLURRED")]
     pub input: PathBuf,
-    /// Restored image, 16-bit PNG; an existing file is kept unless `--force`.
+    /// Restored image, 16-bit PNG (a linear 16-bit TIFF for raw input); an existing file is kept unless `--force`.
     #[arg(long, value_name = "RESTORED.png")]
     pub out: PathBuf,
     /// Replace RESTORED.png if it exists.
@@ -87,6 +87,15 @@ pub fn run(args: &DeblurArgs) -> anyhow::Result<()> {
     let mut img = read_image(&args.input)?;
     let grid = &profile.grid;
     let src = &profile.meta.source;
+    // camera raw input: CFA planes, or bilinear RGB for a profile of demosaiced channels; the
+    // result is a linear 16-bit TIFF (crate::image::raw)
+    let raw_in = img.raw.is_some();
+    if raw_in && img.channels != grid.channels {
+        img = crate::image::raw::demosaic_bilinear(&img, &args.input)?;
+    }
+    if raw_in && !args.out.extension().is_some_and(|e| e.eq_ignore_ascii_case("tif") || e.eq_ignore_ascii_case("tiff")) {
+        bail!("{}: a camera raw input is restored to a linear 16-bit TIFF; name the output .tiff", args.out.display());
+    }
     if img.channel_count() != grid.channels.len() {
         bail!(
             "{}: has {} channel(s) but profile {} has {} ({})",
@@ -108,7 +117,7 @@ pub fn run(args: &DeblurArgs) -> anyhow::Result<()> {
             src.height
         );
     }
-    if !matches!(img.channel_count(), 1 | 3) {
+    if !raw_in && !matches!(img.channel_count(), 1 | 3) {
         bail!("{}: has {} channels; PNG output holds 1 or 3", args.input.display(), img.channel_count());
     }
     let transfer = args.transfer.unwrap_or(src.transfer);
@@ -142,7 +151,12 @@ pub fn run(args: &DeblurArgs) -> anyhow::Result<()> {
     lin.planes = planes;
     lin.transfer = Transfer::Linear;
     let out = lin.encoded(transfer);
-    write_png16(&args.out, &out, if args.force { Overwrite::Replace } else { Overwrite::Never })?;
+    let overwrite = if args.force { Overwrite::Replace } else { Overwrite::Never };
+    if raw_in {
+        crate::image::raw::write_linear_tiff16(&args.out, &out, overwrite)?;
+    } else {
+        write_png16(&args.out, &out, overwrite)?;
+    }
     if !args.quiet {
         eprintln!(
             "deblur: {} tiles of {}x{}, noise σ {:?}, λ {:?}, {} CP / {} CG iterations, {} saturated px -> {}",

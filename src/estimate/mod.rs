@@ -395,6 +395,7 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
     let mut meta = Profile::new_meta(source, ratio, psf);
     meta.registration = reg.info;
     meta.estimation = info;
+    meta.raw = open.raw.clone();
     Ok(Estimate { profile: Profile { meta, grid }, noise_sigma: noise, valid_masks, pinhole_registered: pin_reg, open_linear: open_lin })
 }
 

@@ -27,13 +27,17 @@ pub enum ImageError {
     Mismatch { path: PathBuf, message: String },
 }
 
-/// Reads a PNG or TIFF file (chosen by content, not by extension).
+/// Reads a PNG or TIFF file (chosen by content, not by extension), or a camera raw file
+/// (chosen by extension, see [`super::raw`]: CFA planes `R, G1, G2, B`, levels from the file).
 ///
 /// # Errors
 /// [`ImageError`] naming `path` for unreadable files, corrupt data, and unsupported layouts
 /// (alpha with transparency, 2 or more than 4 channels, sample types other than 8/16-bit
 /// integer or 32-bit float).
 pub fn read_image(path: &Path) -> Result<Image, ImageError> {
+    if super::raw::is_raw_path(path) {
+        return super::raw::read_raw(path, super::raw::RawMethod::CfaPlanes);
+    }
     let bytes = std::fs::read(path).map_err(|source| ImageError::Io { path: path.into(), source })?;
     if bytes.starts_with(b"II*\0") || bytes.starts_with(b"MM\0*") {
         read_tiff(path, &bytes)

@@ -296,14 +296,30 @@ fn decode_mosaic(path: &Path) -> Result<Mosaic, ImageError> {
     ))
 }
 
+/// A rawler error as one line a user can act on.
+#[cfg(feature = "raw")]
+fn decoder_error(path: &Path, e: &rawler::RawlerError) -> ImageError {
+    use rawler::RawlerError as R;
+    match e {
+        R::Unsupported { what, .. } if what.contains("No decoder") => unsupported(
+            path,
+            "not a camera raw file the decoder (rawler) recognises; a truncated or damaged header looks the same",
+        ),
+        R::Unsupported { what, make, model, .. } => unsupported(path, one_line(&format!("{what} (camera '{make} {model}')"))),
+        R::DecoderFailed(m) if m.contains("EOF") => {
+            ImageError::Decode { path: path.into(), message: "the file is truncated: the image data runs past its end".into() }
+        }
+        R::DecoderFailed(m) => ImageError::Decode { path: path.into(), message: format!("corrupt raw data: {}", one_line(m)) },
+    }
+}
+
 /// Decodes the file with rawler and normalises the active area (see the module docs).
 #[cfg(feature = "raw")]
 fn decode_mosaic(path: &Path) -> Result<Mosaic, ImageError> {
     use rawler::rawimage::RawPhotometricInterpretation;
     let bytes = std::fs::read(path).map_err(|source| ImageError::Io { path: path.into(), source })?;
     let src = rawler::rawsource::RawSource::new_from_slice(&bytes);
-    let raw = rawler::decode(&src, &rawler::decoders::RawDecodeParams::default())
-        .map_err(|e| ImageError::Decode { path: path.into(), message: one_line(&e.to_string()) })?;
+    let raw = rawler::decode(&src, &rawler::decoders::RawDecodeParams::default()).map_err(|e| decoder_error(path, &e))?;
     let cfa = match &raw.photometric {
         RawPhotometricInterpretation::Cfa(c) => c.cfa.clone(),
         RawPhotometricInterpretation::LinearRaw => return Err(unsupported(path, "a linear (already demosaiced) raw; convert it to a linear TIFF")),

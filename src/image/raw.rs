@@ -284,6 +284,7 @@ pub fn write_linear_tiff16(path: &Path, img: &Image, overwrite: Overwrite) -> Re
 }
 
 /// One line: decoder messages may span several.
+#[cfg(feature = "raw")]
 fn one_line(s: &str) -> String {
     s.split_whitespace().collect::<Vec<_>>().join(" ")
 }

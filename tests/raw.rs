@@ -269,3 +269,23 @@ fn truncated_and_unsupported_raws_give_one_line_errors() {
     assert!(e.contains("junk.nef") && e.contains("not a camera raw file"), "{e}");
     assert!(!out.exists(), "nothing is written on error");
 }
+
+/// `diagnose` on a DNG pair: the CFA planes are diagnosed and previewed as RGB. Slow (about
+/// three minutes on a shared 2-core machine), so run on request: `--ignored`.
+#[test]
+#[ignore = "slow (about 3 min): cargo test --release --features raw --test raw -- --ignored"]
+fn diagnose_reads_a_raw_pair() {
+    let Some(py) = python() else { return };
+    let d = tempfile::tempdir().unwrap();
+    let dir = d.path();
+    let (w, h) = (512, 384);
+    let (open, pin) = render_pair(w, h);
+    let open_dng = make_dng(&py, dir, &open, "RGGB", "open");
+    let pin_dng = make_dng(&py, dir, &pin, "RGGB", "pinhole");
+    let rep = dir.join("diagnosis");
+    ok(&["diagnose", "--open", s(&open_dng), "--pinhole", s(&pin_dng), "--kernel", "9", "--tile", "48", "--out", s(&rep), "--max-effects", "1", "--quiet"]);
+    let prev = read_image(&rep.join("predicted_final.png")).unwrap();
+    assert_eq!((prev.width(), prev.height(), prev.channel_count()), (w, h, 3));
+    let prof = Profile::load(&rep.join("profile")).unwrap();
+    assert_eq!(prof.grid.channels, vec!["R", "G1", "G2", "B"]);
+}

@@ -5,7 +5,7 @@
 //! the synthetic chromatic field-varying lens ([`lensrig::deconv::synth::SyntheticLens`], 4×4 PSF
 //! grid, 21×21 kernels), add Gaussian noise (σ = 0.005 linear), clip, re-encode sRGB and write
 //! `OUT/<scene>/blurred.png` (16-bit), the lens profile `OUT/<scene>/profile/`, the true PSFs as
-//! `psfs.json` for the peers, then run `lensrig deblur` (the CLI code path, in process) and
+//! `psfs.json` for the peers, then restore it as `lensrig deblur` does (`restore_file`, in process) and
 //! record its wall time.
 //!
 //! `report OUT [SCENE.png ...]`: PSNR (dB, sRGB-encoded values in [0, 1], whole image) of every
@@ -16,7 +16,7 @@
 //! a scene (for the 1-MP and 12-MP timing rows; `LR_NO_RUN=1 prepare` then blurs it without
 //! restoring, so `run` can be timed on its own under `/usr/bin/time -v`).
 
-use lensrig::deconv::cli::{run, DeblurArgs};
+use lensrig::deconv::capture::{restore_file, RestoreFile};
 use lensrig::deconv::synth::{GaussianNoise, SyntheticLens};
 use lensrig::fsutil::Overwrite;
 use lensrig::image::io::{read_image, write_png16, write_tiff_f32};
@@ -97,26 +97,21 @@ fn prepare(out: &Path, scene: &Path) -> anyhow::Result<()> {
     // LR_DARK / LR_TILE / LR_ITERS override the defaults (for profiling runs only)
     let env = |k: &str| std::env::var(k).ok().and_then(|v| v.parse::<f32>().ok());
     let d = lensrig::deconv::DeconvOptions::default();
-    let args = DeblurArgs {
-        profile: dir.join("profile"),
-        input: dir.join("blurred.png"),
-        out: dir.join("lensrig.png"),
-        transfer: None,
+    let opts = lensrig::deconv::DeconvOptions {
         lambda: env("LR_LAMBDA").map(|v| vec![v]),
-        cross_weight: d.cross_weight,
         dark_weight: env("LR_DARK").unwrap_or(d.dark_weight),
-        residual_steps: d.residual_steps,
-        iterations: env("LR_ITERS").map_or(d.max_iterations, |v| v as usize),
-        saturation: 0.99,
-        tile: env("LR_TILE").map(|v| v as usize),
-        quiet: true,
-        force: true,
+        max_iterations: env("LR_ITERS").map_or(d.max_iterations, |v| v as usize),
+        saturation: Some(0.99),
+        tile_core: env("LR_TILE").map(|v| v as usize),
+        ..d
     };
+    let (profile, input, restored) = (dir.join("profile"), dir.join("blurred.png"), dir.join("lensrig.png"));
+    let job = RestoreFile { profile: &profile, input: &input, out: &restored, transfer: None, overwrite: Overwrite::Replace, progress: false };
     if std::env::var("LR_NO_RUN").is_ok_and(|v| v == "1") {
         return Ok(());
     }
     let (t, cpu0) = (Instant::now(), cpu_seconds());
-    run(&args)?;
+    restore_file(&job, &opts)?;
     let (secs, cpu) = (t.elapsed().as_secs_f64(), cpu_seconds() - cpu0);
     std::fs::write(dir.join("lensrig.time"), format!("{secs:.2}\n"))?;
     std::fs::write(dir.join("lensrig.cpu"), format!("{cpu:.2}\n"))?;

@@ -6,4 +6,4 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 seeds="${1:-3}"
 shift || true
-cargo run --release --quiet --example bench_diagnose -- --bench-seeds "$seeds" "$@"
+cargo run --release --quiet -- diagnose --bench-seeds "$seeds" "$@"

@@ -4,7 +4,7 @@
 //! mismatch". Plus the report files, the corrected profile, the CLI entry point and the HTML
 //! in a headless browser.
 
-use lensrig::diagnose::cli::{bench_case, proof_options, run, DiagnoseArgs};
+use lensrig::diagnose::bench::{bench_case, proof_options, BenchRow};
 use lensrig::diagnose::model::apply_corrections;
 use lensrig::diagnose::proof::CaseSpec;
 use lensrig::diagnose::Diagnosis;
@@ -16,7 +16,7 @@ use std::path::Path;
 
 const FLOOR: f64 = 1.10;
 
-fn case(effect: Option<&str>, seed: u64) -> (lensrig::diagnose::cli::BenchRow, Diagnosis, lensrig::diagnose::proof::Case) {
+fn case(effect: Option<&str>, seed: u64) -> (BenchRow, Diagnosis, lensrig::diagnose::proof::Case) {
     let spec = CaseSpec::default();
     bench_case(effect, seed, &spec, &proof_options(&spec)).expect("diagnosis runs")
 }
@@ -170,24 +170,14 @@ fn report_profile_cli_and_browser() {
     write_png16(&open, &c.open.image, Overwrite::Replace).unwrap();
     write_png16(&pin, &c.pinhole.image, Overwrite::Replace).unwrap();
     let out = dir.path().join("report");
-    let args = DiagnoseArgs {
-        open: Some(open.clone()),
-        pinhole: Some(pin.clone()),
-        profile: None,
-        session: None,
-        frames: None,
-        out: Some(out.clone()),
-        transfer: lensrig::image::Transfer::Linear,
-        kernel: Some(spec.kernel_size),
-        tile: Some(96),
-        max_iterations: 150,
-        max_effects: 4,
-        bench_seeds: None,
-        bench_first_seed: 1,
-        bench_effect: None,
-        quiet: true,
+    let bin = env!("CARGO_BIN_EXE_lensrig");
+    let kernel = spec.kernel_size.to_string();
+    let diagnose = |open: &Path| {
+        let args = ["diagnose", "--open", open.to_str().unwrap(), "--pinhole", pin.to_str().unwrap(), "--out", out.to_str().unwrap(), "--kernel", &kernel, "--tile", "96", "--quiet"];
+        std::process::Command::new(bin).args(args).output().expect("run lensrig")
     };
-    run(&args).expect("diagnose runs");
+    let o = diagnose(&open);
+    assert!(o.status.success(), "diagnose: {}", String::from_utf8_lossy(&o.stderr));
     let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
     assert_eq!(report["effects"][0]["name"], "vignetting");
     for key in ["noise", "base", "final", "effects"] {
@@ -215,8 +205,9 @@ fn report_profile_cli_and_browser() {
     }
     assert!(worst < 2e-3, "apply_corrections differs from the report's prediction by {worst}");
     // an unreadable input names the file
-    let bad = DiagnoseArgs { open: Some(dir.path().join("missing.png")), ..args.clone() };
-    let e = format!("{:#}", run(&bad).unwrap_err());
+    let bad = diagnose(&dir.path().join("missing.png"));
+    assert_eq!(bad.status.code(), Some(2));
+    let e = String::from_utf8_lossy(&bad.stderr);
     assert!(e.contains("missing.png"), "{e}");
 
     // headless browser

@@ -61,16 +61,19 @@ fn second_diff(a: &[f32], o: &mut [f32], s: f32, add: bool) {
     }
 }
 
+/// Row `y` of a periodic `w × h` array with the rows below and above it.
+fn periodic_rows(v: &[f32], w: usize, h: usize, y: usize) -> (&[f32], &[f32], &[f32]) {
+    let yn = if y + 1 == h { 0 } else { y + 1 };
+    let yp = if y == 0 { h - 1 } else { y - 1 };
+    (&v[y * w..(y + 1) * w], &v[yn * w..(yn + 1) * w], &v[yp * w..(yp + 1) * w])
+}
+
 /// `out = H v` (overwrites `out`).
 pub fn apply(d: Derivative, v: &[f32], w: usize, h: usize, out: &mut [f32]) {
     debug_assert_eq!(v.len(), w * h);
     let mut tmp = if d == Derivative::Dxy { vec![0.0; w] } else { Vec::new() };
     for y in 0..h {
-        let row = &v[y * w..(y + 1) * w];
-        let yn = if y + 1 == h { 0 } else { y + 1 };
-        let yp = if y == 0 { h - 1 } else { y - 1 };
-        let rown = &v[yn * w..(yn + 1) * w];
-        let rowp = &v[yp * w..(yp + 1) * w];
+        let (row, rown, rowp) = periodic_rows(v, w, h, y);
         let o = &mut out[y * w..(y + 1) * w];
         match d {
             Derivative::Dx => forward_diff(row, o, 1.0, false),
@@ -94,11 +97,7 @@ pub fn add_adjoint(d: Derivative, v: &[f32], w: usize, h: usize, s: f32, out: &m
     debug_assert_eq!(v.len(), w * h);
     let mut tmp = if d == Derivative::Dxy { vec![0.0; w] } else { Vec::new() };
     for y in 0..h {
-        let row = &v[y * w..(y + 1) * w];
-        let yn = if y + 1 == h { 0 } else { y + 1 };
-        let yp = if y == 0 { h - 1 } else { y - 1 };
-        let rown = &v[yn * w..(yn + 1) * w];
-        let rowp = &v[yp * w..(yp + 1) * w];
+        let (row, rown, rowp) = periodic_rows(v, w, h, y);
         let o = &mut out[y * w..(y + 1) * w];
         match d {
             // (Dxᵀ v)[x] = v[x−1] − v[x]

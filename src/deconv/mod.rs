@@ -100,7 +100,7 @@
 //! "`D_w` is a spatial mask that selects dark regions"). lensrig uses the blurred dark fraction
 //! itself, `w = (Σ β T(i_l) / Σ β) * K_σ`, which is 1 where the other channels are dark.
 
-pub mod cli;
+pub mod capture;
 pub mod denoise;
 pub mod filters;
 pub mod noise;
@@ -110,11 +110,14 @@ pub mod synth;
 pub mod tiles;
 
 use crate::image::Plane;
+use crate::image::filter::gaussian_blur_periodic;
 use crate::optics::field_operator::FieldOperator;
 use crate::optics::psf_grid::PsfGrid;
 use crate::solve::conv::kernel_to_origin;
 use crate::solve::fft::Fft2;
-use crate::solve::primal_dual::{chambolle_pock, power_iteration, Options};
+use crate::solve::operator::{LinearOperator, PrimalDualOperator};
+use crate::solve::power::operator_norm;
+use crate::solve::primal_dual::{chambolle_pock, Options, NORM_SAFETY};
 use problem::{add_weighted_gradient_normal, gradients, ChannelProblem, CrossChannel, DarkTerm, KernelSpectrum};
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -485,35 +488,6 @@ pub struct TileStats {
     pub saturated: usize,
 }
 
-/// Periodic separable Gaussian blur (for the dark-region weight).
-fn gaussian_blur_periodic(v: &[f32], w: usize, h: usize, sigma: f32) -> Vec<f32> {
-    let r = (3.0 * sigma).ceil().max(1.0) as isize;
-    let taps: Vec<f32> = (-r..=r).map(|d| (-(d * d) as f32 / (2.0 * sigma * sigma)).exp()).collect();
-    let s: f32 = taps.iter().sum();
-    let taps: Vec<f32> = taps.iter().map(|t| t / s).collect();
-    let mut tmp = vec![0.0; w * h];
-    for y in 0..h {
-        for x in 0..w {
-            let mut acc = 0.0;
-            for (i, t) in taps.iter().enumerate() {
-                let xx = (x as isize + i as isize - r).rem_euclid(w as isize) as usize;
-                acc += t * v[y * w + xx];
-            }
-            tmp[y * w + x] = acc;
-        }
-    }
-    let mut out = vec![0.0; w * h];
-    for y in 0..h {
-        for (i, t) in taps.iter().enumerate() {
-            let yy = (y as isize + i as isize - r).rem_euclid(h as isize) as usize;
-            for x in 0..w {
-                out[y * w + x] += t * tmp[yy * w + x];
-            }
-        }
-    }
-    out
-}
-
 /// The per-pixel prior weight `(g'(v̄) / g'(0.18))^γ` for a `w × h` window of linear data
 /// (`None` when the transfer is linear or `γ = 0`).
 pub fn transfer_weight_map(data: &[f32], w: usize, h: usize, transfer: Option<crate::image::Transfer>, gamma: f32, smooth: f32) -> Option<Vec<f32>> {
@@ -674,7 +648,7 @@ pub fn restore_tile(windows: &[Vec<f32>], kernels: &[Plane], setup: &TileSetup) 
                     return x;
                 }
                 let mut y = vec![0.0; crate::solve::primal_dual::PrimalDual::dual_len(&p)];
-                let l = power_iteration(&p, 15).max(1e-12);
+                let l = operator_norm(&PrimalDualOperator(&p), 15, NORM_SAFETY).max(1e-12);
                 let cp = Options {
                     max_iterations: opts.cp_max_iterations,
                     min_iterations: 10,

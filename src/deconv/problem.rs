@@ -724,15 +724,7 @@ mod tests {
         let mut p = ChannelProblem::new(&fft, &ks, &field(n, 1), None, 0.3, &cross, None);
         p.set_weight(Some(&wt));
         p.order2_weight = 0.4;
-        let x = field(n, 11);
-        let y: Vec<f32> = field(p.dual_len(), 17).iter().map(|v| v - 0.5).collect();
-        let mut kx = vec![0.0; p.dual_len()];
-        p.apply_k(&x, &mut kx);
-        let mut kty = vec![0.0; n];
-        p.apply_kt(&y, &mut kty);
-        let a: f64 = kx.iter().zip(&y).map(|(p, q)| *p as f64 * *q as f64).sum();
-        let b: f64 = x.iter().zip(&kty).map(|(p, q)| *p as f64 * *q as f64).sum();
-        assert!((a - b).abs() < 1e-3 * a.abs().max(1.0), "{a} vs {b}");
+        crate::solve::operator::tests::check(&crate::solve::operator::PrimalDualOperator(&p), 11).expect("adjoint");
     }
 
     /// The primal objective `‖M(Bx − ΔJ)‖² + ‖Kx‖₁`.
@@ -758,7 +750,9 @@ mod tests {
     /// long Chambolle–Pock run.
     #[test]
     fn admm_reaches_the_primal_dual_minimum() {
-        use crate::solve::primal_dual::{chambolle_pock, power_iteration, Options};
+        use crate::solve::operator::PrimalDualOperator;
+        use crate::solve::power::operator_norm;
+        use crate::solve::primal_dual::{chambolle_pock, Options, NORM_SAFETY};
         let (w, h) = (24, 20);
         let n = w * h;
         let fft = Fft2::plan(w, h);
@@ -793,7 +787,7 @@ mod tests {
             b.cg_tolerance = 1e-7;
             let mut xb = data.clone();
             let mut y = vec![0.0; b.dual_len()];
-            let l = power_iteration(&b, 30);
+            let l = operator_norm(&PrimalDualOperator(&b), 30, NORM_SAFETY);
             let opts = Options { max_iterations: 3000, min_iterations: 3000, tolerance: 0.0, check_every: 1000, sigma: 3.0 / l, theta: 1.0 };
             chambolle_pock(&mut b, &mut xb, &mut y, &opts, Some(l), |_, _| true);
             let (fa, fb) = (objective(&a, &xa, &data, m), objective(&b, &xb, &data, m));

@@ -4,18 +4,12 @@
 //!
 //! Coarse pixel `i` covers fine pixels `2i, 2i+1`; its centre is fine coordinate `2i + 0.5`.
 
+use crate::image::filter::keys_cubic;
 use crate::image::Plane;
 
-/// Keys cubic (a = −0.5).
+/// Keys cubic (a = −0.5) in `f32` ([`keys_cubic`]).
 fn cubic(t: f32) -> f32 {
-    let t = t.abs();
-    if t < 1.0 {
-        1.5 * t * t * t - 2.5 * t * t + 1.0
-    } else if t < 2.0 {
-        -0.5 * t * t * t + 2.5 * t * t - 4.0 * t + 2.0
-    } else {
-        0.0
-    }
+    keys_cubic(t as f64) as f32
 }
 
 /// Taps of the antialiased half-resolution filter at fine offsets `±0.5, ±1.5, ±2.5, ±3.5`

@@ -15,7 +15,8 @@
 //!   a blurred reference (`pinhole_diffraction`) at high ones.
 
 use super::fit::Fit;
-use crate::optics::capture::gaussian_blur;
+use crate::image::filter::gaussian_blur;
+use crate::image::spectrum::{band_centre, radial_power_sums, Range};
 use crate::image::Plane;
 use serde::Serialize;
 
@@ -91,18 +92,8 @@ pub fn radial_spectrum(z: &Plane, mask: &[bool], bands: usize) -> Vec<(f64, f64)
     let fft = crate::solve::fft::Fft2::plan(w, h);
     let masked: Vec<f32> = z.data.iter().zip(mask).map(|(&v, &m)| if m { v } else { 0.0 }).collect();
     let spec = fft.forward(&masked);
-    let (mut sum, mut cnt) = (vec![0.0f64; bands], vec![0usize; bands]);
-    for (i, c) in spec.iter().enumerate() {
-        let (fx, fy) = fft.frequency(i);
-        let f = (fx as f64).hypot(fy as f64);
-        if f <= 0.0 || f > 0.5 {
-            continue;
-        }
-        let b = ((f / 0.5 * bands as f64) as usize).min(bands - 1);
-        sum[b] += c.norm_sqr() as f64;
-        cnt[b] += 1;
-    }
-    (0..bands).filter(|&b| cnt[b] > 0).map(|b| ((b as f64 + 0.5) * 0.5 / bands as f64, sum[b] / cnt[b] as f64 / n as f64)).collect()
+    let (sum, cnt) = radial_power_sums(&fft, &[&spec], bands, 0.5, Range::OpenClosed(0.0, 0.5));
+    (0..bands).filter(|&b| cnt[b] > 0).map(|b| (band_centre(b, bands, 0.5), sum[0][b] / cnt[b] as f64 / n as f64)).collect()
 }
 
 fn binned(name: &str, vals: &[(f32, f32)], bins: usize, quantile: bool) -> Curve {
@@ -131,6 +122,81 @@ fn binned(name: &str, vals: &[(f32, f32)], bins: usize, quantile: bool) -> Curve
         msq.push(g.iter().map(|q| (q.1 as f64).powi(2)).sum::<f64>() / n);
     }
     Curve { name: name.into(), x, mean, msq }
+}
+
+/// The histogram of `z` over [−5, 5) in 40 bins (a density), the standard normal density at
+/// the bin centres, and the third and fourth standardised moments.
+struct Histogram {
+    edges: Vec<f64>,
+    density: Vec<f64>,
+    normal: Vec<f64>,
+    skewness: f64,
+    excess_kurtosis: f64,
+}
+
+impl Histogram {
+    fn of(all_z: &[f32]) -> Self {
+        let edges: Vec<f64> = (0..=40).map(|i| -5.0 + 0.25 * i as f64).collect();
+        let mut density = vec![0.0f64; 40];
+        let n = all_z.len().max(1) as f64;
+        let (mut m1, mut m2, mut m3, mut m4) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
+        for &z in all_z {
+            let z = z as f64;
+            m1 += z;
+            if (-5.0..5.0).contains(&z) {
+                density[((z + 5.0) / 0.25) as usize] += 1.0 / (n * 0.25);
+            }
+        }
+        m1 /= n;
+        for &z in all_z {
+            let d = z as f64 - m1;
+            m2 += d * d;
+            m3 += d * d * d;
+            m4 += d * d * d * d;
+        }
+        m2 /= n;
+        m3 /= n;
+        m4 /= n;
+        let normal: Vec<f64> = edges
+            .windows(2)
+            .map(|e| {
+                let x = 0.5 * (e[0] + e[1]);
+                (-0.5 * x * x).exp() / (2.0 * std::f64::consts::PI).sqrt()
+            })
+            .collect();
+        Self { edges, density, normal, skewness: m3 / m2.max(1e-300).powf(1.5), excess_kurtosis: m4 / m2.max(1e-300).powi(2) - 3.0 }
+    }
+}
+
+/// The radial spectrum of the normalised residual ([`radial_spectrum`], 16 bands), channels
+/// averaged.
+fn mean_spectrum(fit: &Fit) -> Vec<(f64, f64)> {
+    let nch = fit.normalized.len();
+    let per_channel: Vec<Vec<(f64, f64)>> = (0..nch).map(|c| radial_spectrum(&fit.normalized[c], &fit.eval[c], 16)).collect();
+    match per_channel.first() {
+        Some(first) => first.iter().enumerate().map(|(b, &(f, _))| (f, per_channel.iter().map(|s| s.get(b).map_or(0.0, |q| q.1)).sum::<f64>() / nch as f64)).collect(),
+        None => Vec::new(),
+    }
+}
+
+/// Per-tile statistics of channel `c` from the sums `(Σz, Σz², n)` of each tile's pixels.
+fn tile_stats(grid: &crate::optics::psf_grid::PsfGrid, c: usize, tsum: &[(f64, f64, usize)]) -> Vec<TileStat> {
+    let mut tiles = Vec::new();
+    for (t, &(s, s2, n)) in tsum.iter().enumerate() {
+        if n == 0 {
+            continue;
+        }
+        let mean = s / n as f64;
+        tiles.push(TileStat {
+            channel: grid.channels.get(c).cloned().unwrap_or_default(),
+            column: t % grid.columns,
+            row: t / grid.columns,
+            mean,
+            spread: (s2 / n as f64 - mean * mean).max(0.0).sqrt(),
+            reduced_chi2: s2 / n as f64,
+        });
+    }
+    tiles
 }
 
 /// Analyses a fit's normalised residual.
@@ -186,66 +252,24 @@ pub fn analyse(fit: &Fit) -> Analysis {
                 }
             }
         }
-        for (t, &(s, s2, n)) in tsum.iter().enumerate() {
-            if n == 0 {
-                continue;
-            }
-            let mean = s / n as f64;
-            tiles.push(TileStat {
-                channel: grid.channels.get(c).cloned().unwrap_or_default(),
-                column: t % grid.columns,
-                row: t / grid.columns,
-                mean,
-                spread: (s2 / n as f64 - mean * mean).max(0.0).sqrt(),
-                reduced_chi2: s2 / n as f64,
-            });
-        }
+        tiles.extend(tile_stats(grid, c, &tsum));
     }
     let names = ["intensity", "radius", "position_in_tile", "gradient", "large_scale_brightness"];
     let curves = names.iter().enumerate().map(|(j, n)| binned(n, &feats[j], 10, j != 1 && j != 2)).collect();
-    // histogram
-    let edges: Vec<f64> = (0..=40).map(|i| -5.0 + 0.25 * i as f64).collect();
-    let mut hist = vec![0.0f64; 40];
-    let n = all_z.len().max(1) as f64;
-    let (mut m1, mut m2, mut m3, mut m4) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
-    for &z in &all_z {
-        let z = z as f64;
-        m1 += z;
-        if (-5.0..5.0).contains(&z) {
-            hist[((z + 5.0) / 0.25) as usize] += 1.0 / (n * 0.25);
-        }
-    }
-    m1 /= n;
-    for &z in &all_z {
-        let d = z as f64 - m1;
-        m2 += d * d;
-        m3 += d * d * d;
-        m4 += d * d * d * d;
-    }
-    m2 /= n;
-    m3 /= n;
-    m4 /= n;
-    let normal: Vec<f64> = edges.windows(2).map(|e| {
-        let x = 0.5 * (e[0] + e[1]);
-        (-0.5 * x * x).exp() / (2.0 * std::f64::consts::PI).sqrt()
-    }).collect();
+    let hist = Histogram::of(&all_z);
     let planar = solve3(ata, atb).unwrap_or([0.0; 3]);
-    let per_channel: Vec<Vec<(f64, f64)>> = (0..nch).map(|c| radial_spectrum(&fit.normalized[c], &fit.eval[c], 16)).collect();
-    let spectrum: Vec<(f64, f64)> = match per_channel.first() {
-        Some(first) => first.iter().enumerate().map(|(b, &(f, _))| (f, per_channel.iter().map(|s| s.get(b).map_or(0.0, |q| q.1)).sum::<f64>() / nch as f64)).collect(),
-        None => Vec::new(),
-    };
+    let spectrum = mean_spectrum(fit);
     let worst = tiles.iter().max_by(|a, b| a.reduced_chi2.total_cmp(&b.reduced_chi2)).cloned();
     Analysis {
         reduced_chi2: fit.reduced_chi2(),
         reduced_chi2_channel: fit.chi2_channel.iter().zip(&fit.n_channel).map(|(c, n)| c / (*n as f64 - fit.params as f64 / nch as f64).max(1.0)).collect(),
         tiles,
         curves,
-        histogram_edges: edges,
-        histogram: hist,
-        histogram_normal: normal,
-        skewness: m3 / m2.max(1e-300).powf(1.5),
-        excess_kurtosis: m4 / m2.max(1e-300).powi(2) - 3.0,
+        histogram_edges: hist.edges,
+        histogram: hist.density,
+        histogram_normal: hist.normal,
+        skewness: hist.skewness,
+        excess_kurtosis: hist.excess_kurtosis,
         planar,
         worst,
         spectrum,

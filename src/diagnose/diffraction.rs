@@ -52,6 +52,7 @@
 //!
 //! Pixels are linear values; the FFT is mirror-padded so that no circular wrap reaches the image.
 
+use crate::image::spectrum::{band_centre, radial_power_sums, Range};
 use crate::image::Plane;
 use crate::solve::fft::{good_size, Fft2};
 
@@ -284,20 +285,8 @@ pub fn excess_detail(open: &Plane, reference: &Plane, s: f64, var_open: f64, var
     };
     let (so, sp) = (spectrum(open), spectrum(reference));
     let bands = 8;
-    let mut po = vec![0.0f64; bands];
-    let mut pp = vec![0.0f64; bands];
-    let mut cnt = vec![0usize; bands];
-    for i in 0..so.len() {
-        let (fx, fy) = fft.frequency(i);
-        let f = ((fx * fx + fy * fy) as f64).sqrt();
-        if !(0.02..0.5).contains(&f) {
-            continue;
-        }
-        let b = ((f / 0.5) * bands as f64) as usize;
-        po[b] += so[i].norm_sqr() as f64;
-        pp[b] += sp[i].norm_sqr() as f64;
-        cnt[b] += 1;
-    }
+    let (sums, cnt) = radial_power_sums(&fft, &[&so, &sp], bands, 0.5, Range::ClosedOpen(0.02, 0.5));
+    let (po, pp) = (&sums[0], &sums[1]);
     // white noise of variance v has expected windowed power v·Σhann² per bin
     let nw = w2.sqrt();
     (0..bands)
@@ -305,7 +294,7 @@ pub fn excess_detail(open: &Plane, reference: &Plane, s: f64, var_open: f64, var
         .filter_map(|b| {
             let (mo, mp) = (po[b] / cnt[b] as f64, pp[b] / cnt[b] as f64);
             let (so_, sp_) = (mo - var_open * nw, mp - var_ref * nw);
-            (mp > 2.0 * var_ref * nw && sp_ > 0.0).then(|| ((b as f64 + 0.5) * 0.5 / bands as f64, so_.max(0.0) / (s * s * sp_)))
+            (mp > 2.0 * var_ref * nw && sp_ > 0.0).then(|| (band_centre(b, bands, 0.5), so_.max(0.0) / (s * s * sp_)))
         })
         .collect()
 }
@@ -428,7 +417,7 @@ mod tests {
     fn restore_undoes_the_blur_where_the_otf_is_strong() {
         let (w, h) = (96, 80);
         let mut r = Rng::new(5);
-        let sharp = crate::optics::capture::gaussian_blur(&Plane::from_fn(w, h, |_, _| r.uniform() as f32), 1.2);
+        let sharp = crate::image::filter::gaussian_blur(&Plane::from_fn(w, h, |_, _| r.uniform() as f32), 1.2);
         // blur with D by FFT on a large periodic grid (periodic sharp image)
         let blurred = periodic_blur(&sharp, |fx, fy| transfer(fx, fy, 2.0));
         let restored = restore(&blurred, &ReferencePsf::airy(2.0), 1e-4);
@@ -445,7 +434,7 @@ mod tests {
         assert!((reference_transfer(0.2, 0.0, 1.5, 0.7) - want).abs() < 1e-12);
         let (w, h) = (96, 80);
         let mut r = Rng::new(6);
-        let sharp = crate::optics::capture::gaussian_blur(&Plane::from_fn(w, h, |_, _| r.uniform() as f32), 1.0);
+        let sharp = crate::image::filter::gaussian_blur(&Plane::from_fn(w, h, |_, _| r.uniform() as f32), 1.0);
         let blurred = periodic_blur(&sharp, |fx, fy| reference_transfer(fx, fy, 1.5, 0.7));
         let err = |a: &Plane| interior_error(a, &sharp, 16);
         let (with, without) = (err(&restore(&blurred, &ReferencePsf { aberration_px: 0.7, ..ReferencePsf::airy(1.5) }, 1e-4)), err(&restore(&blurred, &ReferencePsf::airy(1.5), 1e-4)));

@@ -23,12 +23,13 @@
 //!
 //! Parameters: `C·(T·(k² − 1) + 1)` for the kernels and sums plus each correction's own.
 
-use super::kernels::{fit_kernels, GatherOperator, KernelFitSettings};
+use super::kernels::{fit_kernels, KernelFitSettings};
+use crate::optics::kernel_operator::KernelOperator;
 use super::model::{model_transfer, reference_planes, Corrections, GlareCorrection};
 use super::noise::{srgb_slope, NoiseCurve};
 use crate::estimate::dilate;
 use crate::image::{Image, Plane, Transfer};
-use crate::optics::capture::gaussian_blur;
+use crate::image::filter::gaussian_blur;
 use crate::optics::psf_grid::PsfGrid;
 use crate::profile::RegistrationInfo;
 
@@ -230,6 +231,209 @@ pub fn remove_common_floor(kernels: &mut [Plane]) -> f64 {
     moved / kernels.len() as f64
 }
 
+/// The free parameters a Gauss–Newton step on the scalars updates: per-channel kernels `U`
+/// (their common scale), the blur parts `A U`, glare amplitudes and black-level offsets.
+struct ScalarState<'a> {
+    u: &'a mut [Vec<Plane>],
+    a_parts: &'a mut [Plane],
+    glare_amp: &'a mut [f64],
+    beta: &'a mut [f64],
+}
+
+/// The gain plane `g(x, y)` of the corrections (vignetting × illumination gradient).
+fn gain_plane(corr: &Corrections, w: usize, h: usize) -> Plane {
+    Plane::from_fn(w, h, |x, y| corr.gain(x, y, w, h) as f32)
+}
+
+/// The scalar parameters of a Gauss–Newton step: `(channel, name)`, `usize::MAX` for the
+/// shared ones (vignetting `k1..k3`, gradient `gx, gy`).
+fn scalar_names(corr: &Corrections, nch: usize) -> Vec<(usize, &'static str)> {
+    let mut names: Vec<(usize, &'static str)> = Vec::new();
+    for c in 0..nch {
+        names.push((c, "scale"));
+        if corr.black_level.is_some() {
+            names.push((c, "beta"));
+        }
+        if corr.veiling_glare.is_some() {
+            names.push((c, "glare"));
+        }
+    }
+    if corr.vignetting.is_some() {
+        names.extend(["k1", "k2", "k3"].map(|n| (usize::MAX, n)));
+    }
+    if corr.illumination_gradient.is_some() {
+        names.extend(["gx", "gy"].map(|n| (usize::MAX, n)));
+    }
+    names
+}
+
+/// The weighted normal equations `(JᵀWJ, JᵀW r)` of the scalar parameters `names` over the
+/// fit mask (`J` their derivatives of the linear prediction, `W = 1/variance`).
+fn scalar_normal_equations(corr: &Corrections, names: &[(usize, &'static str)], open_lin: &[Plane], variance_lin: &[Plane], fitmask: &[Vec<bool>], glare_planes: Option<&[Plane]>, st: &ScalarState) -> (Vec<Vec<f64>>, Vec<f64>) {
+    let (w, h) = (open_lin[0].width, open_lin[0].height);
+    let g = gain_plane(corr, w, h);
+    let np = names.len();
+    let mut ata = vec![vec![0.0f64; np]; np];
+    let mut atb = vec![0.0f64; np];
+    let (cx, cy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
+    let hd2 = 0.25 * ((w * w + h * h) as f64);
+    let (vig, grad) = (corr.vignetting, corr.illumination_gradient);
+    let mut row = vec![0.0f64; np];
+    for c in 0..open_lin.len() {
+        for y in 0..h {
+            for x in 0..w {
+                let i = y * w + x;
+                if !fitmask[c][i] {
+                    continue;
+                }
+                let lp = glare_planes.map_or(0.0, |gp| gp[c].data[i] as f64);
+                let a = st.a_parts[c].data[i] as f64;
+                let b = a + st.glare_amp[c] * lp;
+                let gg = g.data[i] as f64;
+                let res = open_lin[c].data[i] as f64 - (gg * b + st.beta[c]);
+                let wt = 1.0 / variance_lin[c].data[i] as f64;
+                let (dx, dy) = (x as f64 - cx, y as f64 - cy);
+                let r2 = (dx * dx + dy * dy) / hd2;
+                let (xn, yn) = (dx / cx.max(0.5), dy / cy.max(0.5));
+                let vv = vig.map_or(1.0, |v| 1.0 + v.k1 * r2 + v.k2 * r2 * r2 + v.k3 * r2 * r2 * r2);
+                let dd = grad.map_or(1.0, |d| 1.0 + d.gx * xn + d.gy * yn);
+                for (j, (ch, n)) in names.iter().enumerate() {
+                    row[j] = if *ch != usize::MAX && *ch != c {
+                        0.0
+                    } else {
+                        match *n {
+                            "scale" => gg * a,
+                            "beta" => 1.0,
+                            "glare" => gg * lp,
+                            "k1" => b * dd * r2,
+                            "k2" => b * dd * r2 * r2,
+                            "k3" => b * dd * r2 * r2 * r2,
+                            "gx" => b * vv * xn,
+                            "gy" => b * vv * yn,
+                            _ => 0.0,
+                        }
+                    };
+                }
+                for j in 0..np {
+                    if row[j] == 0.0 {
+                        continue;
+                    }
+                    atb[j] += wt * row[j] * res;
+                    for l in j..np {
+                        ata[j][l] += wt * row[j] * row[l];
+                    }
+                }
+            }
+        }
+    }
+    for j in 0..np {
+        for l in 0..j {
+            ata[j][l] = ata[l][j];
+        }
+    }
+    (ata, atb)
+}
+
+/// One Gauss–Newton step on the scalar parameters (see [`scalar_names`]), applied to `corr`
+/// and `st`; `false` when the normal equations are singular (nothing changes).
+fn gauss_newton_step(corr: &mut Corrections, open_lin: &[Plane], variance_lin: &[Plane], fitmask: &[Vec<bool>], glare_planes: Option<&[Plane]>, st: &mut ScalarState) -> bool {
+    let names = scalar_names(corr, open_lin.len());
+    let (ata, atb) = scalar_normal_equations(corr, &names, open_lin, variance_lin, fitmask, glare_planes, st);
+    let Some(delta) = solve_dense(ata, atb) else { return false };
+    for (j, (ch, n)) in names.iter().enumerate() {
+        let d = delta[j];
+        match *n {
+            "scale" => {
+                let f = (1.0 + d) as f32;
+                st.u[*ch].iter_mut().for_each(|kk| kk.scale(f));
+                st.a_parts[*ch].scale(f);
+            }
+            "beta" => st.beta[*ch] += d,
+            "glare" => st.glare_amp[*ch] = (st.glare_amp[*ch] + d).max(0.0),
+            "k1" | "k2" | "k3" => {
+                if let Some(v) = corr.vignetting.as_mut() {
+                    match *n {
+                        "k1" => v.k1 += d,
+                        "k2" => v.k2 += d,
+                        _ => v.k3 += d,
+                    }
+                }
+            }
+            "gx" => {
+                if let Some(v) = corr.illumination_gradient.as_mut() {
+                    v.gx += d;
+                }
+            }
+            "gy" => {
+                if let Some(v) = corr.illumination_gradient.as_mut() {
+                    v.gy += d;
+                }
+            }
+            _ => {}
+        }
+    }
+    true
+}
+
+/// One channel's figures on the stored axis (see [`score_channel`]).
+struct ChannelScore {
+    predicted: Plane,
+    normalized: Plane,
+    variance: Plane,
+    chi2: f64,
+    n: usize,
+    sq: f64,
+    var_sum: f64,
+}
+
+/// Encodes the linear prediction `mlin` (clipped at `clip`) and its variance `vl` onto the
+/// stored axis and scores it against `open` on the `interior` pixels: the normalised residual,
+/// `χ²`, the pixel count, `Σ d²` and `Σ variance`. With `saturation = (clipped_open,
+/// pin_clipped)`, a pixel clipped in the reference counts 1, one clipped in the open capture
+/// counts only when the prediction is below the clip level.
+fn score_channel(mlin: &Plane, vl: &Plane, transfer: Transfer, clip: Option<f32>, interior: &[bool], open: &Plane, saturation: Option<(&[bool], &[bool])>) -> ChannelScore {
+    let (w, h) = (mlin.width, mlin.height);
+    let mut pred = Plane::new(w, h);
+    let mut norm = Plane::new(w, h);
+    let mut var_s = Plane::new(w, h);
+    let (mut chi2, mut n, mut sq, mut vs) = (0.0f64, 0usize, 0.0f64, 0.0f64);
+    for i in 0..w * h {
+        let m = mlin.data[i];
+        let mut e = transfer.encode(m);
+        if let Some(l) = clip {
+            e = e.min(l);
+        }
+        pred.data[i] = e;
+        let slope = match transfer {
+            Transfer::Linear => 1.0,
+            Transfer::Srgb => srgb_slope(m.max(1e-4)),
+        };
+        let v = vl.data[i] * slope * slope;
+        var_s.data[i] = v;
+        if !interior[i] {
+            continue;
+        }
+        let d = open.data[i] - e;
+        let contrib = match saturation {
+            Some((_, pin)) if pin[i] => 1.0,
+            Some((clipped, _)) if clipped[i] => {
+                if e >= CLIP {
+                    0.0
+                } else {
+                    ((CLIP - e) as f64).powi(2) / v as f64
+                }
+            }
+            _ => (d as f64).powi(2) / v as f64,
+        };
+        norm.data[i] = if contrib == 0.0 { 0.0 } else { (contrib.sqrt() as f32).copysign(d) };
+        chi2 += contrib;
+        sq += (d as f64).powi(2);
+        vs += v as f64;
+        n += 1;
+    }
+    ChannelScore { predicted: pred, normalized: norm, variance: var_s, chi2, n, sq, var_sum: vs }
+}
+
 pub fn fit(data: &Data, corrections: &Corrections, init: &Model, settings: FitSettings) -> Fit {
     fit_masked(data, corrections, init, settings, &|_, _| true)
 }
@@ -288,9 +492,8 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
         .map(|c| (0..w * h).map(|i| interior[i] && keep(i % w, i / w) && (!saturation || (!clipped_open[c][i] && !pin_clipped[c][i]))).collect())
         .collect();
 
-    let gain_plane = |corr: &Corrections| -> Plane { Plane::from_fn(w, h, |x, y| corr.gain(x, y, w, h) as f32) };
     let glare_planes: Option<Vec<Plane>> = corr.veiling_glare.map(|g| reference.iter().map(|p| gaussian_blur(p, g.sigma_px)).collect());
-    let ops: Vec<GatherOperator> = reference.iter().map(|p| GatherOperator::new(p, &grid0)).collect();
+    let ops: Vec<KernelOperator> = reference.iter().map(|p| KernelOperator::new(p, &grid0, usize::MAX)).collect();
 
     // free parameters
     let mut u: Vec<Vec<Plane>> = (0..nch)
@@ -304,7 +507,7 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
     let mut beta: Vec<f64> = (0..nch).map(|c| corr.black_level.as_ref().and_then(|b| b.offset.get(c).copied()).unwrap_or(0.0)).collect();
 
     // prediction pieces
-    let blur_part = |c: usize, u: &[Plane]| ops[c].apply(u);
+    let blur_part = |c: usize, u: &[Plane]| ops[c].apply_planes(u);
     // Σ_t w_t(x)·ΣU_t², the gain of the pinhole's noise through the interpolated kernel
     let diffraction = corr.pinhole_diffraction.clone();
     let kernel_energy = |c: usize, u: &[Plane]| -> Plane {
@@ -339,7 +542,7 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
 
     let kset = KernelFitSettings { iterations: settings.kernel_iterations, rounds: 1 };
     for _round in 0..settings.rounds {
-        let g = gain_plane(&corr);
+        let g = gain_plane(&corr, w, h);
         for c in 0..nch {
             variance_lin[c] = update_variance(c, &a_parts[c], &u[c], &g, glare_amp[c], beta[c]);
             // kernel step
@@ -368,129 +571,15 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
         }
         // Gauss–Newton on the scalar parameters (shared ones couple the channels)
         for _ in 0..2 {
-            let g = gain_plane(&corr);
-            let mut names: Vec<(usize, &'static str)> = Vec::new(); // (channel or usize::MAX, name)
-            for c in 0..nch {
-                names.push((c, "scale"));
-                if corr.black_level.is_some() {
-                    names.push((c, "beta"));
-                }
-                if corr.veiling_glare.is_some() {
-                    names.push((c, "glare"));
-                }
-            }
-            let shared: Vec<&'static str> = {
-                let mut s = vec![];
-                if corr.vignetting.is_some() {
-                    s.extend(["k1", "k2", "k3"]);
-                }
-                if corr.illumination_gradient.is_some() {
-                    s.extend(["gx", "gy"]);
-                }
-                s
-            };
-            for n in &shared {
-                names.push((usize::MAX, n));
-            }
-            let np = names.len();
-            let mut ata = vec![vec![0.0f64; np]; np];
-            let mut atb = vec![0.0f64; np];
-            let (cx, cy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
-            let hd2 = 0.25 * ((w * w + h * h) as f64);
-            let vig = corr.vignetting;
-            let grad = corr.illumination_gradient;
-            let mut row = vec![0.0f64; np];
-            for c in 0..nch {
-                for y in 0..h {
-                    for x in 0..w {
-                        let i = y * w + x;
-                        if !fitmask[c][i] {
-                            continue;
-                        }
-                        let lp = glare_planes.as_ref().map_or(0.0, |gp| gp[c].data[i] as f64);
-                        let a = a_parts[c].data[i] as f64;
-                        let b = a + glare_amp[c] * lp;
-                        let gg = g.data[i] as f64;
-                        let m = gg * b + beta[c];
-                        let res = open_lin[c].data[i] as f64 - m;
-                        let wt = 1.0 / variance_lin[c].data[i] as f64;
-                        let (dx, dy) = (x as f64 - cx, y as f64 - cy);
-                        let r2 = (dx * dx + dy * dy) / hd2;
-                        let (xn, yn) = (dx / cx.max(0.5), dy / cy.max(0.5));
-                        let vv = vig.map_or(1.0, |v| 1.0 + v.k1 * r2 + v.k2 * r2 * r2 + v.k3 * r2 * r2 * r2);
-                        let dd = grad.map_or(1.0, |d| 1.0 + d.gx * xn + d.gy * yn);
-                        for (j, (ch, n)) in names.iter().enumerate() {
-                            row[j] = if *ch != usize::MAX && *ch != c {
-                                0.0
-                            } else {
-                                match *n {
-                                    "scale" => gg * a,
-                                    "beta" => 1.0,
-                                    "glare" => gg * lp,
-                                    "k1" => b * dd * r2,
-                                    "k2" => b * dd * r2 * r2,
-                                    "k3" => b * dd * r2 * r2 * r2,
-                                    "gx" => b * vv * xn,
-                                    "gy" => b * vv * yn,
-                                    _ => 0.0,
-                                }
-                            };
-                        }
-                        for j in 0..np {
-                            if row[j] == 0.0 {
-                                continue;
-                            }
-                            atb[j] += wt * row[j] * res;
-                            for l in j..np {
-                                ata[j][l] += wt * row[j] * row[l];
-                            }
-                        }
-                    }
-                }
-            }
-            for j in 0..np {
-                for l in 0..j {
-                    ata[j][l] = ata[l][j];
-                }
-            }
-            let Some(delta) = solve_dense(ata, atb) else { break };
-            for (j, (ch, n)) in names.iter().enumerate() {
-                let d = delta[j];
-                match *n {
-                    "scale" => {
-                        let f = (1.0 + d) as f32;
-                        u[*ch].iter_mut().for_each(|kk| kk.scale(f));
-                        a_parts[*ch].scale(f);
-                    }
-                    "beta" => beta[*ch] += d,
-                    "glare" => glare_amp[*ch] = (glare_amp[*ch] + d).max(0.0),
-                    "k1" | "k2" | "k3" => {
-                        if let Some(v) = corr.vignetting.as_mut() {
-                            match *n {
-                                "k1" => v.k1 += d,
-                                "k2" => v.k2 += d,
-                                _ => v.k3 += d,
-                            }
-                        }
-                    }
-                    "gx" => {
-                        if let Some(v) = corr.illumination_gradient.as_mut() {
-                            v.gx += d;
-                        }
-                    }
-                    "gy" => {
-                        if let Some(v) = corr.illumination_gradient.as_mut() {
-                            v.gy += d;
-                        }
-                    }
-                    _ => {}
-                }
+            let mut st = ScalarState { u: &mut u, a_parts: &mut a_parts, glare_amp: &mut glare_amp, beta: &mut beta };
+            if !gauss_newton_step(&mut corr, &open_lin, &variance_lin, &fitmask, glare_planes.as_deref(), &mut st) {
+                break;
             }
         }
     }
 
     // final parameters into the model
-    let g = gain_plane(&corr);
+    let g = gain_plane(&corr, w, h);
     let mut kernels = Vec::with_capacity(nch);
     let mut exposure = Vec::with_capacity(nch);
     let mut fractions = Vec::new();
@@ -553,41 +642,9 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
             vl = super::model::resample(&vl, m).0;
             hp = super::model::resample(&hp, m).0;
         }
-        let mut pred = Plane::new(w, h);
-        let mut norm = Plane::new(w, h);
-        let mut var_s = Plane::new(w, h);
-        let (mut chi2, mut n, mut sq, mut vs) = (0.0f64, 0usize, 0.0f64, 0.0f64);
-        for i in 0..w * h {
-            let m = mlin.data[i];
-            let mut e = transfer.encode(m);
-            if let Some(l) = clip {
-                e = e.min(l);
-            }
-            pred.data[i] = e;
-            let slope = match transfer {
-                Transfer::Linear => 1.0,
-                Transfer::Srgb => srgb_slope(m.max(1e-4)),
-            };
-            let v = vl.data[i] * slope * slope;
-            var_s.data[i] = v;
-            if !interior[i] {
-                continue;
-            }
-            let o = data.open.planes[c].data[i];
-            let d = o - e;
-            let contrib = if saturation && pin_clipped[c][i] {
-                1.0
-            } else if saturation && clipped_open[c][i] {
-                if e >= CLIP { 0.0 } else { ((CLIP - e) as f64).powi(2) / v as f64 }
-            } else {
-                (d as f64).powi(2) / v as f64
-            };
-            norm.data[i] = if contrib == 0.0 { 0.0 } else { (contrib.sqrt() as f32).copysign(d) };
-            chi2 += contrib;
-            sq += (d as f64).powi(2);
-            vs += v as f64;
-            n += 1;
-        }
+        let sat = saturation.then_some((&clipped_open[c][..], &pin_clipped[c][..]));
+        let sc = score_channel(&mlin, &vl, transfer, clip, &interior, &data.open.planes[c], sat);
+        let (pred, norm, var_s, chi2, n, sq, vs) = (sc.predicted, sc.normalized, sc.variance, sc.chi2, sc.n, sc.sq, sc.var_sum);
         reference_highpass.push(hp);
         predicted.push(pred);
         normalized.push(norm);

@@ -22,8 +22,8 @@
 //! noise RMS (wide-open noise plus the pinhole's noise through the kernel).
 
 pub mod analysis;
+pub mod bench;
 pub mod candidates;
-pub mod cli;
 pub mod diffraction;
 pub mod fit;
 pub mod kernels;
@@ -31,6 +31,8 @@ pub mod model;
 pub mod noise;
 pub mod proof;
 pub mod report;
+pub mod session;
+pub mod simulate;
 
 use crate::estimate::register::{self, RegistrationModel};
 use crate::estimate::{estimate, EstimateError, EstimateOptions};

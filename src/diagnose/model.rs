@@ -25,8 +25,9 @@
 //! Every correction is optional; an empty table is the base model of METHOD.md §6.
 
 use crate::estimate::register;
+use crate::image::resample::{warp_with_variance, Affine, Interpolation};
 use crate::image::{Image, Plane, Transfer};
-use crate::optics::capture::gaussian_blur;
+use crate::image::filter::gaussian_blur;
 use crate::optics::forward::blur_channel;
 use crate::profile::{Profile, RegistrationInfo};
 use serde::{Deserialize, Serialize};
@@ -255,49 +256,7 @@ pub fn misregistration_map(info: &RegistrationInfo) -> [f64; 4] {
 /// Resamples `p` at `M·(q − c) + c` for every pixel `q` (Lanczos-4, mirror boundaries); also
 /// returns, per pixel, `Σw²` of the interpolation weights (the factor on white noise's variance).
 pub fn resample(p: &Plane, m: [f64; 4]) -> (Plane, Plane) {
-    let cx = (p.width as f64 - 1.0) / 2.0;
-    let cy = (p.height as f64 - 1.0) / 2.0;
-    let lanczos = |t: f64| -> f64 {
-        let t = t.abs();
-        if t < 1e-9 {
-            1.0
-        } else if t >= 4.0 {
-            0.0
-        } else {
-            let pt = std::f64::consts::PI * t;
-            4.0 * pt.sin() * (pt / 4.0).sin() / (pt * pt)
-        }
-    };
-    let mut out = Plane::new(p.width, p.height);
-    let mut wsq = Plane::new(p.width, p.height);
-    for y in 0..p.height {
-        for x in 0..p.width {
-            let (dx, dy) = (x as f64 - cx, y as f64 - cy);
-            let sx = m[0] * dx + m[1] * dy + cx;
-            let sy = m[2] * dx + m[3] * dy + cy;
-            let (x0, y0) = (sx.floor(), sy.floor());
-            let (fx, fy) = (sx - x0, sy - y0);
-            let mut wx = [0.0f64; 8];
-            let mut wy = [0.0f64; 8];
-            for i in 0..8 {
-                wx[i] = lanczos(fx - (i as f64 - 3.0));
-                wy[i] = lanczos(fy - (i as f64 - 3.0));
-            }
-            let (sxw, syw) = (wx.iter().sum::<f64>(), wy.iter().sum::<f64>());
-            let mut acc = 0.0;
-            for (j, wyj) in wy.iter().enumerate() {
-                let mut row = 0.0;
-                for (i, wxi) in wx.iter().enumerate() {
-                    row += wxi * p.get_reflect(x0 as isize + i as isize - 3, y0 as isize + j as isize - 3) as f64;
-                }
-                acc += wyj * row;
-            }
-            let q = wx.iter().map(|v| v * v).sum::<f64>() * wy.iter().map(|v| v * v).sum::<f64>() / (sxw * sxw * syw * syw);
-            out.data[y * p.width + x] = (acc / (sxw * syw)) as f32;
-            wsq.data[y * p.width + x] = q as f32;
-        }
-    }
-    (out, wsq)
+    warp_with_variance(p, &Affine { matrix: m, shift: [0.0, 0.0] }, Interpolation::Lanczos4)
 }
 
 /// The inverse of a 2×2 matrix (row-major); identity when singular.

@@ -301,7 +301,7 @@ mod tests {
     fn residual_noise_does_not_count_the_reference_noise() {
         let (w, h) = (320, 240);
         let mut r = Rng::new(8);
-        let signal = crate::optics::capture::gaussian_blur(&Plane::from_fn(w, h, |_, _| (0.2 + 0.6 * r.uniform()) as f32), 1.5);
+        let signal = crate::image::filter::gaussian_blur(&Plane::from_fn(w, h, |_, _| (0.2 + 0.6 * r.uniform()) as f32), 1.5);
         let v = 4e-5f64;
         let open = Plane::from_fn(w, h, |x, y| signal.get(x, y) * 1.02 + (v.sqrt() * r.normal()) as f32);
         let predicted = Plane::from_fn(w, h, |x, y| signal.get(x, y) + ((3.0 * v).sqrt() * r.normal()) as f32);

@@ -30,6 +30,11 @@ use serde_json::json;
 /// The effects the proof suite conceals, in catalogue order.
 pub const CONCEALED: [&str; 9] = ["vignetting", "illumination_gradient", "tone_curve", "black_level", "veiling_glare", "misregistration", "saturation", "psf_field_variation", "pinhole_diffraction"];
 
+/// An effect name that is not one of [`CONCEALED`].
+#[derive(Debug, thiserror::Error)]
+#[error("unknown effect '{0}' (expected one of {list})", list = CONCEALED.join(", "))]
+pub struct UnknownEffect(pub String);
+
 /// Size and optics of a proof case.
 #[derive(Clone, Debug)]
 pub struct CaseSpec {
@@ -147,7 +152,7 @@ fn signed(r: &mut Rng, lo: f64, hi: f64) -> f64 {
 ///
 /// # Errors
 /// An unknown effect name.
-pub fn render_case(effect: Option<&str>, seed: u64, spec: &CaseSpec) -> Result<Case, String> {
+pub fn render_case(effect: Option<&str>, seed: u64, spec: &CaseSpec) -> Result<Case, UnknownEffect> {
     let (w, h) = (spec.width, spec.height);
     let mut lens = LensModel::demo(w, h);
     if spec.channels == 1 {
@@ -229,7 +234,7 @@ pub fn render_case(effect: Option<&str>, seed: u64, spec: &CaseSpec) -> Result<C
             open_shot.blur = Blur::Lens { f_number: spec.f_number, columns: 9, rows: 7, kernel_size: k };
             json!({"true_grid": [9, 7]})
         }
-        Some(other) => return Err(format!("unknown effect '{other}' (expected one of {})", CONCEALED.join(", "))),
+        Some(other) => return Err(UnknownEffect(other.to_string())),
     };
     // one camera records both captures: the reference shares the wide-open capture's encoding
     // (`pin_sensor` is cloned before the effect is chosen, so `tone_curve` must reach it here)
@@ -324,13 +329,8 @@ impl RadialPsd {
         let fft = crate::solve::fft::Fft2::plan(w, h);
         let m = p.mean() as f32;
         let spec = fft.forward(&p.data.iter().map(|v| v - m).collect::<Vec<_>>());
-        let (mut sum, mut cnt) = (vec![0.0f64; Self::BANDS], vec![0usize; Self::BANDS]);
-        for (i, z) in spec.iter().enumerate() {
-            let (fx, fy) = fft.frequency(i);
-            let b = Self::band((fx as f64).hypot(fy as f64));
-            sum[b] += z.norm_sqr() as f64 / (w * h) as f64;
-            cnt[b] += 1;
-        }
+        let (sum, cnt) = crate::image::spectrum::radial_power_sums(&fft, &[&spec], Self::BANDS, Self::FMAX, crate::image::spectrum::Range::All);
+        let sum: Vec<f64> = sum[0].iter().map(|s| s / (w * h) as f64).collect();
         // empty bands take the nearest filled one below
         let mut bands = vec![0.0; Self::BANDS];
         let mut last = 0.0;
@@ -433,12 +433,12 @@ mod tests {
         let white = Plane::from_fn(128, 128, |_, _| rng.normal() as f32);
         let psd = RadialPsd::of(&white);
         assert!((psd.at(0.1, 0.2) - 1.0).abs() < 0.15 && (psd.at(0.45, 0.0) - 1.0).abs() < 0.15, "white PSD {} {}", psd.at(0.1, 0.2), psd.at(0.45, 0.0));
-        let k = crate::optics::capture::gaussian_blur(&Plane::from_fn(15, 15, |x, y| ((x, y) == (7, 7)) as u8 as f32), 1.5);
+        let k = crate::image::filter::gaussian_blur(&Plane::from_fn(15, 15, |x, y| ((x, y) == (7, 7)) as u8 as f32), 1.5);
         let sum_k2: f64 = k.data.iter().map(|&v| (v as f64).powi(2)).sum();
         let delta = Plane::from_fn(15, 15, |x, y| ((x, y) == (7, 7)) as u8 as f32);
         let sharp = wiener_error_gain(&k, &delta, &psd, 1e-4);
         assert!((sharp / sum_k2 - 1.0).abs() < 0.02, "sharp reference: {sharp:.4e} vs ΣK² {sum_k2:.4e}");
-        let d = crate::optics::capture::gaussian_blur(&delta, 1.2);
+        let d = crate::image::filter::gaussian_blur(&delta, 1.2);
         let (low, high) = (wiener_error_gain(&k, &d, &psd, 1e-4), wiener_error_gain(&k, &d, &psd, 1e-2));
         assert!(low > 1.5 * sharp && high * 1e-2 > 10.0 * low * 1e-4, "blurred reference: {low:.3e} (σ² 1e-4), {high:.3e} (1e-2) vs sharp {sharp:.3e}");
     }
@@ -465,7 +465,7 @@ mod tests {
             (s / n as f64).sqrt()
         };
         let soft = err(&a, &b);
-        let blur = |p: Plane| crate::optics::capture::gaussian_blur(&p, 1.0);
+        let blur = |p: Plane| crate::image::filter::gaussian_blur(&p, 1.0);
         let after = err(&blur(scene_moved(w, h, 3, None, 1.6)), &blur(scene_moved(w, h, 3, Some(m), 1.6)));
         assert!(soft < 1e-3 && after > 10.0 * soft, "softened before sampling: RMS {soft:.2e}; blurred after sampling: {after:.2e}");
         // the blur conserves the mean reflectance

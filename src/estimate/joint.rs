@@ -12,144 +12,44 @@
 //! `min Σ_x ½ M(x) (pred(x) − j(x))² + Σ_t λ_t TV(b_t),  b_t ≥ 0, 1ᵀb_t = σ_t`
 //!
 //! (`M` the valid-data mask, `I` the registered pinhole image times the exposure ratio, `λ_t`,
-//! `σ_t` from the window fits), with FISTA and adaptive restart started from the window fits;
-//! the prox of `λ_t TV + simplex` is solved per kernel by a few warm-started dual projected
-//! gradient steps (kernel-sized work only), the step is `1/L` with `L` measured on the
-//! simplices' tangent space. The gradient for kernel `t` is `Pᵀ Iᵀ (w_t ⊙ r)` with `r` the
-//! masked residual; every product is an FFT convolution on the box where `w_t ≠ 0` plus a
-//! kernel radius, so one iteration costs four FFTs of that box per kernel (kernels in parallel).
+//! `σ_t` from the window fits), with FISTA and adaptive restart ([`crate::solve::fista`])
+//! started from the window fits; the prox of `λ_t TV + simplex` is solved per kernel by a few
+//! warm-started dual projected gradient steps ([`crate::solve::prox::prox_tv_simplex`],
+//! kernel-sized work only), the step is `1/L` with `L` measured on the simplices' tangent
+//! space. `pred` and the gradient `Pᵀ Iᵀ (w_t ⊙ r)` (`r` the masked residual) are the blocked
+//! kernel operator [`crate::optics::kernel_operator::KernelOperator`] and its adjoint.
 //!
 //! Conventions as in [`super::solver`]: linear values, `k × k` kernels with the centre at zero
 //! displacement, true convolution.
 
-use super::solver::{project_simplex, tv_gradient, tv_gradient_adjoint};
 use crate::image::Plane;
+use crate::optics::kernel_operator::KernelOperator;
 use crate::optics::psf_grid::PsfGrid;
-use crate::solve::fft::{good_size, Fft2, FftScratch};
-use crate::solve::primal_dual::{PrimalDual, SplitOptions, Stats};
+use crate::solve::fista::{fista, Composite, FistaOptions, Stall};
+use crate::solve::operator::LinearOperator;
+use crate::solve::power::{kernel_start, power_iteration, remove_block_means};
+use crate::solve::primal_dual::{SplitOptions, Stats};
+use crate::solve::prox::{prox_tv_simplex, tv_dual_len};
 use rayon::prelude::*;
-use rustfft::num_complex::Complex32;
-use std::sync::Arc;
-
-/// One block of the image: a `sw × sh` piece of the data, the spectrum of the sharp image on
-/// the piece plus a kernel radius (mirrored at the image edges), and the tiles whose weight is
-/// non-zero on it.
-struct Block {
-    x0: usize,
-    y0: usize,
-    sw: usize,
-    sh: usize,
-    a_hat: Vec<Complex32>,
-    tiles: Vec<usize>,
-}
 
 struct JointProblem {
-    w: usize,
     k: usize,
-    columns: usize,
-    /// One `F × F` plan for every block.
-    fft: Arc<Fft2>,
-    blocks: Vec<Block>,
-    /// `blocks_of[t]`: the blocks tile `t` touches.
-    blocks_of: Vec<Vec<usize>>,
-    /// Separable Catmull–Rom factors: `w_t(x, y) = cx[t % columns][x] · cy[t / columns][y]`.
-    cx: Vec<Vec<f32>>,
-    cy: Vec<Vec<f32>>,
-    /// Kernel position `i` (row-major `k × k`, centre = zero displacement) in the wrapped
-    /// `F × F` layout.
-    index: Vec<usize>,
-    /// Per-tile spectra: the kernels (forward) and the accumulated gradients (adjoint).
-    b_hat: Vec<Vec<Complex32>>,
-    g_hat: Vec<Vec<Complex32>>,
+    op: KernelOperator,
     blurred: Vec<f32>,
+    /// The valid data on the operator's kept blocks.
     mask: Vec<bool>,
     lambda: Vec<f32>,
     totals: Vec<f32>,
     pred: Vec<f32>,
-    /// Advanced by one per FISTA iteration.
-    progress: indicatif::ProgressBar,
-}
-
-/// Per-task work buffers for one `F × F` plan.
-struct Work {
-    scratch: FftScratch,
-    buf: Vec<f32>,
-    out: Vec<f32>,
-    spec: Vec<Complex32>,
-}
-
-impl Work {
-    fn new(fft: &Fft2) -> Self {
-        let n = fft.width * fft.height;
-        Self { scratch: fft.make_scratch(), buf: vec![0.0; n], out: vec![0.0; n], spec: vec![Complex32::new(0.0, 0.0); fft.spectrum_len()] }
-    }
+    /// The TV duals of the prox, carried over between steps (warm starts).
+    q: Vec<f32>,
 }
 
 impl JointProblem {
     /// `out = ∇` of `½‖M(pred(b) − j)‖²` (or of `½‖M pred(b)‖²` without data); returns the value.
-    ///
-    /// Blocked FFT convolution: the image is cut into blocks of `F − 2r` pixels; for each block
-    /// and tile `pred += w_t ⊙ (I ⊛ b_t)` with one inverse FFT of size `F` (the block's
-    /// spectrum of `I` is precomputed, the kernel's once per call), and the gradient's spectrum
-    /// `Σ_B conj(Î_B) · FFT(w_t ⊙ r_B)` is accumulated per tile and inverted once. Exact (linear,
-    /// not circular, convolution on every block), and the `F × F` work stays in cache.
     fn normal(&mut self, b: &[f32], out: &mut [f32], with_data: bool) -> f64 {
-        let (k2, r) = (self.k * self.k, self.k / 2);
-        let fft = self.fft.clone();
-        let (fw, fh) = (fft.width, fft.height);
-        let index = &self.index;
-        // kernel spectra
-        self.b_hat.par_iter_mut().zip(b.par_chunks(k2)).for_each_init(
-            || Work::new(&fft),
-            |wk, (bh, bt)| {
-                let kernel_row = |y: usize| y <= r || y + r >= fh;
-                for y in (0..fh).filter(|&y| kernel_row(y)) {
-                    wk.buf[y * fw..(y + 1) * fw].fill(0.0);
-                }
-                for (&i, &v) in index.iter().zip(bt) {
-                    wk.buf[i] = v;
-                }
-                fft.forward_rows_with(&wk.buf, bh, kernel_row, &mut wk.scratch);
-            },
-        );
-        // forward, block by block
-        let this = &*self;
-        let preds: Vec<Vec<f32>> = this
-            .blocks
-            .par_iter()
-            .map_init(
-                || Work::new(&fft),
-                |wk, blk| {
-                    let mut local = vec![0.0f32; blk.sw * blk.sh];
-                    for &t in &blk.tiles {
-                        wk.spec.iter_mut().zip(&blk.a_hat).zip(&this.b_hat[t]).for_each(|((s, a), q)| *s = a * q);
-                        let sh = blk.sh;
-                        fft.inverse_rows_with(&mut wk.spec, &mut wk.out, |y| y >= r && y < r + sh, &mut wk.scratch);
-                        let cxt = &this.cx[t % this.columns][blk.x0..blk.x0 + blk.sw];
-                        let cyt = &this.cy[t / this.columns];
-                        for y in 0..blk.sh {
-                            let a = cyt[blk.y0 + y];
-                            if a == 0.0 {
-                                continue;
-                            }
-                            let src = &wk.out[(y + r) * fw + r..(y + r) * fw + r + blk.sw];
-                            for ((o, s), q) in local[y * blk.sw..(y + 1) * blk.sw].iter_mut().zip(src).zip(cxt) {
-                                *o += a * q * s;
-                            }
-                        }
-                    }
-                    local
-                },
-            )
-            .collect();
-        for (blk, local) in self.blocks.iter().zip(&preds) {
-            for y in 0..blk.sh {
-                let o = (blk.y0 + y) * self.w + blk.x0;
-                self.pred[o..o + blk.sw].copy_from_slice(&local[y * blk.sw..(y + 1) * blk.sw]);
-            }
-        }
-        // masked residual
-        let w = self.w;
+        self.op.apply(b, &mut self.pred);
+        let w = self.op.width();
         let (blurred, mask) = (&self.blurred, &self.mask);
         let f: f64 = self
             .pred
@@ -166,42 +66,7 @@ impl JointProblem {
                 f
             })
             .sum();
-        // adjoint, tile by tile
-        let mut g_hat = std::mem::take(&mut self.g_hat);
-        let this = &*self;
-        let resid = &self.pred;
-        g_hat.par_iter_mut().zip(out.par_chunks_mut(k2)).enumerate().for_each_init(
-            || Work::new(&fft),
-            |wk, (t, (gh, ot))| {
-                gh.iter_mut().for_each(|v| *v = Complex32::new(0.0, 0.0));
-                let cxt = &this.cx[t % this.columns];
-                let cyt = &this.cy[t / this.columns];
-                for &bi in &this.blocks_of[t] {
-                    let blk = &this.blocks[bi];
-                    for y in 0..blk.sh {
-                        let a = cyt[blk.y0 + y];
-                        let row = &mut wk.buf[(y + r) * fw..(y + r + 1) * fw];
-                        row[..r].fill(0.0);
-                        row[r + blk.sw..].fill(0.0);
-                        let src = &resid[(blk.y0 + y) * w + blk.x0..(blk.y0 + y) * w + blk.x0 + blk.sw];
-                        for ((d, s), q) in row[r..r + blk.sw].iter_mut().zip(src).zip(&cxt[blk.x0..blk.x0 + blk.sw]) {
-                            *d = a * q * s;
-                        }
-                    }
-                    let sh = blk.sh;
-                    fft.forward_rows_with(&wk.buf, &mut wk.spec, |y| y >= r && y < r + sh, &mut wk.scratch);
-                    for ((g, s), a) in gh.iter_mut().zip(&wk.spec).zip(&blk.a_hat) {
-                        *g += s * a.conj();
-                    }
-                }
-                wk.spec.copy_from_slice(gh);
-                fft.inverse_rows_with(&mut wk.spec, &mut wk.out, |y| y <= r || y + r >= fh, &mut wk.scratch);
-                for (o, &i) in ot.iter_mut().zip(index) {
-                    *o = wk.out[i];
-                }
-            },
-        );
-        self.g_hat = g_hat;
+        self.op.apply_adjoint(&self.pred, out);
         0.5 * f
     }
 
@@ -210,68 +75,29 @@ impl JointProblem {
     /// pseudo-random vector when it is empty), times a safety factor of 1.3. `start` returns
     /// the last iterate, a warm start for the next channel's (similar) operator.
     fn lipschitz(&mut self, iterations: usize, start: &mut Vec<f32>) -> f32 {
-        let (k2, n) = (self.k * self.k, self.b_hat.len() * self.k * self.k);
-        let mut v: Vec<f32> = if start.len() == n { start.clone() } else { (0..n).map(|i| ((i * 7919 % 101) as f32 / 101.0) - 0.5).collect() };
-        let mut hv = vec![0.0; n];
-        let zero_mean = |v: &mut [f32]| {
-            for c in v.chunks_mut(k2) {
-                let m = c.iter().sum::<f32>() / k2 as f32;
-                c.iter_mut().for_each(|x| *x -= m);
-            }
-        };
-        let mut est = 0.0f64;
-        for _ in 0..iterations.max(1) {
-            zero_mean(&mut v);
-            let nrm = v.iter().map(|&x| (x as f64).powi(2)).sum::<f64>().sqrt().max(1e-30);
-            v.iter_mut().for_each(|x| *x = (*x as f64 / nrm) as f32);
-            self.normal(&v.clone(), &mut hv, false);
-            zero_mean(&mut hv);
-            est = hv.iter().zip(&v).map(|(&a, &b)| a as f64 * b as f64).sum::<f64>();
-            std::mem::swap(&mut v, &mut hv);
-        }
-        *start = v;
-        (est.max(1e-30) * 1.3) as f32
+        let (k2, n) = (self.k * self.k, self.op.input_len());
+        let v = if start.len() == n { start.clone() } else { kernel_start(n) };
+        let est = power_iteration(v, iterations, |v, hv| {
+            self.normal(v, hv, false);
+        }, |v| remove_block_means(v, k2));
+        let (rayleigh, vector) = est.map_or((0.0, vec![0.0; n]), |e| (e.rayleigh, e.vector));
+        *start = vector;
+        (rayleigh.max(1e-30) * 1.3) as f32
     }
 }
 
-impl PrimalDual for JointProblem {
-    fn primal_len(&self) -> usize {
-        self.b_hat.len() * self.k * self.k
+impl Composite for JointProblem {
+    fn gradient(&mut self, x: &[f32], out: &mut [f32]) -> f64 {
+        self.normal(x, out, true)
     }
-    fn dual_len(&self) -> usize {
-        self.b_hat.len() * 2 * (self.k + 1) * (self.k + 1)
-    }
-    fn apply_k(&self, x: &[f32], out: &mut [f32]) {
-        let (k2, d) = (self.k * self.k, 2 * (self.k + 1) * (self.k + 1));
-        for (xb, ob) in x.chunks(k2).zip(out.chunks_mut(d)) {
-            tv_gradient(xb, self.k, ob);
-        }
-    }
-    fn apply_kt(&self, y: &[f32], out: &mut [f32]) {
-        let (k2, d) = (self.k * self.k, 2 * (self.k + 1) * (self.k + 1));
-        for (yb, ob) in y.chunks(d).zip(out.chunks_mut(k2)) {
-            tv_gradient_adjoint(yb, self.k, ob);
-        }
-    }
-    fn prox_f_conj(&mut self, _sigma: f32, y: &mut [f32]) {
-        let d = 2 * (self.k + 1) * (self.k + 1);
-        for (yb, &lam) in y.chunks_mut(d).zip(&self.lambda) {
-            let (gx, gy) = yb.split_at_mut(d / 2);
-            let lam = lam.max(1e-30);
-            for (a, b) in gx.iter_mut().zip(gy.iter_mut()) {
-                let s = (*a * *a + *b * *b).sqrt() / lam;
-                if s > 1.0 {
-                    *a /= s;
-                    *b /= s;
-                }
-            }
-        }
-    }
-    fn prox_g(&mut self, _tau: f32, x: &mut [f32]) {
-        let k2 = self.k * self.k;
-        for (xb, &t) in x.chunks_mut(k2).zip(&self.totals) {
-            project_simplex(xb, t);
-        }
+
+    /// The TV–simplex prox of every kernel (in parallel), duals warm-started.
+    fn prox(&mut self, l: f32, v: &[f32], x: &mut [f32]) {
+        let (k, k2, d) = (self.k, self.k * self.k, tv_dual_len(self.k));
+        let (lambda, totals) = (&self.lambda, &self.totals);
+        x.par_chunks_mut(k2).zip(v.par_chunks(k2)).zip(self.q.par_chunks_mut(d)).zip(lambda.par_iter().zip(totals.par_iter())).for_each(|(((xb, vb), qb), (&lam, &tot))| {
+            prox_tv_simplex(vb, qb, lam / l, tot, k, PROX_ITERATIONS, xb);
+        });
     }
 }
 
@@ -281,267 +107,34 @@ impl PrimalDual for JointProblem {
 /// fraction of the cost.
 pub const JOINT_DATA_PIXELS: usize = 2_500_000;
 
-/// Splits of one axis into blocks: `(start, length)` intervals.
-type Splits = Vec<(usize, usize)>;
-
-/// The block layout of the blocked convolutions: intervals along x and y and the FFT side `F`.
-///
-/// The cost of one pass is `F² · (Σ_x a_x) · (Σ_y a_y)` with `a` the number of tiles active
-/// (non-zero weight) on an interval. Candidates: every axis split evenly into blocks of at most
-/// `m` kernels, or cut at the PSF centres (where the set of active tiles changes, so a block
-/// sees at most four tiles per axis) and then split evenly, for `m = 2…8`; the cheapest wins.
-fn block_layout(cx: &[Vec<f32>], cy: &[Vec<f32>], xs: &[f64], ys: &[f64], k: usize) -> (Splits, Splits, usize) {
-    let r = k / 2;
-    let split = |cuts: &[usize], s_max: usize| -> Splits {
-        let mut out = Vec::new();
-        for win in cuts.windows(2) {
-            let len = win[1] - win[0];
-            if len == 0 {
-                continue;
-            }
-            let parts = len.div_ceil(s_max);
-            let step = len.div_ceil(parts);
-            let mut a = win[0];
-            while a < win[1] {
-                out.push((a, step.min(win[1] - a)));
-                a += step;
-            }
-        }
-        out
-    };
-    let active = |fs: &[Vec<f32>], sp: &Splits| -> usize { sp.iter().map(|&(a, l)| fs.iter().filter(|f| f[a..a + l].iter().any(|&v| v != 0.0)).count()).sum() };
-    let centre_cuts = |cs: &[f64], n: usize| -> Vec<usize> {
-        let mut c = vec![0];
-        c.extend(cs.iter().map(|&x| ((x + 0.5).round().max(0.0) as usize).min(n)));
-        c.push(n);
-        c.dedup();
-        c
-    };
-    let (w, h) = (cx.first().map_or(0, |f| f.len()), cy.first().map_or(0, |f| f.len()));
-    let mut best: Option<(f64, Splits, Splits, usize)> = None;
-    for m in 2..=8 {
-        let s_max = m * k;
-        for aligned in [false, true] {
-            let (cut_x, cut_y) = if aligned { (centre_cuts(xs, w), centre_cuts(ys, h)) } else { (vec![0, w], vec![0, h]) };
-            let (sx, sy) = (split(&cut_x, s_max), split(&cut_y, s_max));
-            let longest = sx.iter().chain(&sy).map(|&(_, l)| l).max().unwrap_or(1);
-            let f = good_size(longest + 2 * r);
-            let cost = (f * f) as f64 * (active(cx, &sx) * active(cy, &sy)) as f64;
-            if best.as_ref().map_or(true, |b| cost < b.0) {
-                best = Some((cost, sx, sy, f));
-            }
-        }
-    }
-    match best {
-        Some((_, sx, sy, f)) => (sx, sy, f),
-        None => (vec![(0, w)], vec![(0, h)], good_size(w.max(h) + 2 * r)),
-    }
-}
-
 /// Inner iterations of the TV–simplex prox per outer step (warm-started dual).
 const PROX_ITERATIONS: usize = 12;
 
-/// `out = argmin_{x ≥ 0, 1ᵀx = total} ½‖x − v‖² + γ·TV(x)` by projected gradient on the dual
-/// (Beck & Teboulle 2009, with the constraint): `x = P(v − Kᵀq)`, `q ← Π_{|q|≤γ}(q + Kx/8)`,
-/// `‖K‖² ≤ 8`. `q` is the warm start and is updated in place. Kernel-sized work only.
-fn prox_tv_simplex(v: &[f32], q: &mut [f32], gamma: f32, total: f32, k: usize, iterations: usize, out: &mut [f32]) {
-    let d = q.len();
-    let mut kx = vec![0.0f32; d];
-    let mut ktq = vec![0.0f32; k * k];
-    let gamma = gamma.max(1e-30);
-    for it in 0..=iterations {
-        tv_gradient_adjoint(q, k, &mut ktq);
-        for ((o, &a), &b) in out.iter_mut().zip(v).zip(&ktq) {
-            *o = a - b;
-        }
-        project_simplex(out, total);
-        if it == iterations {
-            break;
-        }
-        tv_gradient(out, k, &mut kx);
-        let (qx, qy) = q.split_at_mut(d / 2);
-        let (kxx, kxy) = kx.split_at(d / 2);
-        for (((a, b), &ga), &gb) in qx.iter_mut().zip(qy.iter_mut()).zip(kxx).zip(kxy) {
-            *a += ga / 8.0;
-            *b += gb / 8.0;
-            let s = (*a * *a + *b * *b).sqrt() / gamma;
-            if s > 1.0 {
-                *a /= s;
-                *b /= s;
-            }
-        }
-    }
-}
+/// The stall rule of the joint fit: stop when the data term `½‖M r‖²` (∝ χ²) fell by less
+/// than 0.1 % over the last 5 iterations: the fit no longer changes at the noise level.
+const STALL: Stall = Stall { window: 5, decrease: 1e-3 };
 
-/// Iterations over which the data term's relative decrease is measured for the stopping rule.
-const STALL_WINDOW: usize = 5;
-
-/// Stop when the data term `½‖M r‖²` (∝ χ²) fell by less than this fraction over the last
-/// [`STALL_WINDOW`] iterations: the fit no longer changes at the noise level.
-const STALL_DECREASE: f64 = 1e-3;
-
-/// FISTA (Beck & Teboulle 2009) with adaptive restart (O'Donoghue & Candès 2015) on
-/// `½‖M(pred(b) − j)‖² + Σ λ_t TV(b_t)` over the simplices, step `1/L` with `L` the Lipschitz
-/// constant on the simplices' tangent space; the prox is [`prox_tv_simplex`], its duals `q`
-/// carried over between steps (and calls). Stops (after `min_iterations`) at a relative step
-/// below `tolerance`, or when the data term stalls ([`STALL_DECREASE`]).
-fn fista(p: &mut JointProblem, x: &mut [f32], q: &mut [f32], opts: &SplitOptions, l_f: f32) -> Stats {
-    let n = x.len();
-    let (k, k2, d) = (p.k, p.k * p.k, 2 * (p.k + 1) * (p.k + 1));
-    let mut z = x.to_vec();
-    let mut x_prev = x.to_vec();
-    let mut g = vec![0.0f32; n];
-    let mut v = vec![0.0f32; n];
-    let mut t = 1.0f64;
-    let mut stats = Stats { operator_norm: 8f32.sqrt(), ..Default::default() };
-    let mut history = Vec::with_capacity(opts.max_iterations);
-    for it in 1..=opts.max_iterations {
-        stats.primal_objective = p.normal(&z, &mut g, true);
-        history.push(stats.primal_objective);
-        p.progress.inc(1);
-        for ((vi, &zi), &gi) in v.iter_mut().zip(&z).zip(&g) {
-            *vi = zi - gi / l_f;
-        }
-        let (lambda, totals) = (&p.lambda, &p.totals);
-        x.par_chunks_mut(k2).zip(v.par_chunks(k2)).zip(q.par_chunks_mut(d)).zip(lambda.par_iter().zip(totals.par_iter())).for_each(|(((xb, vb), qb), (&lam, &tot))| {
-            prox_tv_simplex(vb, qb, lam / l_f, tot, k, PROX_ITERATIONS, xb);
-        });
-        let (mut dx2, mut x2, mut dot) = (0.0f64, 0.0f64, 0.0f64);
-        for i in 0..n {
-            let dx = (x[i] - x_prev[i]) as f64;
-            dx2 += dx * dx;
-            x2 += (x[i] as f64) * (x[i] as f64);
-            dot += (z[i] - x[i]) as f64 * dx;
-        }
-        // restart the momentum when the step goes against the gradient mapping
-        if dot > 0.0 {
-            t = 1.0;
-        }
-        let t_new = 0.5 * (1.0 + (1.0 + 4.0 * t * t).sqrt());
-        let beta = ((t - 1.0) / t_new) as f32;
-        for i in 0..n {
-            z[i] = x[i] + beta * (x[i] - x_prev[i]);
-        }
-        x_prev.copy_from_slice(x);
-        t = t_new;
-        stats.iterations = it;
-        let crit = (dx2 / x2.max(1e-300)).sqrt();
-        stats.criterion = crit;
-        let stalled = it > STALL_WINDOW && history[it - 1 - STALL_WINDOW] - history[it - 1] < STALL_DECREASE * history[it - 1];
-        if it >= opts.min_iterations && (crit < opts.tolerance || stalled) {
-            stats.converged = true;
-            break;
-        }
-    }
+/// Runs the joint fit's FISTA (adaptive restart, relative-step tolerance, [`STALL`]) from `x`.
+fn run_fista(p: &mut JointProblem, x: &mut [f32], opts: &SplitOptions, l_f: f32, progress: &indicatif::ProgressBar) -> Stats {
+    let o = FistaOptions { max_iterations: opts.max_iterations, min_iterations: opts.min_iterations, tolerance: opts.tolerance, restart: true, stall: Some(STALL) };
+    let mut stats = fista(p, x, &o, l_f, |_, _| {
+        progress.inc(1);
+        true
+    });
+    stats.operator_norm = 8f32.sqrt();
     stats
 }
 
 /// Builds the joint problem of one channel (see [`refine_channel`]); the data are subsampled
 /// to about `max_pixels` pixels.
 fn build_problem(open: &Plane, sharp: &Plane, valid: &[bool], grid: &PsfGrid, kernels: &[Plane], fits: &[(f32, usize, f64)], max_pixels: usize) -> JointProblem {
-    let (w, h) = (open.width, open.height);
-    let k = grid.kernel_size;
-    let r = k / 2;
-    let (xs, ys) = (grid.column_xs(), grid.row_ys());
-    let factors = |cs: &[f64], n: usize| -> Vec<Vec<f32>> {
-        let mut out = vec![vec![0.0f32; n]; cs.len()];
-        for p in 0..n {
-            for (i, q) in crate::optics::psf_grid::hat_weights_1d(cs, p as f64) {
-                out[i][p] += q;
-            }
-        }
-        out
-    };
-    let (cx, cy) = (factors(&xs, w), factors(&ys, h));
-    let (bx, by, f) = block_layout(&cx, &cy, &xs, &ys, k);
-    let fft = Fft2::plan(f, f);
-    let mut blocks = Vec::new();
-    for &(y0, sh) in &by {
-        for &(x0, sw) in &bx {
-            let tiles: Vec<usize> = (0..grid.tile_count())
-                .filter(|&t| cx[t % grid.columns][x0..x0 + sw].iter().any(|&v| v != 0.0) && cy[t / grid.columns][y0..y0 + sh].iter().any(|&v| v != 0.0))
-                .collect();
-            blocks.push((x0, y0, sw, sh, tiles));
-        }
-    }
-    // data subsampling on large images: keep every n-th block in a staggered pattern
-    let mut mask = valid.to_vec();
-    let total: usize = blocks.iter().map(|b| b.2 * b.3).sum();
-    let keep_every = total.div_ceil(max_pixels.max(1)).max(1);
-    if keep_every > 1 {
-        let nbx = bx.len();
-        let (kept, dropped): (Vec<_>, Vec<_>) = blocks.into_iter().enumerate().partition(|(i, _)| {
-            let (ix, iy) = (i % nbx, i / nbx);
-            (ix + 2 * iy) % keep_every == 0
-        });
-        for (_, (x0, y0, sw, sh, _)) in &dropped {
-            for y in *y0..y0 + sh {
-                mask[y * w + x0..y * w + x0 + sw].fill(false);
-            }
-        }
-        blocks = kept.into_iter().map(|(_, b)| b).collect();
-    }
-    let valid = &mask[..];
-    let blocks: Vec<Block> = blocks
-        .into_par_iter()
-        .map(|(x0, y0, sw, sh, tiles)| {
-            let win = sharp.window_reflect(x0 as isize - r as isize, y0 as isize - r as isize, f, f);
-            let a_hat = fft.forward(&win.data);
-            Block { x0, y0, sw, sh, a_hat, tiles }
-        })
-        .collect();
-    let mut blocks_of = vec![Vec::new(); grid.tile_count()];
-    for (bi, blk) in blocks.iter().enumerate() {
-        for &t in &blk.tiles {
-            blocks_of[t].push(bi);
-        }
-    }
+    let op = KernelOperator::new(sharp, grid, max_pixels);
+    let mask: Vec<bool> = valid.iter().zip(op.covered()).map(|(&v, &c)| v && c).collect();
     // λ = c · σ · sd · √N: rescale the window's √N to the effective data Σ w_t² M here
-    let mut lam = Vec::with_capacity(grid.tile_count());
-    for (t, &(l0, n0, _)) in fits.iter().enumerate().take(grid.tile_count()) {
-        let (i, j) = (t % grid.columns, t / grid.columns);
-        let mut w2 = 0.0f64;
-        for y in 0..h {
-            let a = cy[j][y];
-            if a == 0.0 {
-                continue;
-            }
-            for x in 0..w {
-                let q = a * cx[i][x];
-                if q != 0.0 && valid[y * w + x] {
-                    w2 += (q as f64) * (q as f64);
-                }
-            }
-        }
-        lam.push(l0 * (w2 / n0.max(1) as f64).sqrt() as f32);
-    }
-    let index: Vec<usize> = (0..k * k)
-        .map(|i| {
-            let (u, v) = ((i % k) as isize - r as isize, (i / k) as isize - r as isize);
-            (v.rem_euclid(f as isize) as usize) * f + u.rem_euclid(f as isize) as usize
-        })
-        .collect();
-    let spectra = vec![vec![Complex32::new(0.0, 0.0); fft.spectrum_len()]; grid.tile_count()];
+    let lambda: Vec<f32> = fits.iter().enumerate().take(grid.tile_count()).map(|(t, &(l0, n0, _))| l0 * (op.weighted_count(t, &mask) / n0.max(1) as f64).sqrt() as f32).collect();
     let totals: Vec<f32> = kernels.iter().map(|p| p.sum() as f32).collect();
-    JointProblem {
-        w,
-        k,
-        columns: grid.columns,
-        fft,
-        blocks,
-        blocks_of,
-        cx,
-        cy,
-        index,
-        b_hat: spectra.clone(),
-        g_hat: spectra,
-        blurred: open.data.clone(),
-        mask,
-        lambda: lam,
-        totals,
-        pred: vec![0.0; w * h],
-        progress: indicatif::ProgressBar::hidden(),
-    }
+    let q = vec![0.0f32; grid.tile_count() * tv_dual_len(grid.kernel_size)];
+    JointProblem { k: grid.kernel_size, blurred: open.data.clone(), mask, lambda, totals, pred: vec![0.0; open.width * open.height], q, op }
 }
 
 /// Refines `kernels` (one channel, in the grid's tile order) in place. `fits[t] = (λ, N, σ̂)`
@@ -568,14 +161,12 @@ pub fn refine_channel(
     max_pixels: usize,
 ) -> (Stats, f64) {
     let mut p = build_problem(open, sharp, valid, grid, kernels, fits, max_pixels);
-    p.progress = progress.clone();
     let k = grid.kernel_size;
     let mut x: Vec<f32> = kernels.iter().flat_map(|p| p.data.iter().copied()).collect();
     let l_f = p.lipschitz(if power.is_empty() { 5 } else { 2 }, power);
-    let mut q = vec![0.0f32; p.dual_len()];
     let count = p.mask.iter().filter(|&&b| b).count().max(1);
     let first = SplitOptions { max_iterations: opts.max_iterations / 4, min_iterations: usize::MAX, tolerance: 0.0 };
-    let st1 = fista(&mut p, &mut x, &mut q, &first, l_f);
+    let st1 = run_fista(&mut p, &mut x, &first, l_f, progress);
     let mut g = vec![0.0f32; x.len()];
     let f1 = if st1.iterations > 0 { st1.primal_objective } else { p.normal(&x, &mut g, true) };
     let sigma_joint = (2.0 * f1 / count as f64).sqrt();
@@ -583,7 +174,7 @@ pub fn refine_channel(
         *l *= (sigma_joint / s0.max(1e-12)) as f32;
     }
     let rest = SplitOptions { max_iterations: opts.max_iterations.saturating_sub(st1.iterations), ..opts.clone() };
-    let mut stats = fista(&mut p, &mut x, &mut q, &rest, l_f);
+    let mut stats = run_fista(&mut p, &mut x, &rest, l_f, progress);
     stats.iterations += st1.iterations;
     let f = if stats.iterations > st1.iterations { stats.primal_objective } else { p.normal(&x, &mut g, true) };
     for (kp, xb) in kernels.iter_mut().zip(x.chunks(k * k)) {
@@ -651,7 +242,7 @@ mod tests {
         let valid = vec![true; w * h];
         let fits = vec![(1e-3f32, 1000usize, 0.01f64); g.tile_count()];
         let mut p = super::build_problem(&open, &sharp, &valid, &g, &g.kernels[0], &fits, usize::MAX);
-        assert!(p.blocks.len() > 1, "several blocks");
+        assert!(p.op.block_count() > 1, "several blocks");
         let b: Vec<f32> = g.kernels[0].iter().flat_map(|q| q.data.iter().copied()).collect();
         let mut out = vec![0.0f32; b.len()];
         let f = p.normal(&b, &mut out, true);
@@ -705,7 +296,7 @@ mod tests {
         let p = super::build_problem(&est.open_linear[0], &sharp_s, &est.valid_masks[0], &grid, &kernels, &fits, cap);
         let kept = p.mask.iter().filter(|&&b| b).count();
         assert!(kept < w * h / 2 && kept > w * h / 6, "kept {kept} of {}", w * h);
-        assert!(p.blocks_of.iter().all(|b| !b.is_empty()), "a tile lost all its data");
+        assert!(p.op.every_tile_has_data(), "a tile lost all its data");
         let o = crate::solve::primal_dual::SplitOptions { max_iterations: 200, min_iterations: 5, tolerance: 1e-5 };
         super::refine_channel(&est.open_linear[0], &sharp_s, &est.valid_masks[0], &grid, &mut kernels, &fits, &o, &mut Vec::new(), &indicatif::ProgressBar::hidden(), cap);
         let mut refined = grid.clone();

@@ -23,6 +23,7 @@
 
 pub mod joint;
 pub mod register;
+pub mod session;
 pub mod solver;
 
 use crate::image::{Image, Plane};
@@ -484,6 +485,29 @@ pub fn relative_error(a: &Plane, b: &Plane) -> f64 {
     let num: f64 = a.data.iter().zip(&b.data).map(|(x, y)| ((x - y) as f64).powi(2)).sum();
     let den: f64 = b.data.iter().map(|y| (*y as f64).powi(2)).sum();
     (num / den.max(1e-300)).sqrt()
+}
+
+/// Relative L2 errors ([`relative_error`]) of every kernel of `g` against `truth`'s kernel
+/// interpolated at the same tile centre, channel by channel, tiles in grid order.
+pub fn kernel_errors(g: &PsfGrid, truth: &PsfGrid) -> Vec<f64> {
+    let mut e = Vec::with_capacity(g.channels.len() * g.tile_count());
+    for c in 0..g.channels.len() {
+        for t in 0..g.tile_count() {
+            let [x, y] = g.centers[t];
+            e.push(relative_error(&g.kernels[c][t], &truth.kernel_at(c, x, y)));
+        }
+    }
+    e
+}
+
+/// The median and the largest of a list of errors (`NaN`s when it is empty).
+pub fn median_max(errors: &[f64]) -> (f64, f64) {
+    let mut e = errors.to_vec();
+    e.sort_by(f64::total_cmp);
+    match e.last() {
+        Some(&max) => (e[e.len() / 2], max),
+        None => (f64::NAN, f64::NAN),
+    }
 }
 
 #[cfg(test)]

@@ -218,7 +218,7 @@ pub fn apply(pinhole: &Plane, info: &RegistrationInfo) -> Plane {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::optics::capture::gaussian_blur;
+    use crate::image::filter::gaussian_blur;
 
     fn noise(w: usize, h: usize, seed: u64) -> Plane {
         let mut r = crate::rng::Rng::new(seed);

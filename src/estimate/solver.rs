@@ -36,8 +36,11 @@
 //! displacement, true convolution ([`crate::solve::conv`]).
 
 use crate::image::Plane;
+use crate::solve::conv::kernel_origin_index;
 use crate::solve::fft::{Fft2, FftScratch};
+use crate::solve::power::{kernel_start, power_iteration, remove_block_means};
 use crate::solve::primal_dual::{condat_vu, PrimalDual, SmoothPrimalDual, SplitOptions, Stats};
+use crate::solve::prox::{project_simplex, project_tv_dual, tv_dual_len, tv_gradient, tv_gradient_adjoint};
 use rustfft::num_complex::Complex32;
 use std::sync::Arc;
 
@@ -139,27 +142,13 @@ impl KernelProblem {
     }
 
     /// Largest eigenvalue of the data term's Hessian over zero-sum kernels (power iteration,
-    /// with a safety margin).
+    /// with a safety factor of 1.3).
     fn lipschitz(&mut self, iterations: usize) -> f32 {
         let n = self.k * self.k;
-        let mut v: Vec<f32> = (0..n).map(|i| ((i * 7919 % 101) as f32 / 101.0) - 0.5).collect();
-        let mut hv = vec![0.0; n];
-        let mut est = 0.0f64;
-        for _ in 0..iterations.max(1) {
-            let mean = v.iter().sum::<f32>() / n as f32;
-            v.iter_mut().for_each(|x| *x -= mean);
-            let nrm = v.iter().map(|&x| (x as f64).powi(2)).sum::<f64>().sqrt();
-            if nrm == 0.0 {
-                return 1.0;
-            }
-            v.iter_mut().for_each(|x| *x = (*x as f64 / nrm) as f32);
-            self.normal(&v.clone(), &mut hv, false);
-            let mean = hv.iter().sum::<f32>() / n as f32;
-            hv.iter_mut().for_each(|x| *x -= mean);
-            est = hv.iter().zip(&v).map(|(&a, &b)| a as f64 * b as f64).sum::<f64>();
-            std::mem::swap(&mut v, &mut hv);
-        }
-        (est.max(1e-30) * 1.3) as f32
+        let est = power_iteration(kernel_start(n), iterations, |v, hv| {
+            self.normal(v, hv, false);
+        }, |v| remove_block_means(v, n));
+        est.map_or(1.0, |e| (e.rayleigh.max(1e-30) * 1.3) as f32)
     }
 }
 
@@ -168,7 +157,7 @@ impl PrimalDual for KernelProblem {
         self.k * self.k
     }
     fn dual_len(&self) -> usize {
-        2 * (self.k + 1) * (self.k + 1)
+        tv_dual_len(self.k)
     }
     fn apply_k(&self, x: &[f32], out: &mut [f32]) {
         tv_gradient(x, self.k, out);
@@ -177,16 +166,7 @@ impl PrimalDual for KernelProblem {
         tv_gradient_adjoint(y, self.k, out);
     }
     fn prox_f_conj(&mut self, _sigma: f32, y: &mut [f32]) {
-        let m = y.len() / 2;
-        let lam = self.lambda.max(1e-30);
-        let (gx, gy) = y.split_at_mut(m);
-        for (a, b) in gx.iter_mut().zip(gy.iter_mut()) {
-            let s = (*a * *a + *b * *b).sqrt() / lam;
-            if s > 1.0 {
-                *a /= s;
-                *b /= s;
-            }
-        }
+        project_tv_dual(y, self.lambda);
     }
     fn prox_g(&mut self, _tau: f32, x: &mut [f32]) {
         project_simplex(x, self.total);
@@ -199,121 +179,82 @@ impl SmoothPrimalDual for KernelProblem {
     }
 }
 
-/// Forward differences of a `k × k` kernel that is zero outside its support, on the
-/// `(k+1) × (k+1)` grid of positions `-1..k` (so the steps into and out of the support count):
-/// `out = [dx; dy]`.
-pub fn tv_gradient(b: &[f32], k: usize, out: &mut [f32]) {
-    let k1 = k + 1;
-    let bv = |x: usize, y: usize| -> f32 {
-        // (x, y) are shifted by one: 0 is position -1
-        if x == 0 || y == 0 || x > k || y > k {
-            0.0
-        } else {
-            b[(y - 1) * k + x - 1]
+impl KernelProblem {
+    /// The problem of one window with the kernel size `k` (`λ = 0`, kernel sum 1 until set).
+    fn new(data: &TileData, k: usize) -> Self {
+        let (pw, ph) = (data.pw, data.ph);
+        let n = pw * ph;
+        let fft = Fft2::plan(pw, ph);
+        let mut scratch = fft.make_scratch();
+        let mut a_hat = vec![Complex32::new(0.0, 0.0); fft.spectrum_len()];
+        fft.forward_with(&data.sharp, &mut a_hat, &mut scratch);
+        let spec = vec![Complex32::new(0.0, 0.0); fft.spectrum_len()];
+        let index = kernel_origin_index(k, pw, ph);
+        let (blurred, mask) = (data.blurred.clone(), data.mask.clone());
+        Self { fft, scratch, k, r: k / 2, index, a_hat, blurred, mask, lambda: 0.0, total: 1.0, kbuf: vec![0.0; n], rbuf: vec![0.0; n], gbuf: vec![0.0; n], spec }
+    }
+
+    /// The kernel sum `σ_sum = (ρ + μ)/(1 + μ)` with `ρ = Σ_M j / Σ_M (I ⊛ u)` the sum the data
+    /// alone wants (`u` the uniform kernel), and the mean of `j` over the mask.
+    fn target_sum(&mut self, mu_relative: f32) -> (f32, f64) {
+        let k = self.k;
+        let buf = &mut self.rbuf;
+        buf.fill(0.0);
+        for &i in &self.index {
+            buf[i] = 1.0 / (k * k) as f32;
         }
-    };
-    let (gx, gy) = out.split_at_mut(k1 * k1);
-    for yy in 0..k1 {
-        for xx in 0..k1 {
-            let c = bv(xx, yy);
-            gx[yy * k1 + xx] = bv(xx + 1, yy) - c;
-            gy[yy * k1 + xx] = bv(xx, yy + 1) - c;
+        self.fft.forward_with(buf, &mut self.spec, &mut self.scratch);
+        self.spec.iter_mut().zip(&self.a_hat).for_each(|(x, a)| *x *= a);
+        self.fft.inverse_rows_with(&mut self.spec, buf, |_| true, &mut self.scratch);
+        let (mut sj, mut si, mut count) = (0.0f64, 0.0f64, 0usize);
+        for ((&m, &j), &b) in self.mask.iter().zip(&self.blurred).zip(buf.iter()) {
+            if m {
+                sj += j as f64;
+                si += b as f64;
+                count += 1;
+            }
         }
+        let rho = if si > 0.0 { sj / si } else { 1.0 };
+        let mu = mu_relative.max(0.0) as f64;
+        let mean_j = if count > 0 { sj / count as f64 } else { 0.0 };
+        (((rho + mu) / (1.0 + mu)).max(1e-6) as f32, mean_j)
+    }
+
+    /// The warm start: ridge least squares with the unknown pixels filled by `mean_j`,
+    /// projected onto the constraint set.
+    fn warm_start(&mut self, mean_j: f64) -> Vec<f32> {
+        let (r, ph) = (self.r, self.fft.height);
+        let z: Vec<f32> = self.mask.iter().zip(&self.blurred).map(|(&m, &j)| if m { j } else { mean_j as f32 }).collect();
+        self.fft.forward_with(&z, &mut self.spec, &mut self.scratch);
+        let ridge = 1e-3 * self.a_hat.iter().map(|a| a.norm_sqr() as f64).sum::<f64>() as f32 / self.a_hat.len() as f32;
+        for (x, a) in self.spec.iter_mut().zip(&self.a_hat) {
+            *x = a.conj() * *x / (a.norm_sqr() + ridge);
+        }
+        self.fft.inverse_rows_with(&mut self.spec, &mut self.rbuf, |y| y <= r || y + r >= ph, &mut self.scratch);
+        let mut x: Vec<f32> = self.index.iter().map(|&i| self.rbuf[i]).collect();
+        project_simplex(&mut x, self.total);
+        x
     }
 }
 
-/// The adjoint of [`tv_gradient`].
-pub fn tv_gradient_adjoint(g: &[f32], k: usize, out: &mut [f32]) {
-    let k1 = k + 1;
-    let (gx, gy) = g.split_at(k1 * k1);
-    for y in 0..k {
-        for x in 0..k {
-            // kernel (x, y) sits at grid (x + 1, y + 1)
-            let (gxx, gyy) = (x + 1, y + 1);
-            let i = gyy * k1 + gxx;
-            out[y * k + x] = gx[i - 1] - gx[i] + gy[i - k1] - gy[i];
-        }
-    }
-}
-
-/// Isotropic total variation of a `k × k` kernel (zero outside), as [`tv_gradient`] measures it.
-pub fn total_variation(b: &[f32], k: usize) -> f64 {
-    let k1 = k + 1;
-    let mut g = vec![0.0; 2 * k1 * k1];
-    tv_gradient(b, k, &mut g);
-    let (gx, gy) = g.split_at(k1 * k1);
-    gx.iter().zip(gy).map(|(a, b)| ((a * a + b * b) as f64).sqrt()).sum()
+/// Population standard deviation of `v`.
+fn std_dev(v: &[f32]) -> f64 {
+    let n = v.len().max(1) as f64;
+    let mean = v.iter().map(|&x| x as f64).sum::<f64>() / n;
+    (v.iter().map(|&x| (x as f64 - mean).powi(2)).sum::<f64>() / n).sqrt()
 }
 
 /// Solves one window. `on_check(iteration, relative_step)` may cancel by returning false.
 pub fn solve_tile(data: &TileData, s: &TileSettings, mut on_check: impl FnMut(usize, f64) -> bool) -> TileResult {
-    let (pw, ph) = (data.pw, data.ph);
-    let n = pw * ph;
-    let fft = Fft2::plan(pw, ph);
-    let mut scratch = fft.make_scratch();
-    let mut a_hat = vec![Complex32::new(0.0, 0.0); fft.spectrum_len()];
-    fft.forward_with(&data.sharp, &mut a_hat, &mut scratch);
     let k = s.kernel_size;
-    let r = k / 2;
-    let index: Vec<usize> = (0..k * k)
-        .map(|i| {
-            let (u, v) = ((i % k) as isize - r as isize, (i / k) as isize - r as isize);
-            (v.rem_euclid(ph as isize) as usize) * pw + u.rem_euclid(pw as isize) as usize
-        })
-        .collect();
     let data_pixels = data.mask.iter().filter(|&&b| b).count();
-    // the kernel sum the data alone wants: Σ_M j / Σ_M (I ⊛ u)
-    let mut spec = vec![Complex32::new(0.0, 0.0); fft.spectrum_len()];
-    let mut buf = vec![0.0f32; n];
-    for &i in &index {
-        buf[i] = 1.0 / (k * k) as f32;
-    }
-    fft.forward_with(&buf, &mut spec, &mut scratch);
-    spec.iter_mut().zip(&a_hat).for_each(|(x, a)| *x *= a);
-    fft.inverse_rows_with(&mut spec, &mut buf, |_| true, &mut scratch);
-    let (mut sj, mut si, mut sum_j) = (0.0f64, 0.0f64, 0.0f64);
-    for i in 0..n {
-        if data.mask[i] {
-            sj += data.blurred[i] as f64;
-            si += buf[i] as f64;
-            sum_j += data.blurred[i] as f64;
-        }
-    }
-    let rho = if si > 0.0 { sj / si } else { 1.0 };
-    let mu = s.mu_relative.max(0.0) as f64;
-    let total = ((rho + mu) / (1.0 + mu)).max(1e-6) as f32;
-    // warm start: ridge least squares with the unknown pixels filled by the mean, projected
-    let mean_j = if data_pixels > 0 { sum_j / data_pixels as f64 } else { 0.0 };
-    let z: Vec<f32> = (0..n).map(|i| if data.mask[i] { data.blurred[i] } else { mean_j as f32 }).collect();
-    fft.forward_with(&z, &mut spec, &mut scratch);
-    let ridge = 1e-3 * a_hat.iter().map(|a| a.norm_sqr() as f64).sum::<f64>() as f32 / a_hat.len() as f32;
-    for (x, a) in spec.iter_mut().zip(&a_hat) {
-        *x = a.conj() * *x / (a.norm_sqr() + ridge);
-    }
-    fft.inverse_rows_with(&mut spec, &mut buf, |y| y <= r || y + r >= ph, &mut scratch);
-    let mut x: Vec<f32> = index.iter().map(|&i| buf[i]).collect();
-    project_simplex(&mut x, total);
-
-    let mut p = KernelProblem {
-        fft: fft.clone(),
-        scratch,
-        k,
-        r,
-        index,
-        a_hat,
-        blurred: data.blurred.clone(),
-        mask: data.mask.clone(),
-        lambda: 0.0,
-        total,
-        kbuf: vec![0.0; n],
-        rbuf: vec![0.0; n],
-        gbuf: vec![0.0; n],
-        spec,
-    };
+    let mut p = KernelProblem::new(data, k);
+    let (total, mean_j) = p.target_sum(s.mu_relative);
+    p.total = total;
+    let mut x = p.warm_start(mean_j);
     let l_f = p.lipschitz(8);
     let l_k = 8f32.sqrt();
-    let mean_sharp = data.sharp.iter().map(|&v| v as f64).sum::<f64>() / n as f64;
-    let sd = (data.sharp.iter().map(|&v| (v as f64 - mean_sharp).powi(2)).sum::<f64>() / n as f64).sqrt();
+    let sd = std_dev(&data.sharp);
     let dof = (data_pixels as f64 - (k * k) as f64).max(data_pixels as f64 * 0.25);
     let dof_factor = (data_pixels as f64 / dof).sqrt();
     let weight = |sigma: f64| (s.lambda_scale as f64 * sigma.max(1e-7) * sd * (data_pixels.max(1) as f64).sqrt()) as f32;
@@ -349,78 +290,11 @@ pub fn solve_tile(data: &TileData, s: &TileSettings, mut on_check: impl FnMut(us
     TileResult { kernel, stats, residual_rms, data_pixels, noise_sigma, lambda }
 }
 
-/// Euclidean projection of `v` (in place) onto `{b ≥ 0, Σ b = total}` (sort-based, Held et
-/// al.); all zeros when `total ≤ 0`.
-pub fn project_simplex(v: &mut [f32], total: f32) {
-    if total <= 0.0 {
-        v.iter_mut().for_each(|x| *x = 0.0);
-        return;
-    }
-    let mut vals: Vec<f32> = v.to_vec();
-    vals.sort_unstable_by(|a, b| b.total_cmp(a));
-    let mut cum = 0.0f64;
-    let mut theta = 0.0f64;
-    for (i, &u) in vals.iter().enumerate() {
-        cum += u as f64;
-        let t = (cum - total as f64) / (i + 1) as f64;
-        if (u as f64) - t > 0.0 {
-            theta = t;
-        }
-    }
-    v.iter_mut().for_each(|x| *x = (*x as f64 - theta).max(0.0) as f32);
-}
-
-/// Euclidean projection onto `{b ≥ 0, Σ b = 1, b = 0 off the support}` (sort-based simplex
-/// projection of the support's values).
-pub fn project_simplex_on(v: &[f32], support: &[bool]) -> Vec<f32> {
-    let mut vals: Vec<f32> = v.iter().zip(support).filter(|(_, &s)| s).map(|(&x, _)| x).collect();
-    vals.sort_by(|a, b| b.total_cmp(a));
-    let mut cum = 0.0f64;
-    let mut theta = 0.0f64;
-    for (i, &u) in vals.iter().enumerate() {
-        cum += u as f64;
-        let t = (cum - 1.0) / (i + 1) as f64;
-        if (u as f64) - t > 0.0 {
-            theta = t;
-        }
-    }
-    v.iter().zip(support).map(|(&x, &s)| if s { (x as f64 - theta).max(0.0) as f32 } else { 0.0 }).collect()
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::rng::Rng;
     use crate::solve::conv::convolve_direct;
-
-    #[test]
-    fn tv_gradient_adjoint_holds() {
-        let k = 5;
-        let mut r = Rng::new(3);
-        let b: Vec<f32> = (0..k * k).map(|_| r.normal() as f32).collect();
-        let g: Vec<f32> = (0..2 * (k + 1) * (k + 1)).map(|_| r.normal() as f32).collect();
-        let mut kb = vec![0.0; g.len()];
-        let mut ktg = vec![0.0; b.len()];
-        tv_gradient(&b, k, &mut kb);
-        tv_gradient_adjoint(&g, k, &mut ktg);
-        let lhs: f64 = kb.iter().zip(&g).map(|(a, b)| (a * b) as f64).sum();
-        let rhs: f64 = b.iter().zip(&ktg).map(|(a, b)| (a * b) as f64).sum();
-        assert!((lhs - rhs).abs() < 1e-4 * lhs.abs().max(1.0), "{lhs} vs {rhs}");
-        // a single unit coefficient has TV = 2 (in) + 2·√2… here: 4 edges of height 1 around it
-        let mut one = vec![0.0; k * k];
-        one[12] = 1.0;
-        let tv = total_variation(&one, k);
-        assert!((tv - (1.0 + 2f64.sqrt() + 1.0)).abs() < 1e-6, "{tv}");
-    }
-
-    #[test]
-    fn simplex_projection() {
-        let mut v = vec![0.5, -0.2, 0.9, 0.1];
-        project_simplex(&mut v, 1.0);
-        let s: f32 = v.iter().sum();
-        assert!((s - 1.0).abs() < 1e-6 && v.iter().all(|&x| x >= 0.0), "{v:?}");
-        assert!((v[2] - v[0] - 0.4).abs() < 1e-6);
-    }
 
     /// A window whose PSF is uniform: the solver recovers it closely (noise 0.5% of the mean).
     #[test]

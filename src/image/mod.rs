@@ -15,8 +15,11 @@
 //!   half-resolution CFA planes `R`,`G1`,`G2`,`B` with the file's black level removed and its
 //!   white level at 1; [`Image::raw`] records the layout.
 
+pub mod filter;
 pub mod io;
 pub mod raw;
+pub mod resample;
+pub mod spectrum;
 
 use serde::{Deserialize, Serialize};
 

@@ -23,6 +23,8 @@
 use super::forward::blur;
 use super::lens::LensModel;
 use super::psf_grid::PsfGrid;
+use crate::image::filter::gaussian_blur;
+use crate::image::resample::{warp, Affine, Interpolation};
 use crate::image::{Image, Plane, SampleFormat, Transfer};
 use crate::rng::Rng;
 use serde::{Deserialize, Serialize};
@@ -215,72 +217,13 @@ pub fn apply_gain(p: &mut Plane, f: impl Fn(f64, f64, f64) -> f64) {
     }
 }
 
-/// Resamples `p` at `S·R·(q − c) + c + t` for every output pixel `q` (bicubic, Keys a = −0.5),
-/// i.e. the content moves by the inverse of that map.
+/// Resamples `p` at `S·R·(q − c) + c + t` for every output pixel `q` (bicubic, Keys a = −0.5,
+/// [`crate::image::resample::warp`]), i.e. the content moves by the inverse of that map.
 pub fn warp_similarity(p: &Plane, m: &Similarity) -> Plane {
-    let cx = (p.width as f64 - 1.0) / 2.0;
-    let cy = (p.height as f64 - 1.0) / 2.0;
     let th = m.rotation_deg.to_radians();
     let s = 1.0 + m.scale;
     let (a, b) = (s * th.cos(), s * th.sin());
-    Plane::from_fn(p.width, p.height, |x, y| {
-        let (dx, dy) = (x as f64 - cx, y as f64 - cy);
-        let sx = a * dx - b * dy + cx + m.dx;
-        let sy = b * dx + a * dy + cy + m.dy;
-        sample_bicubic(p, sx, sy)
-    })
-}
-
-/// Keys cubic convolution weight (a = −0.5).
-fn keys(t: f64) -> f64 {
-    let t = t.abs();
-    if t < 1.0 {
-        1.5 * t * t * t - 2.5 * t * t + 1.0
-    } else if t < 2.0 {
-        -0.5 * t * t * t + 2.5 * t * t - 4.0 * t + 2.0
-    } else {
-        0.0
-    }
-}
-
-/// Bicubic sample at real coordinates, mirror boundaries.
-pub fn sample_bicubic(p: &Plane, x: f64, y: f64) -> f32 {
-    let (x0, y0) = (x.floor(), y.floor());
-    let (fx, fy) = (x - x0, y - y0);
-    let mut acc = 0.0;
-    for j in -1..=2 {
-        let wy = keys(fy - j as f64);
-        for i in -1..=2 {
-            let wx = keys(fx - i as f64);
-            acc += wx * wy * p.get_reflect(x0 as isize + i, y0 as isize + j) as f64;
-        }
-    }
-    acc as f32
-}
-
-/// Separable Gaussian blur with mirror boundaries (σ in pixels; support ±3σ).
-pub fn gaussian_blur(p: &Plane, sigma: f64) -> Plane {
-    if sigma <= 0.0 {
-        return p.clone();
-    }
-    let r = (3.0 * sigma).ceil() as isize;
-    let wts: Vec<f64> = (-r..=r).map(|i| (-(i * i) as f64 / (2.0 * sigma * sigma)).exp()).collect();
-    let s: f64 = wts.iter().sum();
-    let wts: Vec<f32> = wts.iter().map(|w| (w / s) as f32).collect();
-    let tmp = Plane::from_fn(p.width, p.height, |x, y| {
-        let mut a = 0.0;
-        for (k, w) in wts.iter().enumerate() {
-            a += w * p.get_reflect(x as isize + k as isize - r, y as isize);
-        }
-        a
-    });
-    Plane::from_fn(p.width, p.height, |x, y| {
-        let mut a = 0.0;
-        for (k, w) in wts.iter().enumerate() {
-            a += w * tmp.get_reflect(x as isize, y as isize + k as isize - r);
-        }
-        a
-    })
+    warp(p, &Affine { matrix: [a, -b, b, a], shift: [m.dx, m.dy] }, Interpolation::Keys)
 }
 
 #[cfg(test)]

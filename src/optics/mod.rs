@@ -4,5 +4,6 @@
 pub mod capture;
 pub mod field_operator;
 pub mod forward;
+pub mod kernel_operator;
 pub mod lens;
 pub mod psf_grid;

@@ -13,6 +13,7 @@
 //! FFT product, then cropped, so no wrap-around reaches the output.
 
 use super::fft::{good_size, Fft2};
+use super::operator::LinearOperator;
 use crate::image::Plane;
 use rustfft::num_complex::Complex32;
 use std::sync::Arc;
@@ -48,6 +49,19 @@ pub fn kernel_to_origin(k: &Plane, w: usize, h: usize) -> Vec<f32> {
         }
     }
     buf
+}
+
+/// The index of every coefficient of a `k × k` kernel (row-major, centre = zero displacement)
+/// in a row-major `w × h` circular buffer whose origin is the kernel centre (the layout of
+/// [`kernel_to_origin`]).
+pub fn kernel_origin_index(k: usize, w: usize, h: usize) -> Vec<usize> {
+    let r = (k / 2) as isize;
+    (0..k * k)
+        .map(|i| {
+            let (u, v) = ((i % k) as isize - r, (i / k) as isize - r);
+            (v.rem_euclid(h as isize) as usize) * w + u.rem_euclid(w as isize) as usize
+        })
+        .collect()
 }
 
 /// Reads a `kw × kh` kernel back out of a circular buffer whose origin is the kernel centre
@@ -106,13 +120,44 @@ pub fn convolve(img: &Plane, k: &Plane) -> Plane {
     Convolver::new(k, img.width, img.height).apply(img)
 }
 
-/// Circular convolution of two equally sized buffers (used by solvers on padded domains).
-pub fn convolve_circular(fft: &Fft2, a: &[f32], b_spec: &[Complex32]) -> Vec<f32> {
-    let mut s = fft.forward(a);
-    for (x, y) in s.iter_mut().zip(b_spec) {
-        *x *= y;
+/// Circular convolution with a kernel on a periodic `width × height` domain (the solvers'
+/// padded tiles): `A x = k ⊛ x`, `Aᵀ y = k ⋆ y` (correlation), one forward and one inverse FFT
+/// each.
+pub struct CircularConvolution {
+    fft: Arc<Fft2>,
+    spec: Vec<Complex32>,
+}
+
+impl CircularConvolution {
+    /// Prepares convolution with `k` (centre at zero displacement) on a `width × height` torus.
+    pub fn new(k: &Plane, width: usize, height: usize) -> Self {
+        let fft = Fft2::plan(width, height);
+        let spec = fft.forward(&kernel_to_origin(k, width, height));
+        Self { fft, spec }
     }
-    fft.inverse(s)
+
+    fn product(&self, x: &[f32], out: &mut [f32], conj: bool) {
+        let mut s = self.fft.forward(x);
+        for (a, k) in s.iter_mut().zip(&self.spec) {
+            *a *= if conj { k.conj() } else { *k };
+        }
+        self.fft.inverse_into(&mut s, out);
+    }
+}
+
+impl LinearOperator for CircularConvolution {
+    fn input_len(&self) -> usize {
+        self.fft.width * self.fft.height
+    }
+    fn output_len(&self) -> usize {
+        self.fft.width * self.fft.height
+    }
+    fn apply(&self, x: &[f32], out: &mut [f32]) {
+        self.product(x, out, false)
+    }
+    fn apply_adjoint(&self, y: &[f32], out: &mut [f32]) {
+        self.product(y, out, true)
+    }
 }
 
 #[cfg(test)]
@@ -137,6 +182,22 @@ mod tests {
         assert!((out.get(4, 3) - img.get(3, 3)).abs() < 1e-4);
         let d = convolve_direct(&img, &k);
         assert!((d.get(4, 3) - img.get(3, 3)).abs() < 1e-6);
+    }
+
+    /// Away from the wrap band the circular convolution is the direct one.
+    #[test]
+    fn circular_matches_direct_inside() {
+        let (w, h) = (24, 18);
+        let img = noise(w, h, 3);
+        let k = noise(5, 5, 4);
+        let mut out = vec![0.0; w * h];
+        CircularConvolution::new(&k, w, h).apply(&img.data, &mut out);
+        let d = convolve_direct(&img, &k);
+        for y in 2..h - 2 {
+            for x in 2..w - 2 {
+                assert!((out[y * w + x] - d.get(x, y)).abs() < 1e-4, "{x},{y}");
+            }
+        }
     }
 
     proptest! {

@@ -1,7 +1,13 @@
-//! Numerical machinery shared by estimation and deconvolution: FFT plans, convolution, linear
-//! operators and the Chambolle–Pock primal-dual loop.
+//! Numerical machinery shared by estimation, deconvolution and diagnosis: FFT plans,
+//! convolution, the [`operator::LinearOperator`] trait, proxes, power iteration, and the loops
+//! (Chambolle–Pock / Condat–Vũ, FISTA, conjugate gradients). Values are `f32`, reductions
+//! `f64`; FFT conventions in [`fft`], the PSF convention in [`conv`].
 
 pub mod cg;
 pub mod conv;
 pub mod fft;
+pub mod fista;
+pub mod operator;
+pub mod power;
 pub mod primal_dual;
+pub mod prox;

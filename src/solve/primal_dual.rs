@@ -8,7 +8,7 @@
 //! x̄      ← x_new + θ (x_new − x);   x ← x_new
 //! ```
 //!
-//! with `σ τ L² < 1`, `L = ‖K‖₂` found by [`power_iteration`]. A problem implements
+//! with `σ τ L² < 1`, `L = ‖K‖₂` found by [`super::power::operator_norm`]. A problem implements
 //! [`PrimalDual`]; [`chambolle_pock`] owns the loop: iteration cap, the stopping rule (relative
 //! primal-dual gap when the problem can compute one, otherwise the primal-dual residuals of
 //! Goldstein et al. 2013), and cancellation through the `on_check` callback.
@@ -17,6 +17,9 @@
 //! that is used only through its gradient (Condat 2013, Vũ 2013): no prox of the data term is
 //! needed, so the primal variable can live on a small domain (a kernel's support) while the data
 //! term's gradient is computed by FFTs on a large one.
+
+use super::operator::PrimalDualOperator;
+use super::power;
 
 /// A convex problem `min F(Kx) + G(x)` in the form Chambolle–Pock needs.
 pub trait PrimalDual {
@@ -77,24 +80,9 @@ pub struct Stats {
     pub primal_objective: f64,
 }
 
-/// `‖K‖₂` by power iteration on `KᵀK` (deterministic start, `iterations` products).
-pub fn power_iteration<P: PrimalDual + ?Sized>(p: &P, iterations: usize) -> f32 {
-    let n = p.primal_len();
-    let mut x: Vec<f32> = (0..n).map(|i| 1.0 + ((i * 7919) % 13) as f32 / 13.0).collect();
-    let mut kx = vec![0.0; p.dual_len()];
-    let mut lam = 0.0f64;
-    for _ in 0..iterations.max(1) {
-        let nrm = x.iter().map(|v| (*v as f64).powi(2)).sum::<f64>().sqrt();
-        if nrm == 0.0 {
-            return 0.0;
-        }
-        x.iter_mut().for_each(|v| *v = (*v as f64 / nrm) as f32);
-        p.apply_k(&x, &mut kx);
-        p.apply_kt(&kx, &mut x);
-        lam = x.iter().map(|v| (*v as f64).powi(2)).sum::<f64>().sqrt();
-    }
-    (lam.sqrt() * 1.01) as f32 // a 1% margin keeps στL² < 1 when the iteration undershoots
-}
+/// Safety factor on the power iteration's `‖K‖` when [`chambolle_pock`] measures it: a 1 %
+/// margin keeps `στL² < 1` when the iteration undershoots.
+pub const NORM_SAFETY: f64 = 1.01;
 
 /// Runs Chambolle–Pock from `(x, y)` (both updated in place).
 ///
@@ -111,7 +99,7 @@ pub fn chambolle_pock<P: PrimalDual + ?Sized>(
     let m = p.dual_len();
     assert_eq!(x.len(), n);
     assert_eq!(y.len(), m);
-    let l = operator_norm.unwrap_or_else(|| power_iteration(p, 30));
+    let l = operator_norm.unwrap_or_else(|| power::operator_norm(&PrimalDualOperator(&*p), 30, NORM_SAFETY));
     let sigma = opts.sigma;
     let tau = if l > 0.0 { 0.9 / (sigma * l * l) } else { 1.0 };
     let mut x_bar = x.to_vec();
@@ -150,17 +138,26 @@ pub fn chambolle_pock<P: PrimalDual + ?Sized>(
                     residual_criterion(p, x, &x_old, y, &y_old, tau, sigma)
                 }
             };
-            stats.criterion = crit;
-            if !on_check(it, crit) {
-                break;
-            }
-            if it >= opts.min_iterations && crit < opts.tolerance {
-                stats.converged = true;
+            if stop(&mut stats, it, crit, opts.min_iterations, opts.tolerance, &mut on_check) {
                 break;
             }
         }
     }
     stats
+}
+
+/// Records `crit`, reports it to `on_check` and says whether the loop ends: cancelled, or
+/// converged (`crit < tolerance` after `min_iterations`).
+fn stop(stats: &mut Stats, it: usize, crit: f64, min_iterations: usize, tolerance: f64, on_check: &mut impl FnMut(usize, f64) -> bool) -> bool {
+    stats.criterion = crit;
+    if !on_check(it, crit) {
+        return true;
+    }
+    if it >= min_iterations && crit < tolerance {
+        stats.converged = true;
+        return true;
+    }
+    false
 }
 
 /// Relative primal/dual residuals (Goldstein, Esser & Baraniuk 2013), the larger of the two.
@@ -257,12 +254,7 @@ pub fn condat_vu<P: SmoothPrimalDual + ?Sized>(
         p.after_iteration(x, &x_bar);
         stats.iterations = it;
         let crit = (dx2 / x2.max(1e-300)).sqrt();
-        stats.criterion = crit;
-        if !on_check(it, crit) {
-            break;
-        }
-        if it >= opts.min_iterations && crit < opts.tolerance {
-            stats.converged = true;
+        if stop(&mut stats, it, crit, opts.min_iterations, opts.tolerance, &mut on_check) {
             break;
         }
     }

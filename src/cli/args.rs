@@ -1,0 +1,65 @@
+//! Flags shared by several commands, resolved into the library's option types.
+
+use clap::Args;
+use lensrig::estimate::EstimateOptions;
+use std::path::PathBuf;
+
+/// The estimation flags of `estimate`, `demo`, `bench`, `calibrate` and `diagnose`
+/// (flattened into each; a command may change a default with `mut_arg`). Sizes in pixels.
+#[derive(Args, Debug, Clone)]
+pub struct EstimateArgs {
+    /// Kernel size (odd, pixels); default: measured from the data (demo and mock rigs: the
+    /// simulator's suggestion).
+    #[arg(long)]
+    pub kernel: Option<usize>,
+    /// Spacing of the PSF centres in pixels; default: about 1.8 kernels (each centre is fitted
+    /// on a window of about four kernels, then all kernels jointly).
+    #[arg(long)]
+    pub tile: Option<usize>,
+    /// Fit window side around each PSF centre; default: chosen by `estimate`.
+    #[arg(long)]
+    pub window: Option<usize>,
+    /// Multiplier of the automatic TV weight.
+    #[arg(long, default_value_t = 1.0)]
+    pub lambda_scale: f64,
+    /// Iterations of each window's fit (at most).
+    #[arg(long, default_value_t = 150)]
+    pub max_iterations: usize,
+    /// Relative step at which a window's iterations stop.
+    #[arg(long, default_value_t = 1e-3)]
+    pub tolerance: f64,
+    /// Iterations of the joint refinement of all kernels with the interpolated forward model
+    /// (at most; it stops when χ² stalls); 0 keeps the per-window fits.
+    #[arg(long, default_value_t = 40)]
+    pub joint_iterations: usize,
+}
+
+impl EstimateArgs {
+    /// The estimation options these flags select (everything else at its default).
+    pub fn options(&self) -> EstimateOptions {
+        EstimateOptions {
+            kernel_size: self.kernel,
+            tile: self.tile,
+            window: self.window,
+            lambda_scale: self.lambda_scale,
+            max_iterations: self.max_iterations,
+            tolerance: self.tolerance,
+            joint_iterations: self.joint_iterations,
+            ..Default::default()
+        }
+    }
+}
+
+/// The rig flags of `capture` and `calibrate`.
+#[derive(Args, Debug, Clone)]
+pub struct RigArgs {
+    /// Rig config (TOML), e.g. rig-configs/mock.toml.
+    #[arg(long)]
+    pub rig: PathBuf,
+    /// Serial port of the controller, overriding the config.
+    #[arg(long)]
+    pub port: Option<PathBuf>,
+    /// Continue an interrupted session after its last finished pair.
+    #[arg(long)]
+    pub resume: bool,
+}

@@ -1,0 +1,103 @@
+//! `lensrig deblur`: restore a capture with a lens profile
+//! ([`lensrig::deconv::capture::restore_file`]; the module docs there give the steps).
+
+use super::refuse_existing;
+use anyhow::Result;
+use clap::Args;
+use lensrig::deconv::capture::{restore_file, RestoreFile};
+use lensrig::deconv::DeconvOptions;
+use lensrig::fsutil::Overwrite;
+use lensrig::image::Transfer;
+use std::path::PathBuf;
+
+/// Arguments of `lensrig deblur`.
+#[derive(Args, Debug, Clone)]
+pub struct DeblurArgs {
+    /// Lens profile directory (written by `lensrig estimate`).
+    #[arg(long, value_name = "PROFILE_DIR")]
+    pub profile: PathBuf,
+    /// Blurred capture (PNG or TIFF) taken through the profiled lens.
+    #[arg(long = "in", value_name = "BLURRED")]
+    pub input: PathBuf,
+    /// Restored image, 16-bit PNG; an existing file is kept unless `--force`.
+    #[arg(long, value_name = "RESTORED.png")]
+    pub out: PathBuf,
+    /// Replace RESTORED.png if it exists.
+    #[arg(long)]
+    pub force: bool,
+    /// Encoding of the input values (default: the profile's source encoding).
+    #[arg(long)]
+    pub transfer: Option<Transfer>,
+    /// Prior weight λ, one value for all channels or one per channel (default: from the noise).
+    #[arg(long, value_delimiter = ',')]
+    pub lambda: Option<Vec<f32>>,
+    /// Cross-channel weight relative to λ (0: channels independently).
+    #[arg(long, default_value_t = DeconvOptions::default().cross_weight)]
+    pub cross_weight: f32,
+    /// Dark-region weight λ_b (0 disables the term).
+    #[arg(long, default_value_t = DeconvOptions::default().dark_weight)]
+    pub dark_weight: f32,
+    /// Residual deconvolution steps per scale (λ, λ/3, …).
+    #[arg(long, default_value_t = DeconvOptions::default().residual_steps)]
+    pub residual_steps: usize,
+    /// ADMM iterations per solve.
+    #[arg(long, default_value_t = DeconvOptions::default().max_iterations)]
+    pub iterations: usize,
+    /// Linear value at or above which pixels count as saturated (values > 1 disable).
+    #[arg(long, default_value_t = 0.99)]
+    pub saturation: f32,
+    /// Largest tile core in pixels (default: from the kernel size and the PSF grid).
+    #[arg(long)]
+    pub tile: Option<usize>,
+    /// No progress bar.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+impl DeblurArgs {
+    /// Solver options these arguments select.
+    pub fn options(&self) -> DeconvOptions {
+        DeconvOptions {
+            lambda: self.lambda.clone(),
+            cross_weight: self.cross_weight,
+            dark_weight: self.dark_weight,
+            residual_steps: self.residual_steps,
+            max_iterations: self.iterations,
+            saturation: (self.saturation <= 1.0).then_some(self.saturation),
+            tile_core: self.tile,
+            ..DeconvOptions::default()
+        }
+    }
+}
+
+/// Runs `lensrig deblur`.
+///
+/// # Errors
+/// An existing output without `--force`, and every [`lensrig::deconv::capture::RestoreError`].
+pub fn run(args: &DeblurArgs) -> Result<()> {
+    refuse_existing(&args.out, args.force)?;
+    let job = RestoreFile {
+        profile: &args.profile,
+        input: &args.input,
+        out: &args.out,
+        transfer: args.transfer,
+        overwrite: if args.force { Overwrite::Replace } else { Overwrite::Never },
+        progress: !args.quiet,
+    };
+    let report = restore_file(&job, &args.options())?;
+    if !args.quiet {
+        eprintln!(
+            "deblur: {} tiles of {}x{}, noise σ {:?}, λ {:?}, {} CP / {} CG iterations, {} saturated px -> {}",
+            report.tiles,
+            report.window[0],
+            report.window[1],
+            report.noise_sigma,
+            report.lambda,
+            report.cp_iterations,
+            report.cg_iterations,
+            report.saturated_pixels,
+            args.out.display()
+        );
+    }
+    Ok(())
+}

@@ -1,0 +1,96 @@
+//! `lensrig estimate`: a lens profile from a wide-open / pinhole pair, or one profile per
+//! finished pair of a capture session (`OUT/<pair key>/`).
+
+use super::args::EstimateArgs;
+use super::check_kernel;
+use anyhow::{bail, Result};
+use clap::Args;
+use lensrig::estimate::register::RegistrationModel;
+use lensrig::estimate::session::estimate_session;
+use lensrig::estimate::{estimate, Estimate, EstimateOptions};
+use lensrig::image::io::read_pair;
+use lensrig::image::Transfer;
+use std::path::{Path, PathBuf};
+
+#[derive(Args, Debug)]
+pub struct EstimateCommandArgs {
+    /// Wide-open capture (PNG/TIFF).
+    #[arg(long, required_unless_present = "session", conflicts_with = "session")]
+    pub open: Option<PathBuf>,
+    /// Pinhole-aperture capture of the same target.
+    #[arg(long, required_unless_present = "session", conflicts_with = "session")]
+    pub pinhole: Option<PathBuf>,
+    /// A capture session (from `capture`): one profile per stage position in OUT/<pair key>/.
+    #[arg(long)]
+    pub session: Option<PathBuf>,
+    /// Profile directory to write.
+    #[arg(long)]
+    pub out: PathBuf,
+    #[command(flatten)]
+    pub estimation: EstimateArgs,
+    /// How the files encode light: linear (raw, machine vision) or srgb (webcams).
+    #[arg(long, default_value = "linear")]
+    pub transfer: Transfer,
+    /// Black level to subtract (full-scale units, e.g. 0.0625 for 4096/65535).
+    #[arg(long)]
+    pub black_level: Option<f32>,
+    /// Global motion between the captures: none, translation, similarity.
+    #[arg(long, default_value = "translation")]
+    pub register: RegistrationModel,
+    /// Hide the progress bar.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+impl EstimateCommandArgs {
+    /// The estimation options these arguments select.
+    pub fn options(&self) -> EstimateOptions {
+        EstimateOptions {
+            registration: self.register,
+            black_level: self.black_level.map(|b| vec![b]).unwrap_or_default(),
+            progress: !self.quiet,
+            ..self.estimation.options()
+        }
+    }
+}
+
+/// Reads a pair, tags the transfer function the user declared, and estimates.
+pub fn estimate_files(open: &Path, pinhole: &Path, opts: &EstimateOptions, transfer: Transfer) -> Result<Estimate> {
+    let (mut o, mut p) = read_pair(open, pinhole)?;
+    o.transfer = transfer;
+    p.transfer = transfer;
+    let mut est = estimate(&o, &p, opts)?;
+    est.profile.meta.source.open = Some(open.display().to_string());
+    est.profile.meta.source.pinhole = Some(pinhole.display().to_string());
+    Ok(est)
+}
+
+pub fn run(a: &EstimateCommandArgs) -> Result<()> {
+    let opts = a.options();
+    check_kernel(a.estimation.kernel, 1)?;
+    let (open, pinhole) = match (&a.open, &a.pinhole, &a.session) {
+        (_, _, Some(s)) => {
+            let done = estimate_session(s, &a.out, &opts, !a.quiet)?;
+            for (p, e) in &done {
+                println!("wrote {}: {} tiles, {}px kernels", a.out.join(&p.key).display(), e.profile.grid.tile_count(), e.profile.grid.kernel_size);
+            }
+            return Ok(());
+        }
+        (Some(o), Some(p), None) => (o, p),
+        _ => bail!("give --open and --pinhole, or --session"),
+    };
+    let est = estimate_files(open, pinhole, &opts, a.transfer)?;
+    est.profile.save(&a.out)?;
+    let m = &est.profile.meta;
+    println!(
+        "wrote {}: {} channel(s), {}x{} tiles, {}px kernels, exposure ratio {:?}, {:.1} s",
+        a.out.display(),
+        m.source.channels.len(),
+        m.psf.columns,
+        m.psf.rows,
+        m.psf.kernel_size,
+        m.exposure_ratio.iter().map(|v| format!("{v:.4}")).collect::<Vec<_>>(),
+        m.estimation.seconds
+    );
+    Ok(())
+}

@@ -1,0 +1,430 @@
+//! The forward model seen from the kernels: for a fixed sharp image `I` and the tiling of a
+//! [`PsfGrid`], the linear map from all kernels of one channel to the predicted image
+//!
+//! `A b = Σ_t w_t ⊙ (I ⊛ b_t)`
+//!
+//! (the gather form of [`super::forward::blur_channel`], same Catmull–Rom weights `w_t`, same
+//! mirrored boundaries), and its adjoint `Aᵀ r = (Pᵀ Iᵀ (w_t ⊙ r))_t`. Both the joint kernel
+//! refinement ([`crate::estimate::joint`]) and the diagnosis' kernel fit
+//! ([`crate::diagnose::kernels`]) fit kernels through it.
+//!
+//! # Blocked FFT convolution
+//! The image is cut into blocks of at most `F − 2r` pixels (`r` the kernel radius, one `F × F`
+//! FFT plan for every block); the spectrum of `I` on each block plus a kernel radius (mirrored
+//! at the image edges) is computed once. `A b`: per block and active tile, one inverse FFT of
+//! `Î_B · b̂_t`, cropped and weighted. `Aᵀ r`: per tile, `Σ_B conj(Î_B) · FFT(w_t ⊙ r_B)`
+//! accumulated in the Fourier domain and inverted once. Exact (linear, not circular,
+//! convolution on every block); the `F × F` work stays in cache; tiles and blocks in parallel.
+//! On large images the operator may keep only every n-th block ([`KernelOperator::new`]'s
+//! `max_pixels`); `A b` is then zero on the dropped blocks and `Aᵀ` ignores them.
+//!
+//! # Conventions
+//! Kernels are `k × k` (odd), row-major, centre = zero displacement, concatenated in the grid's
+//! tile order (`tiles · k²` values); images are row-major `width × height`, linear values.
+
+use super::psf_grid::{hat_weights_1d, PsfGrid};
+use crate::image::Plane;
+use crate::solve::conv::kernel_origin_index;
+use crate::solve::fft::{good_size, Fft2, FftScratch};
+use crate::solve::operator::LinearOperator;
+use rayon::prelude::*;
+use rustfft::num_complex::Complex32;
+use std::sync::Arc;
+
+/// One block of the image: a `sw × sh` piece at `(x0, y0)`, the spectrum of the sharp image on
+/// the piece plus a kernel radius, and the tiles whose weight is non-zero on it.
+struct Block {
+    x0: usize,
+    y0: usize,
+    sw: usize,
+    sh: usize,
+    a_hat: Vec<Complex32>,
+    tiles: Vec<usize>,
+}
+
+/// The kernels-to-image map of one channel (see the module docs).
+pub struct KernelOperator {
+    width: usize,
+    height: usize,
+    k: usize,
+    columns: usize,
+    /// One `F × F` plan for every block.
+    fft: Arc<Fft2>,
+    blocks: Vec<Block>,
+    /// `blocks_of[t]`: the blocks tile `t` touches.
+    blocks_of: Vec<Vec<usize>>,
+    /// Separable Catmull–Rom factors: `w_t(x, y) = cx[t % columns][x] · cy[t / columns][y]`.
+    cx: Vec<Vec<f32>>,
+    cy: Vec<Vec<f32>>,
+    /// Kernel position `i` (row-major `k × k`) in the wrapped `F × F` layout.
+    index: Vec<usize>,
+    /// Pixels of the kept blocks.
+    covered: Vec<bool>,
+}
+
+/// Per-task work buffers for one `F × F` plan.
+struct Work {
+    scratch: FftScratch,
+    buf: Vec<f32>,
+    out: Vec<f32>,
+    spec: Vec<Complex32>,
+    acc: Vec<Complex32>,
+}
+
+impl Work {
+    fn new(fft: &Fft2) -> Self {
+        let n = fft.width * fft.height;
+        let zero = vec![Complex32::new(0.0, 0.0); fft.spectrum_len()];
+        Self { scratch: fft.make_scratch(), buf: vec![0.0; n], out: vec![0.0; n], spec: zero.clone(), acc: zero }
+    }
+}
+
+/// Splits of one axis into blocks: `(start, length)` intervals.
+type Splits = Vec<(usize, usize)>;
+
+/// The separable weight factors of every grid column (or row) along one axis of `n` pixels.
+fn axis_factors(cs: &[f64], n: usize) -> Vec<Vec<f32>> {
+    let mut out = vec![vec![0.0f32; n]; cs.len()];
+    for p in 0..n {
+        for (i, q) in hat_weights_1d(cs, p as f64) {
+            out[i][p] += q;
+        }
+    }
+    out
+}
+
+/// Splits every interval between consecutive `cuts` evenly into pieces of at most `s_max`.
+fn split_axis(cuts: &[usize], s_max: usize) -> Splits {
+    let mut out = Vec::new();
+    for win in cuts.windows(2) {
+        let len = win[1] - win[0];
+        if len == 0 {
+            continue;
+        }
+        let parts = len.div_ceil(s_max);
+        let step = len.div_ceil(parts);
+        let mut a = win[0];
+        while a < win[1] {
+            out.push((a, step.min(win[1] - a)));
+            a += step;
+        }
+    }
+    out
+}
+
+/// The block layout: intervals along x and y and the FFT side `F`.
+///
+/// The cost of one pass is `F² · (Σ_x a_x) · (Σ_y a_y)` with `a` the number of tiles active
+/// (non-zero weight) on an interval. Candidates: every axis split evenly into blocks of at most
+/// `m` kernels, or cut at the PSF centres (where the set of active tiles changes, so a block
+/// sees at most four tiles per axis) and then split evenly, for `m = 2…8`; the cheapest wins.
+fn block_layout(cx: &[Vec<f32>], cy: &[Vec<f32>], xs: &[f64], ys: &[f64], k: usize) -> (Splits, Splits, usize) {
+    let r = k / 2;
+    let active = |fs: &[Vec<f32>], sp: &Splits| -> usize { sp.iter().map(|&(a, l)| fs.iter().filter(|f| f[a..a + l].iter().any(|&v| v != 0.0)).count()).sum() };
+    let centre_cuts = |cs: &[f64], n: usize| -> Vec<usize> {
+        let mut c = vec![0];
+        c.extend(cs.iter().map(|&x| ((x + 0.5).round().max(0.0) as usize).min(n)));
+        c.push(n);
+        c.dedup();
+        c
+    };
+    let (w, h) = (cx.first().map_or(0, |f| f.len()), cy.first().map_or(0, |f| f.len()));
+    let mut best: Option<(f64, Splits, Splits, usize)> = None;
+    for m in 2..=8 {
+        let s_max = m * k;
+        for aligned in [false, true] {
+            let (cut_x, cut_y) = if aligned { (centre_cuts(xs, w), centre_cuts(ys, h)) } else { (vec![0, w], vec![0, h]) };
+            let (sx, sy) = (split_axis(&cut_x, s_max), split_axis(&cut_y, s_max));
+            let longest = sx.iter().chain(&sy).map(|&(_, l)| l).max().unwrap_or(1);
+            let f = good_size(longest + 2 * r);
+            let cost = (f * f) as f64 * (active(cx, &sx) * active(cy, &sy)) as f64;
+            if best.as_ref().map_or(true, |b| cost < b.0) {
+                best = Some((cost, sx, sy, f));
+            }
+        }
+    }
+    match best {
+        Some((_, sx, sy, f)) => (sx, sy, f),
+        None => (vec![(0, w)], vec![(0, h)], good_size(w.max(h) + 2 * r)),
+    }
+}
+
+/// A block before its spectrum: `(x0, y0, sw, sh, tiles)`.
+type BlockSpec = (usize, usize, usize, usize, Vec<usize>);
+
+/// Keeps every `keep_every`-th block in a staggered pattern (`(ix + 2·iy) mod n = 0`, so every
+/// tile keeps data) and marks the pixels of the kept ones in `covered`.
+fn subsample_blocks(blocks: Vec<BlockSpec>, nbx: usize, keep_every: usize, width: usize, covered: &mut [bool]) -> Vec<BlockSpec> {
+    let kept: Vec<BlockSpec> = blocks.into_iter().enumerate().filter(|(i, _)| (i % nbx + 2 * (i / nbx)) % keep_every == 0).map(|(_, b)| b).collect();
+    for (x0, y0, sw, sh, _) in &kept {
+        for y in *y0..y0 + sh {
+            covered[y * width + x0..y * width + x0 + sw].fill(true);
+        }
+    }
+    kept
+}
+
+impl KernelOperator {
+    /// Prepares the operator for `sharp` and the tiling of `grid` (its kernels are not used).
+    /// When the image has more than `max_pixels` pixels, only every n-th block is kept (in a
+    /// staggered pattern, so every tile keeps data) to bring the data to about `max_pixels`.
+    pub fn new(sharp: &Plane, grid: &PsfGrid, max_pixels: usize) -> Self {
+        let (w, h) = (sharp.width, sharp.height);
+        let k = grid.kernel_size;
+        let r = k / 2;
+        let (xs, ys) = (grid.column_xs(), grid.row_ys());
+        let (cx, cy) = (axis_factors(&xs, w), axis_factors(&ys, h));
+        let (bx, by, f) = block_layout(&cx, &cy, &xs, &ys, k);
+        let fft = Fft2::plan(f, f);
+        let mut specs: Vec<BlockSpec> = Vec::new();
+        for &(y0, sh) in &by {
+            for &(x0, sw) in &bx {
+                let tiles: Vec<usize> = (0..grid.tile_count())
+                    .filter(|&t| cx[t % grid.columns][x0..x0 + sw].iter().any(|&v| v != 0.0) && cy[t / grid.columns][y0..y0 + sh].iter().any(|&v| v != 0.0))
+                    .collect();
+                specs.push((x0, y0, sw, sh, tiles));
+            }
+        }
+        let total: usize = specs.iter().map(|b| b.2 * b.3).sum();
+        let keep_every = total.div_ceil(max_pixels.max(1)).max(1);
+        let mut covered = vec![false; w * h];
+        let specs = subsample_blocks(specs, bx.len(), keep_every, w, &mut covered);
+        let blocks: Vec<Block> = specs
+            .into_par_iter()
+            .map(|(x0, y0, sw, sh, tiles)| {
+                let win = sharp.window_reflect(x0 as isize - r as isize, y0 as isize - r as isize, f, f);
+                let a_hat = fft.forward(&win.data);
+                Block { x0, y0, sw, sh, a_hat, tiles }
+            })
+            .collect();
+        let mut blocks_of = vec![Vec::new(); grid.tile_count()];
+        for (bi, blk) in blocks.iter().enumerate() {
+            for &t in &blk.tiles {
+                blocks_of[t].push(bi);
+            }
+        }
+        let index = kernel_origin_index(k, f, f);
+        Self { width: w, height: h, k, columns: grid.columns, fft, blocks, blocks_of, cx, cy, index, covered }
+    }
+
+    /// Image width.
+    pub fn width(&self) -> usize {
+        self.width
+    }
+
+    /// Number of tiles (kernels).
+    pub fn tiles(&self) -> usize {
+        self.blocks_of.len()
+    }
+
+    /// Number of kept blocks.
+    pub fn block_count(&self) -> usize {
+        self.blocks.len()
+    }
+
+    /// Whether every tile keeps at least one block of data.
+    pub fn every_tile_has_data(&self) -> bool {
+        self.blocks_of.iter().all(|b| !b.is_empty())
+    }
+
+    /// 1 on the pixels of the kept blocks (all pixels unless subsampled).
+    pub fn covered(&self) -> &[bool] {
+        &self.covered
+    }
+
+    /// The weight of tile `t` at pixel `(x, y)`.
+    pub fn weight(&self, t: usize, x: usize, y: usize) -> f32 {
+        self.cy[t / self.columns][y] * self.cx[t % self.columns][x]
+    }
+
+    /// `Σ_x w_t(x)² · m(x)` over the image: the effective data a kernel sees under the mask `m`.
+    pub fn weighted_count(&self, t: usize, mask: &[bool]) -> f64 {
+        let (w, h) = (self.width, self.height);
+        let (cxt, cyt) = (&self.cx[t % self.columns], &self.cy[t / self.columns]);
+        let mut w2 = 0.0f64;
+        for y in 0..h {
+            let a = cyt[y];
+            if a == 0.0 {
+                continue;
+            }
+            for x in 0..w {
+                let q = a * cxt[x];
+                if q != 0.0 && mask[y * w + x] {
+                    w2 += (q as f64) * (q as f64);
+                }
+            }
+        }
+        w2
+    }
+
+    /// The kernels' spectra on the `F × F` domain (centre at the origin).
+    fn kernel_spectra(&self, b: &[f32]) -> Vec<Vec<Complex32>> {
+        let (k2, r) = (self.k * self.k, self.k / 2);
+        let fft = &self.fft;
+        let (fw, fh) = (fft.width, fft.height);
+        b.par_chunks(k2)
+            .map_init(
+                || Work::new(fft),
+                |wk, bt| {
+                    let kernel_row = |y: usize| y <= r || y + r >= fh;
+                    for y in (0..fh).filter(|&y| kernel_row(y)) {
+                        wk.buf[y * fw..(y + 1) * fw].fill(0.0);
+                    }
+                    for (&i, &v) in self.index.iter().zip(bt) {
+                        wk.buf[i] = v;
+                    }
+                    let mut bh = vec![Complex32::new(0.0, 0.0); fft.spectrum_len()];
+                    fft.forward_rows_with(&wk.buf, &mut bh, kernel_row, &mut wk.scratch);
+                    bh
+                },
+            )
+            .collect()
+    }
+
+    /// `Σ_t w_t ⊙ (I ⊛ b_t)` on one block (`sw × sh`, row-major).
+    fn predict_block(&self, blk: &Block, b_hat: &[Vec<Complex32>], wk: &mut Work) -> Vec<f32> {
+        let r = self.k / 2;
+        let fw = self.fft.width;
+        let mut local = vec![0.0f32; blk.sw * blk.sh];
+        for &t in &blk.tiles {
+            wk.spec.iter_mut().zip(&blk.a_hat).zip(&b_hat[t]).for_each(|((s, a), q)| *s = a * q);
+            let sh = blk.sh;
+            self.fft.inverse_rows_with(&mut wk.spec, &mut wk.out, |y| y >= r && y < r + sh, &mut wk.scratch);
+            let cxt = &self.cx[t % self.columns][blk.x0..blk.x0 + blk.sw];
+            let cyt = &self.cy[t / self.columns];
+            for y in 0..blk.sh {
+                let a = cyt[blk.y0 + y];
+                if a == 0.0 {
+                    continue;
+                }
+                let src = &wk.out[(y + r) * fw + r..(y + r) * fw + r + blk.sw];
+                for ((o, s), q) in local[y * blk.sw..(y + 1) * blk.sw].iter_mut().zip(src).zip(cxt) {
+                    *o += a * q * s;
+                }
+            }
+        }
+        local
+    }
+
+    /// Kernel `t`'s share of `Aᵀ resid`, written to `out` (`k²` values).
+    fn adjoint_tile(&self, t: usize, resid: &[f32], wk: &mut Work, out: &mut [f32]) {
+        let r = self.k / 2;
+        let (fw, fh) = (self.fft.width, self.fft.height);
+        let w = self.width;
+        wk.acc.iter_mut().for_each(|v| *v = Complex32::new(0.0, 0.0));
+        let cxt = &self.cx[t % self.columns];
+        let cyt = &self.cy[t / self.columns];
+        for &bi in &self.blocks_of[t] {
+            let blk = &self.blocks[bi];
+            for y in 0..blk.sh {
+                let a = cyt[blk.y0 + y];
+                let row = &mut wk.buf[(y + r) * fw..(y + r + 1) * fw];
+                row[..r].fill(0.0);
+                row[r + blk.sw..].fill(0.0);
+                let src = &resid[(blk.y0 + y) * w + blk.x0..(blk.y0 + y) * w + blk.x0 + blk.sw];
+                for ((d, s), q) in row[r..r + blk.sw].iter_mut().zip(src).zip(&cxt[blk.x0..blk.x0 + blk.sw]) {
+                    *d = a * q * s;
+                }
+            }
+            let sh = blk.sh;
+            self.fft.forward_rows_with(&wk.buf, &mut wk.spec, |y| y >= r && y < r + sh, &mut wk.scratch);
+            for ((g, s), a) in wk.acc.iter_mut().zip(&wk.spec).zip(&blk.a_hat) {
+                *g += s * a.conj();
+            }
+        }
+        wk.spec.copy_from_slice(&wk.acc);
+        self.fft.inverse_rows_with(&mut wk.spec, &mut wk.out, |y| y <= r || y + r >= fh, &mut wk.scratch);
+        for (o, &i) in out.iter_mut().zip(&self.index) {
+            *o = wk.out[i];
+        }
+    }
+
+    /// `A b` as a plane (kernels given as planes, in tile order).
+    pub fn apply_planes(&self, kernels: &[Plane]) -> Plane {
+        let b: Vec<f32> = kernels.iter().flat_map(|p| p.data.iter().copied()).collect();
+        let mut out = Plane::new(self.width, self.height);
+        self.apply(&b, &mut out.data);
+        out
+    }
+}
+
+impl LinearOperator for KernelOperator {
+    fn input_len(&self) -> usize {
+        self.tiles() * self.k * self.k
+    }
+    fn output_len(&self) -> usize {
+        self.width * self.height
+    }
+    fn apply(&self, b: &[f32], out: &mut [f32]) {
+        let b_hat = self.kernel_spectra(b);
+        let preds: Vec<Vec<f32>> = self.blocks.par_iter().map_init(|| Work::new(&self.fft), |wk, blk| self.predict_block(blk, &b_hat, wk)).collect();
+        out.fill(0.0);
+        for (blk, local) in self.blocks.iter().zip(&preds) {
+            for y in 0..blk.sh {
+                let o = (blk.y0 + y) * self.width + blk.x0;
+                out[o..o + blk.sw].copy_from_slice(&local[y * blk.sw..(y + 1) * blk.sw]);
+            }
+        }
+    }
+    fn apply_adjoint(&self, resid: &[f32], out: &mut [f32]) {
+        let k2 = self.k * self.k;
+        out.par_chunks_mut(k2).enumerate().for_each_init(|| Work::new(&self.fft), |wk, (t, ot)| self.adjoint_tile(t, resid, wk, ot));
+    }
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+    use crate::optics::forward::blur_channel;
+    use crate::rng::Rng;
+
+    /// A `cols × rows` grid of random normalised `k × k` kernels over a `w × h` image.
+    pub(crate) fn grid(w: usize, h: usize, k: usize, cols: usize, rows: usize, seed: u64) -> PsfGrid {
+        let mut r = Rng::new(seed);
+        let kernels = vec![(0..cols * rows)
+            .map(|_| {
+                let mut p = Plane::from_fn(k, k, |_, _| r.uniform() as f32);
+                let s = p.sum() as f32;
+                p.scale(1.0 / s);
+                p
+            })
+            .collect()];
+        PsfGrid { kernel_size: k, columns: cols, rows, centers: PsfGrid::regular_centers(w, h, cols, rows), channels: vec!["Y".into()], kernels }
+    }
+
+    /// The blocked operator is the forward model of `optics::forward` (same mirrored
+    /// boundaries), on one block and on many.
+    #[test]
+    fn matches_the_forward_model() {
+        for &(w, h, k, cols, rows) in &[(70usize, 50usize, 5usize, 3usize, 2usize), (157, 113, 9, 4, 3)] {
+            let mut r = Rng::new(1);
+            let sharp = Plane::from_fn(w, h, |_, _| r.uniform() as f32);
+            let g = grid(w, h, k, cols, rows, 2);
+            let op = KernelOperator::new(&sharp, &g, usize::MAX);
+            let a = op.apply_planes(&g.kernels[0]);
+            let b = blur_channel(&sharp, &g, 0);
+            let err = a.data.iter().zip(&b.data).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+            assert!(err < 1e-4, "{w}×{h}: {err}");
+        }
+    }
+
+    /// Subsampled: the prediction is zero off the kept blocks and exact on them, and every tile
+    /// keeps data.
+    #[test]
+    fn subsampling_keeps_every_tile() {
+        let (w, h, k) = (192, 144, 11);
+        let mut r = Rng::new(4);
+        let sharp = Plane::from_fn(w, h, |_, _| r.uniform() as f32);
+        let g = grid(w, h, k, 4, 3, 5);
+        let op = KernelOperator::new(&sharp, &g, w * h / 3);
+        let kept = op.covered().iter().filter(|&&c| c).count();
+        assert!(kept < w * h / 2 && kept > w * h / 6, "kept {kept} of {}", w * h);
+        assert!(op.every_tile_has_data());
+        let a = op.apply_planes(&g.kernels[0]);
+        let b = blur_channel(&sharp, &g, 0);
+        for ((x, y), &c) in a.data.iter().zip(&b.data).zip(op.covered()) {
+            let want = if c { *y } else { 0.0 };
+            assert!((x - want).abs() < 1e-4, "{x} vs {want}");
+        }
+    }
+}

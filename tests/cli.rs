@@ -1,26 +1,10 @@
 //! End-to-end tests of the real binary in temporary directories (ripgrep's `tests/util.rs`
 //! style): simulated calibration → estimate → profile → simulate, and the error paths.
 
+mod common;
+
+use common::{fails_one_line, ok};
 use std::path::Path;
-use std::process::Command;
-
-fn lensrig(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_lensrig")).args(args).output().expect("run lensrig")
-}
-
-fn ok(args: &[&str]) -> String {
-    let o = lensrig(args);
-    assert!(o.status.success(), "lensrig {args:?} failed: {}", String::from_utf8_lossy(&o.stderr));
-    String::from_utf8_lossy(&o.stdout).into_owned()
-}
-
-fn fails(args: &[&str]) -> String {
-    let o = lensrig(args);
-    assert_eq!(o.status.code(), Some(2), "lensrig {args:?} should exit 2");
-    let e = String::from_utf8_lossy(&o.stderr).into_owned();
-    assert_eq!(e.trim_end().lines().count(), 1, "one-line cause expected: {e}");
-    e
-}
 
 fn summary(dir: &Path) -> serde_json::Value {
     serde_json::from_str(&std::fs::read_to_string(dir.join("summary.json")).unwrap()).unwrap()
@@ -56,7 +40,7 @@ fn demo_recovers_the_simulated_lens_and_simulate_predicts() {
     ok(&["simulate", "--profile", run.join("profile").to_str().unwrap(), "--sharp", run.join("pinhole.png").to_str().unwrap(), "--out", pred.to_str().unwrap()]);
     // an existing output is never replaced without --force, and is left as it was
     let before = std::fs::read(&pred).unwrap();
-    let e = fails(&["simulate", "--profile", run.join("profile").to_str().unwrap(), "--sharp", run.join("pinhole.png").to_str().unwrap(), "--out", pred.to_str().unwrap()]);
+    let e = fails_one_line(&["simulate", "--profile", run.join("profile").to_str().unwrap(), "--sharp", run.join("pinhole.png").to_str().unwrap(), "--out", pred.to_str().unwrap()]);
     assert!(e.contains("already exists") && e.contains("--force"), "{e}");
     assert_eq!(std::fs::read(&pred).unwrap(), before);
     let p = lensrig::image::io::read_image(&pred).unwrap();
@@ -84,11 +68,11 @@ fn errors_are_one_line_and_name_the_file() {
     lensrig::image::io::write_png16(&a, &img(64, 48), lensrig::fsutil::Overwrite::Never).unwrap();
     lensrig::image::io::write_png16(&b, &img(60, 48), lensrig::fsutil::Overwrite::Never).unwrap();
     let out = d.path().join("prof");
-    let e = fails(&["estimate", "--open", a.to_str().unwrap(), "--pinhole", b.to_str().unwrap(), "--out", out.to_str().unwrap(), "--quiet"]);
+    let e = fails_one_line(&["estimate", "--open", a.to_str().unwrap(), "--pinhole", b.to_str().unwrap(), "--out", out.to_str().unwrap(), "--quiet"]);
     assert!(e.contains("b.png") && e.contains("60x48"), "{e}");
-    let e = fails(&["estimate", "--open", a.to_str().unwrap(), "--pinhole", a.to_str().unwrap(), "--out", out.to_str().unwrap(), "--kernel", "8"]);
+    let e = fails_one_line(&["estimate", "--open", a.to_str().unwrap(), "--pinhole", a.to_str().unwrap(), "--out", out.to_str().unwrap(), "--kernel", "8"]);
     assert!(e.contains("odd"), "{e}");
-    let e = fails(&["simulate", "--profile", d.path().join("nope").to_str().unwrap(), "--sharp", a.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    let e = fails_one_line(&["simulate", "--profile", d.path().join("nope").to_str().unwrap(), "--sharp", a.to_str().unwrap(), "--out", out.to_str().unwrap()]);
     assert!(e.contains("profile.toml"), "{e}");
     assert!(!out.exists(), "nothing is written on error");
 }
@@ -103,7 +87,7 @@ fn target_writes_a_printable_page_and_never_overwrites() {
     // A5 landscape at 150 DPI
     assert_eq!((png.width(), png.height()), (1240, 874));
     let before = std::fs::read(d.path().join("t.png")).unwrap();
-    let e = fails(&["target", "--out", t.to_str().unwrap(), "--paper", "A5", "--dpi", "150", "--seed", "9"]);
+    let e = fails_one_line(&["target", "--out", t.to_str().unwrap(), "--paper", "A5", "--dpi", "150", "--seed", "9"]);
     assert!(e.contains("already exists"), "{e}");
     assert_eq!(std::fs::read(d.path().join("t.png")).unwrap(), before);
 }

@@ -4,6 +4,8 @@
 //! mismatch". Plus the report files, the corrected profile, the CLI entry point and the HTML
 //! in a headless browser.
 
+mod common;
+
 use lensrig::diagnose::bench::{bench_case, proof_options, BenchRow};
 use lensrig::diagnose::model::apply_corrections;
 use lensrig::diagnose::proof::CaseSpec;
@@ -170,12 +172,8 @@ fn report_profile_cli_and_browser() {
     write_png16(&open, &c.open.image, Overwrite::Replace).unwrap();
     write_png16(&pin, &c.pinhole.image, Overwrite::Replace).unwrap();
     let out = dir.path().join("report");
-    let bin = env!("CARGO_BIN_EXE_lensrig");
     let kernel = spec.kernel_size.to_string();
-    let diagnose = |open: &Path| {
-        let args = ["diagnose", "--open", open.to_str().unwrap(), "--pinhole", pin.to_str().unwrap(), "--out", out.to_str().unwrap(), "--kernel", &kernel, "--tile", "96", "--quiet"];
-        std::process::Command::new(bin).args(args).output().expect("run lensrig")
-    };
+    let diagnose = |open: &Path| common::run(&["diagnose", "--open", open.to_str().unwrap(), "--pinhole", pin.to_str().unwrap(), "--out", out.to_str().unwrap(), "--kernel", &kernel, "--tile", "96", "--quiet"]);
     let o = diagnose(&open);
     assert!(o.status.success(), "diagnose: {}", String::from_utf8_lossy(&o.stderr));
     let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
@@ -205,9 +203,8 @@ fn report_profile_cli_and_browser() {
     }
     assert!(worst < 2e-3, "apply_corrections differs from the report's prediction by {worst}");
     // an unreadable input names the file
-    let bad = diagnose(&dir.path().join("missing.png"));
-    assert_eq!(bad.status.code(), Some(2));
-    let e = String::from_utf8_lossy(&bad.stderr);
+    let missing = dir.path().join("missing.png");
+    let e = common::fails_one_line(&["diagnose", "--open", missing.to_str().unwrap(), "--pinhole", pin.to_str().unwrap(), "--out", out.to_str().unwrap(), "--kernel", &kernel, "--tile", "96", "--quiet"]);
     assert!(e.contains("missing.png"), "{e}");
 
     // headless browser
@@ -232,24 +229,18 @@ fn report_profile_cli_and_browser() {
 /// curve, dark level and frame counts; and `--frames` validated.
 #[test]
 fn diagnose_reads_a_capture_session() {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let dir = tempfile::tempdir().unwrap();
-    let target = root.join("targets/a4-noise-300dpi.toml");
-    let text = std::fs::read_to_string(root.join("rig-configs/mock.toml"))
-        .unwrap()
-        .replace("\"../targets/a4-noise-300dpi.toml\"", &format!("{:?}", target.display().to_string()))
-        .replace("width = 384", "width = 160")
-        .replace("height = 288", "height = 120")
-        .replace("positions = [-20.0, -40.0, -60.0]", "positions = [-20.0]")
-        .replace("frames_to_average = 16", "frames_to_average = 4");
-    let cfg = dir.path().join("rig.toml");
-    std::fs::write(&cfg, text).unwrap();
+    let cfg = common::mock_config(dir.path(), |text| {
+        text.replace("width = 384", "width = 160")
+            .replace("height = 288", "height = 120")
+            .replace("positions = [-20.0, -40.0, -60.0]", "positions = [-20.0]")
+            .replace("frames_to_average = 16", "frames_to_average = 4")
+    });
     let session = dir.path().join("session");
-    let bin = env!("CARGO_BIN_EXE_lensrig");
-    let o = std::process::Command::new(bin).args(["capture", "--rig", cfg.to_str().unwrap(), "--out", session.to_str().unwrap(), "--quiet"]).output().unwrap();
+    let o = common::bin().args(["capture", "--rig", cfg.to_str().unwrap(), "--out", session.to_str().unwrap(), "--quiet"]).output().unwrap();
     assert!(o.status.success(), "capture: {}", String::from_utf8_lossy(&o.stderr));
     let out = dir.path().join("diag");
-    let o = std::process::Command::new(bin).args(["diagnose", "--session", session.to_str().unwrap(), "--out", out.to_str().unwrap(), "--kernel", "15", "--max-effects", "1"]).output().unwrap();
+    let o = common::bin().args(["diagnose", "--session", session.to_str().unwrap(), "--out", out.to_str().unwrap(), "--kernel", "15", "--max-effects", "1"]).output().unwrap();
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "diagnose --session: {stderr}");
     assert!(stderr.contains("4 / 4 frames averaged"), "frame counts not read from the metadata: {stderr}");
@@ -283,7 +274,7 @@ fn diagnose_reads_a_capture_session() {
     let pred = read_image(&pairs[0].join("predicted_final.png")).unwrap();
     assert_eq!((pred.width(), pred.height(), pred.channel_count()), (open.width(), open.height(), open.channel_count()));
     // a bad --frames is refused with a one-line cause
-    let o = std::process::Command::new(bin).args(["diagnose", "--open", "a.png", "--pinhole", "b.png", "--out", "x", "--frames", "0,4"]).output().unwrap();
+    let o = common::run(&["diagnose", "--open", "a.png", "--pinhole", "b.png", "--out", "x", "--frames", "0,4"]);
     assert_eq!(o.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&o.stderr).contains("--frames"), "{}", String::from_utf8_lossy(&o.stderr));
 }

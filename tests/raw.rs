@@ -4,6 +4,8 @@
 //! `LENSRIG_PYTHON`); without it every test here prints `SKIP: …` and passes.
 #![cfg(feature = "raw")]
 
+mod common;
+
 use lensrig::estimate::{estimate, relative_error, EstimateOptions};
 use lensrig::fsutil::Overwrite;
 use lensrig::image::io::{read_image, write_tiff_f32};
@@ -15,6 +17,7 @@ use lensrig::profile::Profile;
 use lensrig::rng::Rng;
 use lensrig::target::{render_noise_scene, TargetSpec};
 use std::path::{Path, PathBuf};
+use common::{fails_one_line as fails, ok};
 use std::process::Command;
 
 const BLACK: [f32; 4] = [1024.0, 1040.0, 1032.0, 1048.0];
@@ -35,24 +38,6 @@ fn python() -> Option<PathBuf> {
         );
     }
     ok.then_some(py)
-}
-
-fn lensrig(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_lensrig")).args(args).output().expect("run lensrig")
-}
-
-fn ok(args: &[&str]) {
-    let o = lensrig(args);
-    assert!(o.status.success(), "lensrig {args:?} failed: {}", String::from_utf8_lossy(&o.stderr));
-}
-
-/// Runs a failing command and returns its one-line message.
-fn fails(args: &[&str]) -> String {
-    let o = lensrig(args);
-    assert_eq!(o.status.code(), Some(2), "lensrig {args:?} should exit 2: {}", String::from_utf8_lossy(&o.stderr));
-    let e = String::from_utf8_lossy(&o.stderr).into_owned();
-    assert_eq!(e.trim_end().lines().count(), 1, "one-line cause expected: {e}");
-    e
 }
 
 fn s(p: &Path) -> &str {

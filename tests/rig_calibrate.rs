@@ -1,52 +1,22 @@
 //! The rig end to end on the simulated hardware (grbl firmware on a pty + mock camera), through
 //! the real binary: calibrate against the simulator's truth, dry runs, never-overwrite, resume.
 
+mod common;
+
+use common::{bin, fails, mock, ok};
 use lensrig::estimate::relative_error;
 use lensrig::profile::Profile;
 use lensrig::rig::camera::mock::MockOptics;
 use lensrig::rig::config;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
-
-fn bin() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_lensrig"))
-}
-
-fn mock() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("rig-configs/mock.toml")
-}
-
-fn run(args: &[&str]) -> Output {
-    bin().args(args).output().unwrap()
-}
-
-fn ok(args: &[&str]) -> String {
-    let o = run(args);
-    assert!(o.status.success(), "{args:?} failed: {}", String::from_utf8_lossy(&o.stderr));
-    String::from_utf8_lossy(&o.stdout).to_string()
-}
-
-fn fails(args: &[&str]) -> String {
-    let o = run(args);
-    assert!(!o.status.success(), "{args:?} should fail");
-    String::from_utf8_lossy(&o.stderr).to_string()
-}
 
 fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("lensrig-rig-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    d
+    common::tmp("rig", name)
 }
 
 /// A copy of mock.toml with absolute target path and `edit` applied.
 fn config_variant(dir: &Path, edit: impl Fn(String) -> String) -> PathBuf {
-    std::fs::create_dir_all(dir).unwrap();
-    let text = std::fs::read_to_string(mock()).unwrap();
-    let target = Path::new(env!("CARGO_MANIFEST_DIR")).join("targets/a4-noise-300dpi.toml");
-    let text = edit(text.replace("\"../targets/a4-noise-300dpi.toml\"", &format!("{:?}", target.display().to_string())));
-    let p = dir.join("rig.toml");
-    std::fs::write(&p, text).unwrap();
-    p
+    common::mock_config(dir, edit)
 }
 
 #[test]

@@ -1,20 +1,21 @@
 //! Faults on the simulated rig (library level, so they can be injected mid-session): each
 //! gives a clear error, the session says `failed: …`, and no finished pair is half-written.
 
+mod common;
+
 use lensrig::rig::config::{self, RigConfig};
 use lensrig::rig::session::{self, CaptureOptions, Rig};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::Ordering;
 
 fn setup(name: &str) -> (RigConfig, PathBuf, PathBuf) {
-    let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("rig-configs/mock.toml");
+    let p = common::mock();
     let mut cfg = config::load(&p).unwrap();
     cfg.camera.width = 128;
     cfg.camera.height = 96;
     cfg.camera.frames_to_average = 1;
     cfg.controller.timeouts.response_ms = 400;
-    let out = std::env::temp_dir().join(format!("lensrig-faults-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&out);
+    let out = common::tmp("faults", name);
     (cfg, p, out)
 }
 

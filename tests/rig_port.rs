@@ -2,36 +2,30 @@
 //! with a pseudo-terminal pair whose master side runs the simulated grbl firmware in this test
 //! process, so the binary talks to "hardware" it did not start, through a real tty.
 
+mod common;
+
+use common::bin;
 use lensrig::rig::controller::sim::{spawn_pty, SimOptions};
 use lensrig::rig::controller::Axis;
 use lensrig::rig::session;
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("lensrig-port-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    d
+    common::tmp("port", name)
 }
 
 /// mock.toml with an absolute target path, small frames, two stage positions.
 fn config(dir: &Path) -> PathBuf {
-    std::fs::create_dir_all(dir).unwrap();
-    let text = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("rig-configs/mock.toml")).unwrap();
-    let target = Path::new(env!("CARGO_MANIFEST_DIR")).join("targets/a4-noise-300dpi.toml");
-    let text = text
-        .replace("\"../targets/a4-noise-300dpi.toml\"", &format!("{:?}", target.display().to_string()))
-        .replace("frames_to_average = 16", "frames_to_average = 1")
-        .replace("width = 384", "width = 128")
-        .replace("height = 288", "height = 96")
-        .replace("positions = [-20.0, -40.0, -60.0]", "positions = [-20.0, -35.0]");
-    let p = dir.join("rig.toml");
-    std::fs::write(&p, text).unwrap();
-    p
+    common::mock_config(dir, |text| {
+        text.replace("frames_to_average = 16", "frames_to_average = 1")
+            .replace("width = 384", "width = 128")
+            .replace("height = 288", "height = 96")
+            .replace("positions = [-20.0, -40.0, -60.0]", "positions = [-20.0, -35.0]")
+    })
 }
 
 fn capture(cfg: &Path, out: &Path, port: &str) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_lensrig"))
+    bin()
         .args(["capture", "--rig", cfg.to_str().unwrap(), "--out", out.to_str().unwrap(), "--port", port, "--quiet"])
         .output()
         .unwrap()
@@ -95,10 +89,10 @@ fn missing_busy_and_silent_ports_fail_clearly() {
 fn the_real_rig_example_checks_and_dry_runs_without_touching_a_device() {
     let dir = tmp("example");
     let cfg = Path::new(env!("CARGO_MANIFEST_DIR")).join("rig-configs/example-real.toml");
-    let o = Command::new(env!("CARGO_BIN_EXE_lensrig")).args(["check-config", cfg.to_str().unwrap()]).output().unwrap();
+    let o = bin().args(["check-config", cfg.to_str().unwrap()]).output().unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let out = dir.join("never");
-    let o = Command::new(env!("CARGO_BIN_EXE_lensrig")).args(["capture", "--rig", cfg.to_str().unwrap(), "--out", out.to_str().unwrap(), "--dry-run"]).output().unwrap();
+    let o = bin().args(["capture", "--rig", cfg.to_str().unwrap(), "--out", out.to_str().unwrap(), "--dry-run"]).output().unwrap();
     let text = String::from_utf8_lossy(&o.stdout);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     assert!(text.contains("/dev/serial/by-id/") && text.contains("move stage X to -110.000 mm") && text.contains("move aperture Z to -14.500 mm (pinhole)"), "{text}");

@@ -3,34 +3,23 @@
 //! pair, and a disk that fills. After each, `--resume` finishes the session without touching
 //! the pairs that were already finished, and nothing half-written is left or trusted.
 
+mod common;
+
+use common::bin;
 use lensrig::rig::session;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
-fn bin() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_lensrig"))
-}
-
 fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("lensrig-resume-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    d
+    common::tmp("resume", name)
 }
 
 /// A copy of mock.toml (absolute target path, small frames) with `edit` applied.
 fn config_variant(dir: &Path, edit: impl Fn(String) -> String) -> PathBuf {
-    std::fs::create_dir_all(dir).unwrap();
-    let text = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("rig-configs/mock.toml")).unwrap();
-    let target = Path::new(env!("CARGO_MANIFEST_DIR")).join("targets/a4-noise-300dpi.toml");
-    let text = text
-        .replace("\"../targets/a4-noise-300dpi.toml\"", &format!("{:?}", target.display().to_string()))
-        .replace("frames_to_average = 16", "frames_to_average = 2")
-        .replace("width = 384", "width = 192")
-        .replace("height = 288", "height = 144");
-    let p = dir.join("rig.toml");
-    std::fs::write(&p, edit(text)).unwrap();
-    p
+    common::mock_config(dir, |text| {
+        edit(text.replace("frames_to_average = 16", "frames_to_average = 2").replace("width = 384", "width = 192").replace("height = 288", "height = 144"))
+    })
 }
 
 fn capture(cfg: &Path, s: &Path, resume: bool) -> Output {
@@ -43,8 +32,7 @@ fn capture(cfg: &Path, s: &Path, resume: bool) -> Output {
 }
 
 fn ok(o: Output) -> String {
-    assert!(o.status.success(), "failed: {}", String::from_utf8_lossy(&o.stderr));
-    String::from_utf8_lossy(&o.stdout).into_owned()
+    common::succeeded(o)
 }
 
 const FILES: [&str; 6] = ["open.png", "open.toml", "pinhole.png", "pinhole.toml", "dark.png", "dark.toml"];

@@ -63,3 +63,32 @@ pub struct RigArgs {
     #[arg(long)]
     pub resume: bool,
 }
+
+#[cfg(test)]
+mod tests {
+    use crate::cli::{Cli, Command};
+    use clap::Parser;
+
+    fn parse(args: &[&str]) -> Command {
+        match Cli::try_parse_from(std::iter::once("lensrig").chain(args.iter().copied())) {
+            Ok(c) => c.command,
+            Err(e) => panic!("{args:?}: {e}"),
+        }
+    }
+
+    /// The shared flags keep each command's former defaults: calibrate fits windows with 300
+    /// iterations, diagnose's base estimate has no joint refinement, the others 150 and 40.
+    #[test]
+    fn each_command_keeps_its_estimation_defaults() {
+        let Command::Calibrate(c) = parse(&["calibrate", "--rig", "r.toml", "--out", "o"]) else { panic!("calibrate") };
+        assert_eq!((c.estimation.max_iterations, c.estimation.joint_iterations), (300, 40));
+        let Command::Diagnose(d) = parse(&["diagnose", "--open", "a", "--pinhole", "b", "--out", "o"]) else { panic!("diagnose") };
+        let o = d.options().estimate;
+        assert_eq!((o.max_iterations, o.joint_iterations, o.kernel_size), (150, 0, None));
+        let Command::Estimate(e) = parse(&["estimate", "--open", "a", "--pinhole", "b", "--out", "o", "--kernel", "21", "--black-level", "0.0625"]) else { panic!("estimate") };
+        let o = e.options();
+        assert_eq!((o.max_iterations, o.joint_iterations, o.kernel_size, o.black_level.clone(), o.tolerance, o.lambda_scale), (150, 40, Some(21), vec![0.0625], 1e-3, 1.0));
+        let Command::Demo(m) = parse(&["demo", "--out", "o", "--joint-iterations", "0"]) else { panic!("demo") };
+        assert_eq!((m.estimation.options().joint_iterations, m.estimation.options().max_iterations), (0, 150));
+    }
+}

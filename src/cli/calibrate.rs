@@ -58,9 +58,17 @@ fn ee_map(p: &Profile, c: usize) -> String {
     s
 }
 
+/// One pair's report: its HTML section, its `summary.json` entry and its (median, max)
+/// kernel error against a mock's truth.
+struct PairReport {
+    html: String,
+    json: serde_json::Value,
+    truth: Option<(f64, f64)>,
+}
+
 /// The report section of one pair (PSF mosaics, encircled-energy map, capture previews,
 /// written under `report/<key>/`) and its `summary.json` entry.
-fn pair_section(out: &Path, session_dir: &Path, p: &PairRecord, est: &Estimate, optics: Option<&MockOptics>) -> Result<(String, serde_json::Value, Option<(f64, f64)>)> {
+fn pair_section(out: &Path, session_dir: &Path, p: &PairRecord, est: &Estimate, optics: Option<&MockOptics>) -> Result<PairReport> {
     let prof = &est.profile;
     let g = &prof.grid;
     let dir = out.join("report").join(&p.key);
@@ -94,7 +102,7 @@ fn pair_section(out: &Path, session_dir: &Path, p: &PairRecord, est: &Estimate, 
         "exposure_ratio": prof.meta.exposure_ratio,
         "truth_median_relative_error": truth.map(|t| t.0), "truth_max_relative_error": truth.map(|t| t.1),
     });
-    Ok((html, json, truth))
+    Ok(PairReport { html, json, truth })
 }
 
 pub fn run(a: &CalibrateArgs) -> Result<()> {
@@ -121,10 +129,10 @@ pub fn run(a: &CalibrateArgs) -> Result<()> {
     let mut pairs_json = Vec::new();
     let mut medians = Vec::new();
     for (p, est) in &ests {
-        let (section, json, truth) = pair_section(&a.out, &session_dir, p, est, optics.as_ref())?;
-        html.push_str(&section);
-        pairs_json.push(json);
-        medians.extend(truth.map(|t| t.0));
+        let r = pair_section(&a.out, &session_dir, p, est, optics.as_ref())?;
+        html.push_str(&r.html);
+        pairs_json.push(r.json);
+        medians.extend(r.truth.map(|t| t.0));
     }
     let seconds = t0.elapsed().as_secs_f64();
     let summary = serde_json::json!({

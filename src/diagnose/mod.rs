@@ -43,15 +43,16 @@ use fit::{Data, Fit, FitSettings, Model};
 use noise::{NoiseCurve, PoissonGaussian};
 use serde::Serialize;
 
-/// Why the diagnosis failed.
+/// Why the diagnosis failed. Sizes in pixels.
 #[derive(Debug, thiserror::Error)]
 pub enum DiagnoseError {
-    #[error("the images differ: {0}")]
-    Mismatch(String),
-    #[error("base estimate failed: {0}")]
+    #[error("the images differ: wide-open is {}x{} with {} channel(s), pinhole {}x{} with {}", open[0], open[1], open[2], pinhole[0], pinhole[1], pinhole[2])]
+    Mismatch { open: [usize; 3], pinhole: [usize; 3] },
+    #[error("base estimate failed")]
     Estimate(#[from] EstimateError),
-    #[error("the profile does not fit the images: {0}")]
-    Profile(String),
+    /// `profile` and `images` are `[width, height, channels]`.
+    #[error("the profile does not fit the images: profile is for {}x{} images with {} channel(s), the captures are {}x{} with {}", profile[0], profile[1], profile[2], images[0], images[1], images[2])]
+    Profile { profile: [usize; 3], images: [usize; 3] },
     #[error(transparent)]
     Corrections(#[from] model::CorrectionError),
 }
@@ -217,133 +218,160 @@ fn sum_planes(ps: &[Plane]) -> Plane {
 }
 
 /// Diagnoses a wide-open / pinhole pair (as stored; `open.transfer` is the declared encoding)
-/// against `profile`, or against a base profile estimated here when none is given.
+/// against `profile`, or against a base profile estimated here when none is given (the module
+/// docs give the stages).
 ///
 /// # Errors
 /// Size or channel mismatch, a profile for other images, or a failed base estimate.
 pub fn diagnose(open: &Image, pinhole: &Image, profile: Option<&Profile>, opts: &DiagnoseOptions) -> Result<Diagnosis, DiagnoseError> {
-    if open.width() != pinhole.width() || open.height() != pinhole.height() || open.channel_count() != pinhole.channel_count() {
-        return Err(DiagnoseError::Mismatch(format!(
-            "wide-open is {}x{} with {} channel(s), pinhole {}x{} with {}",
-            open.width(),
-            open.height(),
-            open.channel_count(),
-            pinhole.width(),
-            pinhole.height(),
-            pinhole.channel_count()
-        )));
+    let dims = |i: &Image| [i.width(), i.height(), i.channel_count()];
+    if dims(open) != dims(pinhole) {
+        return Err(DiagnoseError::Mismatch { open: dims(open), pinhole: dims(pinhole) });
     }
-    let base_profile = match profile {
-        Some(p) => {
-            let s = &p.meta.source;
-            if s.width != open.width() || s.height != open.height() || p.grid.channels.len() != open.channel_count() {
-                return Err(DiagnoseError::Profile(format!(
-                    "profile is for {}x{} images with {} channel(s), the captures are {}x{} with {}",
-                    s.width,
-                    s.height,
-                    p.grid.channels.len(),
-                    open.width(),
-                    open.height(),
-                    open.channel_count()
-                )));
-            }
-            p.clone()
-        }
-        None => {
-            // the base model keeps clipped pixels in the data term (that is a catalogue effect)
-            let eo = EstimateOptions { saturation: f32::INFINITY, progress: opts.progress, ..opts.estimate.clone() };
-            estimate(open, pinhole, &eo)?.profile
-        }
-    };
-    let curves: Vec<NoiseCurve> = open.planes.iter().map(|p| noise::measure(p, 16)).collect();
-    let lin = |img: &Image| -> Vec<Plane> { img.planes.iter().map(|p| p.map(|v| img.transfer.decode(v))).collect() };
-    let base_registration = register::register(&sum_planes(&lin(open)), &sum_planes(&lin(pinhole)), RegistrationModel::Translation).info;
-    let data = Data { open: open.clone(), pinhole: pinhole.clone(), curves, base_registration, pinhole_variance_scale: opts.pinhole_variance_scale };
-    let init = Model { corrections: model::Corrections::default(), grid: base_profile.grid.clone(), exposure: base_profile.meta.exposure_ratio.clone() };
-    let provisional = fit::fit(&data, &init.corrections, &init, opts.base_fit);
-    // the noise curve from the base model's residual (module docs of `noise`), then the base
-    // model refitted with it; the curve stays fixed for every later model
-    let mut data = data;
-    let repeat_noise = opts.repeat_noise.as_ref().filter(|r| r.len() == open.channel_count() && r.iter().all(|c| !c.bins.is_empty()));
-    data.curves = match repeat_noise {
-        Some(r) => r.clone(),
-        None => (0..open.channel_count()).map(|c| noise::measure_residual(&open.planes[c], &provisional.predicted[c], &provisional.eval[c], 16, 8, Some(&provisional.reference_highpass[c]))).collect(),
-    };
-    let base = fit::fit(&data, &provisional.model.corrections, &provisional.model, FitSettings { rounds: 1, kernel_iterations: opts.base_fit.kernel_iterations });
+    let base_profile = base_profile(open, pinhole, profile, opts)?;
+    let (mut data, base, repeat_noise) = base_model(open, pinhole, &base_profile, opts);
     let base_analysis = analyse(&base);
     if opts.progress {
         eprintln!("base model: reduced χ² {:.3} (noise floor {:.3e} RMS)", base.reduced_chi2(), base.noise_rms());
     }
+    let search = add_effects(&mut data, base.clone(), base_analysis.clone(), repeat_noise, opts);
+    let (current, final_analysis, effects, rounds) = (search.current, search.analysis, search.effects, search.rounds);
+    let verdict = verdict(&effects, &current, &final_analysis, opts);
+    let cross_validation = cross_validate(&data, &current, opts.candidate_fit);
+    let noise = noise_reports(&data, &current, open, repeat_noise);
+    let out_profile = corrected_profile(&base_profile, &current, open, &verdict)?;
+    Ok(Diagnosis { noise, base, base_analysis, final_fit: current, final_analysis, effects, rounds, verdict, cross_validation, profile: out_profile, open: open.clone() })
+}
 
-    let mut current_analysis = base_analysis.clone();
-    let mut current = base.clone();
-    let mut effects = Vec::new();
-    let mut rounds = Vec::new();
-    let consistent = |f: &Fit| f.reduced_chi2() <= opts.consistent && f.noise_misfit <= opts.consistent_noise;
-    while effects.len() < opts.max_effects && !consistent(&current) {
-        let null = fit::fit(&data, &current.model.corrections, &current.model, opts.candidate_fit);
-        let mut scores = vec![CandidateScore { name: "(null refit)".into(), reduced_chi2: null.reduced_chi2(), parameters: serde_json::Value::Null, delta_bic: 0.0, note: "the current model refitted with the candidates' budget".into() }];
-        let mut best: Option<(candidates::Candidate, Fit, f64)> = None;
-        let proposed = candidates::propose(&data, &current, &current_analysis);
-        let bar = crate::estimate::progress_bar(opts.progress, proposed.len() as u64, "testing effects");
-        for cand in proposed {
-            bar.inc(1);
-            let f = fit::fit(&data, &cand.corrections, cand.init.as_ref().unwrap_or(&current.model), opts.candidate_fit);
-            let dbic = f.bic() - null.bic();
-            let total = |f: &Fit| f.chi2() + f.noise_chi2;
-            let gain = (total(&null) - total(&f)) / total(&null).max(1e-300);
-            scores.push(CandidateScore { name: cand.name.to_string(), parameters: candidates::parameters_json(cand.name, &f.model.corrections), reduced_chi2: f.reduced_chi2(), delta_bic: dbic, note: format!("removes {:.1}% of χ²", 100.0 * gain) });
-            if dbic < 0.0 && gain >= opts.min_gain && best.as_ref().map_or(true, |b| dbic < b.2) {
-                best = Some((cand, f, dbic));
+/// The given profile (checked against the captures), or one estimated from them.
+fn base_profile(open: &Image, pinhole: &Image, profile: Option<&Profile>, opts: &DiagnoseOptions) -> Result<Profile, DiagnoseError> {
+    match profile {
+        Some(p) => {
+            let s = &p.meta.source;
+            let images = [open.width(), open.height(), open.channel_count()];
+            if s.width != images[0] || s.height != images[1] || p.grid.channels.len() != images[2] {
+                return Err(DiagnoseError::Profile { profile: [s.width, s.height, p.grid.channels.len()], images });
             }
+            Ok(p.clone())
         }
-        bar.finish_and_clear();
-        rounds.push(scores);
+        None => {
+            // the base model keeps clipped pixels in the data term (that is a catalogue effect)
+            let eo = EstimateOptions { saturation: f32::INFINITY, progress: opts.progress, ..opts.estimate.clone() };
+            Ok(estimate(open, pinhole, &eo)?.profile)
+        }
+    }
+}
+
+/// The fit data and the base model fitted with its noise curve: a provisional fit, the noise
+/// curve from its residual (module docs of `noise`) or from repeated frames, then the base
+/// model refitted with it; the curve stays fixed for every later model. Returns whether the
+/// curve came from repeated frames.
+fn base_model(open: &Image, pinhole: &Image, base_profile: &Profile, opts: &DiagnoseOptions) -> (Data, Fit, bool) {
+    let curves: Vec<NoiseCurve> = open.planes.iter().map(|p| noise::measure(p, 16)).collect();
+    let lin = |img: &Image| -> Vec<Plane> { img.planes.iter().map(|p| p.map(|v| img.transfer.decode(v))).collect() };
+    let base_registration = register::register(&sum_planes(&lin(open)), &sum_planes(&lin(pinhole)), RegistrationModel::Translation).info;
+    let mut data = Data { open: open.clone(), pinhole: pinhole.clone(), curves, base_registration, pinhole_variance_scale: opts.pinhole_variance_scale };
+    let init = Model { corrections: model::Corrections::default(), grid: base_profile.grid.clone(), exposure: base_profile.meta.exposure_ratio.clone() };
+    let provisional = fit::fit(&data, &init.corrections, &init, opts.base_fit);
+    let repeat_noise = opts.repeat_noise.as_ref().filter(|r| r.len() == open.channel_count() && r.iter().all(|c| !c.bins.is_empty()));
+    data.curves = match repeat_noise {
+        Some(r) => r.clone(),
+        None => residual_curves(open, &provisional),
+    };
+    let base = fit::fit(&data, &provisional.model.corrections, &provisional.model, FitSettings { rounds: 1, kernel_iterations: opts.base_fit.kernel_iterations });
+    (data, base, repeat_noise.is_some())
+}
+
+/// The noise curve of each channel from a fit's residual.
+fn residual_curves(open: &Image, f: &Fit) -> Vec<NoiseCurve> {
+    (0..open.channel_count()).map(|c| noise::measure_residual(&open.planes[c], &f.predicted[c], &f.eval[c], 16, 8, Some(&f.reference_highpass[c]))).collect()
+}
+
+/// Where the effect search ended.
+struct Search {
+    current: Fit,
+    analysis: Analysis,
+    effects: Vec<FoundEffect>,
+    rounds: Vec<Vec<CandidateScore>>,
+}
+
+/// Adds catalogue effects while the fit is not consistent with noise (module docs, step 3),
+/// then polishes the final model with a larger budget.
+fn add_effects(data: &mut Data, base: Fit, base_analysis: Analysis, repeat_noise: bool, opts: &DiagnoseOptions) -> Search {
+    let mut s = Search { current: base, analysis: base_analysis, effects: Vec::new(), rounds: Vec::new() };
+    while s.effects.len() < opts.max_effects && !consistent(&s.current, opts) {
+        let (scores, best) = search_round(data, &s.current, &s.analysis, opts);
+        s.rounds.push(scores);
         let Some((cand, f, dbic)) = best else {
             if opts.progress {
-                eprintln!("round {}: no catalogue effect improves the fit", rounds.len());
+                eprintln!("round {}: no catalogue effect improves the fit", s.rounds.len());
             }
             break;
         };
         if opts.progress {
-            eprintln!("round {}: {} explains most (reduced χ² {:.3} → {:.3}, ΔBIC {:.0})", rounds.len(), cand.name, current.reduced_chi2(), f.reduced_chi2(), dbic);
+            eprintln!("round {}: {} explains most (reduced χ² {:.3} → {:.3}, ΔBIC {:.0})", s.rounds.len(), cand.name, s.current.reduced_chi2(), f.reduced_chi2(), dbic);
         }
-        let before = Figures::of(&current);
+        let before = Figures::of(&s.current);
         // polish the winner with the base budget
-        let polished = fit::fit(&data, &f.model.corrections, &f.model, opts.base_fit);
+        let polished = fit::fit(data, &f.model.corrections, &f.model, opts.base_fit);
         let f = if polished.chi2() <= f.chi2() { polished } else { f };
-        let after = Figures::of(&f);
         let parameters = candidates::parameters_json(cand.name, &f.model.corrections);
-        effects.push(FoundEffect {
-            name: cand.name.to_string(),
-            evidence: cand.evidence,
-            location: cand.location,
-            parameters,
-            before,
-            after,
-            delta_bic: dbic,
-        });
+        s.effects.push(FoundEffect { name: cand.name.to_string(), evidence: cand.evidence, location: cand.location, parameters, before, after: Figures::of(&f), delta_bic: dbic });
         // the better model's residual gives a cleaner noise curve; refigure with it (a curve
         // from repeated frames does not depend on the model)
-        if repeat_noise.is_none() {
-            data.curves = (0..open.channel_count()).map(|c| noise::measure_residual(&open.planes[c], &f.predicted[c], &f.eval[c], 16, 8, Some(&f.reference_highpass[c]))).collect();
+        if !repeat_noise {
+            data.curves = residual_curves(&data.open, &f);
         }
-        current = fit::fit(&data, &f.model.corrections, &f.model, FitSettings { rounds: 1, kernel_iterations: opts.candidate_fit.kernel_iterations });
-        current_analysis = analyse(&current);
+        s.current = fit::fit(data, &f.model.corrections, &f.model, FitSettings { rounds: 1, kernel_iterations: opts.candidate_fit.kernel_iterations });
+        s.analysis = analyse(&s.current);
     }
-    if !effects.is_empty() {
+    if !s.effects.is_empty() {
         // a last polish of the final model with a larger budget
-        let polished = fit::fit(&data, &current.model.corrections, &current.model, FitSettings { rounds: 2, kernel_iterations: 2 * opts.base_fit.kernel_iterations });
-        if polished.chi2() < current.chi2() {
-            current = polished;
-            current_analysis = analyse(&current);
-            if let Some(e) = effects.last_mut() {
-                e.after = Figures::of(&current);
+        let polished = fit::fit(data, &s.current.model.corrections, &s.current.model, FitSettings { rounds: 2, kernel_iterations: 2 * opts.base_fit.kernel_iterations });
+        if polished.chi2() < s.current.chi2() {
+            s.current = polished;
+            s.analysis = analyse(&s.current);
+            if let Some(e) = s.effects.last_mut() {
+                e.after = Figures::of(&s.current);
             }
         }
     }
-    let final_analysis = current_analysis;
-    let verdict = if effects.is_empty() && current.reduced_chi2() <= opts.consistent {
+    s
+}
+
+/// A fit consistent with noise: reduced χ² and the noise law's misfit within the options'
+/// bounds.
+fn consistent(f: &Fit, opts: &DiagnoseOptions) -> bool {
+    f.reduced_chi2() <= opts.consistent && f.noise_misfit <= opts.consistent_noise
+}
+
+/// One round: the null refit, then every proposed effect refitted from the current model;
+/// returns every score (the null refit first) and the best effect that beats the null refit's
+/// BIC and removes at least `min_gain` of its χ².
+fn search_round(data: &Data, current: &Fit, analysis: &Analysis, opts: &DiagnoseOptions) -> (Vec<CandidateScore>, Option<(candidates::Candidate, Fit, f64)>) {
+    let null = fit::fit(data, &current.model.corrections, &current.model, opts.candidate_fit);
+    let mut scores = vec![CandidateScore { name: "(null refit)".into(), reduced_chi2: null.reduced_chi2(), parameters: serde_json::Value::Null, delta_bic: 0.0, note: "the current model refitted with the candidates' budget".into() }];
+    let mut best: Option<(candidates::Candidate, Fit, f64)> = None;
+    let proposed = candidates::propose(data, current, analysis);
+    let bar = crate::estimate::progress_bar(opts.progress, proposed.len() as u64, "testing effects");
+    let total = |f: &Fit| f.chi2() + f.noise_chi2;
+    for cand in proposed {
+        bar.inc(1);
+        let f = fit::fit(data, &cand.corrections, cand.init.as_ref().unwrap_or(&current.model), opts.candidate_fit);
+        let dbic = f.bic() - null.bic();
+        let gain = (total(&null) - total(&f)) / total(&null).max(1e-300);
+        scores.push(CandidateScore { name: cand.name.to_string(), parameters: candidates::parameters_json(cand.name, &f.model.corrections), reduced_chi2: f.reduced_chi2(), delta_bic: dbic, note: format!("removes {:.1}% of χ²", 100.0 * gain) });
+        if dbic < 0.0 && gain >= opts.min_gain && best.as_ref().map_or(true, |b| dbic < b.2) {
+            best = Some((cand, f, dbic));
+        }
+    }
+    bar.finish_and_clear();
+    (scores, best)
+}
+
+/// "no mismatch", "explained: …" or "unexplained: …".
+fn verdict(effects: &[FoundEffect], current: &Fit, final_analysis: &Analysis, opts: &DiagnoseOptions) -> String {
+    if effects.is_empty() && current.reduced_chi2() <= opts.consistent {
         // the image model fits to the noise floor and no catalogue effect improved it; a noise
         // curve that departs from the Poisson–Gaussian law is reported, not called a mismatch
         let mut v = "no mismatch: the base model fits to the noise floor".to_string();
@@ -351,7 +379,7 @@ pub fn diagnose(open: &Image, pinhole: &Image, profile: Option<&Profile>, opts: 
             v += &format!(" (the measured noise curve departs from a Poisson–Gaussian law by {:.0}%; no catalogue effect explains it)", 100.0 * current.noise_misfit);
         }
         v
-    } else if consistent(&current) {
+    } else if consistent(current, opts) {
         format!("explained: {} bring the fit to the noise floor", effects.iter().map(|e| e.name.as_str()).collect::<Vec<_>>().join(", "))
     } else {
         let curvebits: Vec<String> = final_analysis
@@ -364,19 +392,21 @@ pub fn diagnose(open: &Image, pinhole: &Image, profile: Option<&Profile>, opts: 
             "unexplained: reduced χ² {:.3} remains (noise law misfit {:.0}%); {}; residual depends on {}; excess kurtosis {:.2}",
             current.reduced_chi2(),
             100.0 * current.noise_misfit,
-            analysis::where_text(&final_analysis),
+            analysis::where_text(final_analysis),
             if curvebits.is_empty() { "no single variable".to_string() } else { curvebits.join(", ") },
             final_analysis.excess_kurtosis
         )
-    };
-    let cross_validation = cross_validate(&data, &current, opts.candidate_fit);
-    let transfer = current.transfer;
-    let noise = data
-        .curves
+    }
+}
+
+/// The noise model of each channel, with the Poisson–Gaussian law on the final model's axis
+/// and on the linear one.
+fn noise_reports(data: &Data, current: &Fit, open: &Image, repeat_noise: bool) -> Vec<NoiseReport> {
+    data.curves
         .iter()
         .enumerate()
         .map(|(c, curve)| {
-            let pg = PoissonGaussian::fit(curve, transfer);
+            let pg = PoissonGaussian::fit(curve, current.transfer);
             let pl = PoissonGaussian::fit(curve, crate::image::Transfer::Linear);
             NoiseReport {
                 channel: open.channels.get(c).cloned().unwrap_or_default(),
@@ -388,24 +418,29 @@ pub fn diagnose(open: &Image, pinhole: &Image, profile: Option<&Profile>, opts: 
                 misfit_linear: pl.misfit,
                 curve: curve.clone(),
                 floor_rms: (current.var_channel[c] / current.n_channel[c].max(1) as f64).sqrt(),
-                source: if repeat_noise.is_some() { "repeated frames" } else { "residual" },
+                source: if repeat_noise { "repeated frames" } else { "residual" },
             }
         })
-        .collect();
-    let mut out_profile = base_profile.clone();
-    out_profile.grid = current.model.grid.clone();
-    out_profile.meta.exposure_ratio = current.model.exposure.clone();
-    out_profile.meta.psf.columns = current.model.grid.columns;
-    out_profile.meta.psf.rows = current.model.grid.rows;
-    out_profile.meta.psf.centers = current.model.grid.centers.clone();
-    out_profile.meta.psf.tile_size = Some([open.width() / current.model.grid.columns, open.height() / current.model.grid.rows]);
-    out_profile.meta.corrections = current.model.corrections.to_table()?;
+        .collect()
+}
+
+/// The final model's kernels and corrections as a profile.
+fn corrected_profile(base_profile: &Profile, current: &Fit, open: &Image, verdict: &str) -> Result<Profile, DiagnoseError> {
+    let g = &current.model.grid;
+    let mut out = base_profile.clone();
+    out.grid = g.clone();
+    out.meta.exposure_ratio = current.model.exposure.clone();
+    out.meta.psf.columns = g.columns;
+    out.meta.psf.rows = g.rows;
+    out.meta.psf.centers = g.centers.clone();
+    out.meta.psf.tile_size = Some([open.width() / g.columns, open.height() / g.rows]);
+    out.meta.corrections = current.model.corrections.to_table()?;
     if let Some(t) = current.model.corrections.tone_curve {
         // the captures are encoded: `deblur` and `simulate` decode with the found curve
-        out_profile.meta.source.transfer = t.transfer;
+        out.meta.source.transfer = t.transfer;
     }
-    out_profile.meta.note = format!("refitted by `lensrig diagnose`: {verdict}");
-    Ok(Diagnosis { noise, base, base_analysis, final_fit: current, final_analysis, effects, rounds, verdict, cross_validation, profile: out_profile, open: open.clone() })
+    out.meta.note = format!("refitted by `lensrig diagnose`: {verdict}");
+    Ok(out)
 }
 
 /// Held-out χ²: the model is refitted on one colour of a 16-px checkerboard and evaluated on

@@ -28,22 +28,33 @@ pub mod solver;
 
 use crate::image::{Image, Plane};
 use crate::optics::psf_grid::PsfGrid;
-use crate::profile::{EstimationInfo, Profile, PsfTable, SourceInfo};
+use crate::profile::{EstimationInfo, Profile, PsfTable, RegistrationInfo, SourceInfo};
 use rayon::prelude::*;
 use register::RegistrationModel;
 use solver::{solve_tile, TileData, TileSettings};
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicBool, Ordering};
 
-/// Why estimation failed.
+/// Why estimation failed. Sizes in pixels; channels by name.
 #[derive(Debug, thiserror::Error)]
 pub enum EstimateError {
-    #[error("the images differ: {0}")]
-    Mismatch(String),
-    #[error("invalid option: {0}")]
-    Option(String),
-    #[error("{0}")]
-    Data(String),
+    #[error("the images differ: wide-open is {}x{}, pinhole is {}x{}", open[0], open[1], pinhole[0], pinhole[1])]
+    Size { open: [usize; 2], pinhole: [usize; 2] },
+    #[error("the images differ: wide-open has {open} channels, pinhole {pinhole}")]
+    Channels { open: usize, pinhole: usize },
+    #[error("images of {width}x{height} are too small (at least 32x32)")]
+    TooSmall { width: usize, height: usize },
+    #[error("invalid option: --kernel must be odd and at least 3, got {0}")]
+    KernelSize(usize),
+    #[error("invalid option: tile {tile} is smaller than the kernel {kernel}; use a larger --tile or a smaller --kernel")]
+    TileTooSmall { tile: usize, kernel: usize },
+    #[error("invalid option: fit window {window} is smaller than the kernel {kernel}")]
+    WindowTooSmall { window: usize, kernel: usize },
+    /// A blank frame (lens cap on, target out of view, a dead camera).
+    #[error("the {image} image has no texture in channel {channel} (standard deviation {std_dev:.1e} of full scale, below {TEXTURE_MIN:.0e}): is the target in view and the lens cap off?")]
+    Blank { image: &'static str, channel: String, std_dev: f64 },
+    #[error("channel {channel}: no valid pixels (all saturated or black)")]
+    NoValidPixels { channel: String },
     #[error("cancelled")]
     Cancelled,
 }
@@ -195,94 +206,150 @@ pub fn fit_window(center: [f64; 2], window: usize, w: usize, h: usize) -> (usize
     (x0, x1, y0, y1)
 }
 
-/// Estimates a profile from a wide-open and a pinhole capture of the same target.
+/// Estimates a profile from a wide-open and a pinhole capture of the same target (the
+/// module docs give the stages).
 ///
 /// # Errors
 /// Size or channel mismatch, an even kernel size, a kernel larger than a tile, images too
-/// small, or no valid (unsaturated) data.
+/// small, a blank frame, or no valid (unsaturated) data.
 pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result<Estimate, EstimateError> {
     let t0 = std::time::Instant::now();
-    if open.width() != pinhole.width() || open.height() != pinhole.height() {
-        return Err(EstimateError::Mismatch(format!(
-            "wide-open is {}x{}, pinhole is {}x{}",
-            open.width(),
-            open.height(),
-            pinhole.width(),
-            pinhole.height()
-        )));
-    }
-    if open.channel_count() != pinhole.channel_count() {
-        return Err(EstimateError::Mismatch(format!("wide-open has {} channels, pinhole {}", open.channel_count(), pinhole.channel_count())));
-    }
-    let (w, h) = (open.width(), open.height());
-    if w < 32 || h < 32 {
-        return Err(EstimateError::Data(format!("images of {w}x{h} are too small (at least 32x32)")));
-    }
-    if let Some(k) = opts.kernel_size {
-        if k % 2 == 0 || k < 3 {
-            return Err(EstimateError::Option(format!("--kernel must be odd and at least 3, got {k}")));
-        }
-    }
-    let nch = open.channel_count();
+    check_inputs(open, pinhole, opts)?;
     let open_lin = linear_planes(open, &opts.black_level);
     let pin_lin = linear_planes(pinhole, &opts.black_level);
     // a blank frame (lens cap, target out of view, a dead camera) has nothing to estimate a
     // PSF from: without this it would give a delta-like profile and no complaint
-    for (name, planes) in [("wide-open", &open_lin), ("pinhole", &pin_lin)] {
-        for (c, p) in planes.iter().enumerate() {
-            let sd = p.variance().sqrt();
-            if sd < TEXTURE_MIN {
-                return Err(EstimateError::Data(format!(
-                    "the {name} image has no texture in channel {} (standard deviation {sd:.1e} of full scale, below {TEXTURE_MIN:.0e}): is the target in view and the lens cap off?",
-                    open.channels.get(c).map_or("?", |s| s.as_str())
-                )));
-            }
+    check_texture("wide-open", &open_lin, &open.channels)?;
+    check_texture("pinhole", &pin_lin, &open.channels)?;
+    let (reg, pin_reg, pin_sat_reg) = register_pair(&open_lin, &pin_lin, pinhole, opts);
+    let layout = Layout::choose(&open_lin, &pin_reg, opts)?;
+    let data = valid_data(open, &open_lin, &pin_reg, &pin_sat_reg, layout.kernel, opts)?;
+    let (mut kernels, mut info, tile_fits) = fit_windows(&open_lin, &pin_reg, &data, &layout, opts);
+    if opts.joint_iterations > 0 {
+        refine_jointly(&open_lin, &pin_reg, &data, &layout, &open.channels, &tile_fits, &mut kernels, &mut info, opts);
+    }
+    // the noise level per channel: median over tiles of the least-squares residual level
+    let noise: Vec<f64> = tile_fits
+        .iter()
+        .map(|fits| {
+            let mut v: Vec<f64> = fits.iter().map(|f| f.2).collect();
+            v.sort_by(|a, b| a.total_cmp(b));
+            v[v.len() / 2]
+        })
+        .collect();
+    info.noise_sigma = noise.clone();
+    info.seconds = t0.elapsed().as_secs_f64();
+    let profile = assemble_profile(open, &layout, kernels, data.ratio, reg.info, info, opts);
+    Ok(Estimate { profile, noise_sigma: noise, valid_masks: data.valid_masks, pinhole_registered: pin_reg, open_linear: open_lin })
+}
+
+/// Sizes and the kernel option, before any work.
+fn check_inputs(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result<(), EstimateError> {
+    if open.width() != pinhole.width() || open.height() != pinhole.height() {
+        return Err(EstimateError::Size { open: [open.width(), open.height()], pinhole: [pinhole.width(), pinhole.height()] });
+    }
+    if open.channel_count() != pinhole.channel_count() {
+        return Err(EstimateError::Channels { open: open.channel_count(), pinhole: pinhole.channel_count() });
+    }
+    let (w, h) = (open.width(), open.height());
+    if w < 32 || h < 32 {
+        return Err(EstimateError::TooSmall { width: w, height: h });
+    }
+    match opts.kernel_size {
+        Some(k) if k % 2 == 0 || k < 3 => Err(EstimateError::KernelSize(k)),
+        _ => Ok(()),
+    }
+}
+
+/// Refuses a plane whose standard deviation is below [`TEXTURE_MIN`].
+fn check_texture(image: &'static str, planes: &[Plane], channels: &[String]) -> Result<(), EstimateError> {
+    for (c, p) in planes.iter().enumerate() {
+        let sd = p.variance().sqrt();
+        if sd < TEXTURE_MIN {
+            return Err(EstimateError::Blank { image, channel: channels.get(c).map_or("?", |s| s.as_str()).to_string(), std_dev: sd });
         }
     }
-    let sat = |img: &Image, c: usize| -> Vec<bool> { img.planes[c].data.iter().map(|&v| v >= opts.saturation).collect() };
+    Ok(())
+}
 
-    // registration on the sum of channels
-    let sum_planes = |ps: &[Plane]| {
-        let mut s = Plane::new(w, h);
-        for p in ps {
-            for (a, b) in s.data.iter_mut().zip(&p.data) {
-                *a += b;
-            }
+fn sum_planes(ps: &[Plane]) -> Plane {
+    let mut s = Plane::new(ps[0].width, ps[0].height);
+    for p in ps {
+        for (a, b) in s.data.iter_mut().zip(&p.data) {
+            *a += b;
         }
-        s
-    };
-    let reg = register::register(&sum_planes(&open_lin), &sum_planes(&pin_lin), opts.registration);
+    }
+    s
+}
+
+/// Registers the pinhole capture to the wide-open one on the sum of channels; returns the
+/// registration, the registered pinhole planes and their registered saturation masks.
+fn register_pair(open_lin: &[Plane], pin_lin: &[Plane], pinhole: &Image, opts: &EstimateOptions) -> (register::Registration, Vec<Plane>, Vec<Vec<bool>>) {
+    let reg = register::register(&sum_planes(open_lin), &sum_planes(pin_lin), opts.registration);
     let pin_reg: Vec<Plane> = pin_lin.iter().map(|p| register::apply(p, &reg.info)).collect();
-    let pin_sat_reg: Vec<Vec<bool>> = (0..nch)
-        .map(|c| {
-            let m = Plane { width: w, height: h, data: sat(pinhole, c).iter().map(|&b| b as u8 as f32).collect() };
+    let pin_sat_reg: Vec<Vec<bool>> = pinhole
+        .planes
+        .iter()
+        .map(|p| {
+            let m = Plane { width: p.width, height: p.height, data: p.data.iter().map(|&v| (v >= opts.saturation) as u8 as f32).collect() };
             register::apply(&m, &reg.info).data.iter().map(|&v| v > 0.0).collect()
         })
         .collect();
+    (reg, pin_reg, pin_sat_reg)
+}
 
-    // kernel size
-    let k = match opts.kernel_size {
-        Some(k) => k,
-        None => choose_kernel_size(&open_lin, &pin_reg, opts)?,
-    };
-    let tile = opts.tile.unwrap_or_else(|| default_tile(k, w, h));
-    if tile < k {
-        return Err(EstimateError::Option(format!("tile {tile} is smaller than the kernel {k}; use a larger --tile or a smaller --kernel")));
+/// Kernel size, PSF centre grid and fit window (pixels).
+struct Layout {
+    kernel: usize,
+    columns: usize,
+    rows: usize,
+    window: usize,
+    centers: Vec<[f64; 2]>,
+}
+
+impl Layout {
+    fn choose(open_lin: &[Plane], pin_reg: &[Plane], opts: &EstimateOptions) -> Result<Layout, EstimateError> {
+        let (w, h) = (open_lin[0].width, open_lin[0].height);
+        let k = match opts.kernel_size {
+            Some(k) => k,
+            None => choose_kernel_size(open_lin, pin_reg, opts)?,
+        };
+        let tile = opts.tile.unwrap_or_else(|| default_tile(k, w, h));
+        if tile < k {
+            return Err(EstimateError::TileTooSmall { tile, kernel: k });
+        }
+        let (columns, rows) = tile_grid(w, h, tile);
+        let window = opts.window.unwrap_or_else(|| default_window(k, w, h));
+        if window < k {
+            return Err(EstimateError::WindowTooSmall { window, kernel: k });
+        }
+        Ok(Layout { kernel: k, columns, rows, window, centers: PsfGrid::regular_centers(w, h, columns, rows) })
     }
-    let (cols, rows) = tile_grid(w, h, tile);
-    let window = opts.window.unwrap_or_else(|| default_window(k, w, h));
-    if window < k {
-        return Err(EstimateError::Option(format!("fit window {window} is smaller than the kernel {k}")));
+
+    fn tiles(&self) -> usize {
+        self.columns * self.rows
     }
+}
+
+/// The data term's masks and the exposure ratios.
+struct ValidData {
+    valid_masks: Vec<Vec<bool>>,
+    /// `s_c = Σ open / Σ pinhole` over the valid pixels.
+    ratio: Vec<f64>,
+    saturated_fraction: f64,
+}
+
+/// Valid pixels per channel (a kernel radius from the edges, the wide-open pixel unsaturated
+/// and no saturated pinhole pixel in its footprint) and the exposure ratio over them.
+fn valid_data(open: &Image, open_lin: &[Plane], pin_reg: &[Plane], pin_sat_reg: &[Vec<bool>], k: usize, opts: &EstimateOptions) -> Result<ValidData, EstimateError> {
+    let (w, h, nch) = (open.width(), open.height(), open.channel_count());
     let r = k / 2;
-
-    // valid data masks and exposure ratios
     let mut valid_masks = Vec::with_capacity(nch);
     let mut ratio = Vec::with_capacity(nch);
     let mut sat_count = 0usize;
     for c in 0..nch {
         let bad_pin = dilate(&pin_sat_reg[c], w, h, r);
-        let so = sat(open, c);
+        let so: Vec<bool> = open.planes[c].data.iter().map(|&v| v >= opts.saturation).collect();
         let mut m = vec![false; w * h];
         let (mut so_sum, mut sp_sum) = (0.0f64, 0.0f64);
         for y in r..h.saturating_sub(r) {
@@ -297,21 +364,29 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
         }
         sat_count += so.iter().filter(|&&b| b).count();
         if sp_sum <= 0.0 || m.iter().all(|&b| !b) {
-            return Err(EstimateError::Data(format!("channel {}: no valid pixels (all saturated or black)", open.channels[c])));
+            return Err(EstimateError::NoValidPixels { channel: open.channels[c].clone() });
         }
         ratio.push(so_sum / sp_sum);
         valid_masks.push(m);
     }
+    Ok(ValidData { valid_masks, ratio, saturated_fraction: sat_count as f64 / (w * h * nch) as f64 })
+}
 
-    let centers = PsfGrid::regular_centers(w, h, cols, rows);
-    let jobs: Vec<(usize, usize)> = (0..nch).flat_map(|c| (0..cols * rows).map(move |t| (c, t))).collect();
+/// Per channel and tile: `(TV weight, data pixels, noise level)` of the window fit.
+type TileFits = Vec<Vec<(f32, usize, f64)>>;
+
+/// Fits every (channel, centre) on its own window, in parallel; returns the kernels, the
+/// profile's estimation figures and the per-tile fit figures.
+fn fit_windows(open_lin: &[Plane], pin_reg: &[Plane], data: &ValidData, layout: &Layout, opts: &EstimateOptions) -> (Vec<Vec<Plane>>, EstimationInfo, TileFits) {
+    let (w, h, nch, k, nt) = (open_lin[0].width, open_lin[0].height, open_lin.len(), layout.kernel, layout.tiles());
+    let jobs: Vec<(usize, usize)> = (0..nch).flat_map(|c| (0..nt).map(move |t| (c, t))).collect();
     let bar = progress_bar(opts.progress, jobs.len() as u64, "estimating PSFs");
     let cancelled = AtomicBool::new(false);
     let results: Vec<_> = jobs
         .par_iter()
         .map(|&(c, t)| {
-            let win = fit_window(centers[t], window, w, h);
-            let data = tile_data(&open_lin[c], &pin_reg[c], &valid_masks[c], ratio[c] as f32, win, k);
+            let win = fit_window(layout.centers[t], layout.window, w, h);
+            let td = tile_data(&open_lin[c], &pin_reg[c], &data.valid_masks[c], data.ratio[c] as f32, win, k);
             let settings = TileSettings {
                 kernel_size: k,
                 lambda: None,
@@ -321,67 +396,64 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
                 max_iterations: opts.max_iterations,
                 tolerance: opts.tolerance,
             };
-            let res = solve_tile(&data, &settings, |_, _| !cancelled.load(Ordering::Relaxed));
+            let res = solve_tile(&td, &settings, |_, _| !cancelled.load(Ordering::Relaxed));
             bar.inc(1);
             (c, t, res)
         })
         .collect();
     bar.finish_and_clear();
 
-    let mut kernels = vec![vec![Plane::new(k, k); cols * rows]; nch];
+    let mut kernels = vec![vec![Plane::new(k, k); nt]; nch];
     let mut info = EstimationInfo {
         lambda: 0.0,
         mu: opts.mu_relative,
         noise_sigma: vec![],
-        iterations: vec![vec![0; cols * rows]; nch],
-        relative_gap: vec![vec![0.0; cols * rows]; nch],
-        residual_rms: vec![vec![0.0; cols * rows]; nch],
-        saturated_fraction: sat_count as f64 / (w * h * nch) as f64,
+        iterations: vec![vec![0; nt]; nch],
+        relative_gap: vec![vec![0.0; nt]; nch],
+        residual_rms: vec![vec![0.0; nt]; nch],
+        saturated_fraction: data.saturated_fraction,
         seconds: 0.0,
     };
     let mut lam_sum = 0.0;
-    let mut tile_noise = vec![Vec::new(); nch];
-    let mut tile_lambda = vec![vec![(0.0f32, 0usize, 0.0f64); cols * rows]; nch];
+    let mut fits = vec![vec![(0.0f32, 0usize, 0.0f64); nt]; nch];
     for (c, t, res) in results {
-        tile_lambda[c][t] = (res.lambda, res.data_pixels, res.noise_sigma);
-        tile_noise[c].push(res.noise_sigma);
-        let lambda = res.lambda;
+        fits[c][t] = (res.lambda, res.data_pixels, res.noise_sigma);
         kernels[c][t] = res.kernel;
         info.iterations[c][t] = res.stats.iterations;
         info.relative_gap[c][t] = res.stats.criterion;
         info.residual_rms[c][t] = res.residual_rms;
-        lam_sum += lambda as f64;
+        lam_sum += res.lambda as f64;
     }
     info.lambda = lam_sum / jobs.len() as f64;
-    if opts.joint_iterations > 0 {
-        let shape = PsfGrid { kernel_size: k, columns: cols, rows, centers: centers.clone(), channels: open.channels.clone(), kernels: vec![] };
-        let o = crate::solve::primal_dual::SplitOptions { max_iterations: opts.joint_iterations, min_iterations: 5, tolerance: opts.tolerance * 0.1 };
-        let mut power = Vec::new();
-        let bar = progress_bar(opts.progress, (nch * opts.joint_iterations) as u64, "joint refinement");
-        for c in 0..nch {
-            let mut sharp = pin_reg[c].clone();
-            sharp.scale(ratio[c] as f32);
-            let (st, rms) = joint::refine_channel(&open_lin[c], &sharp, &valid_masks[c], &shape, &mut kernels[c], &tile_lambda[c], &o, &mut power, &bar, joint::JOINT_DATA_PIXELS);
-            bar.set_position(((c + 1) * opts.joint_iterations) as u64);
-            // the profile's per-tile figures then describe the refined kernels
-            for t in 0..cols * rows {
-                info.iterations[c][t] += st.iterations;
-                info.residual_rms[c][t] = rms;
-            }
+    (kernels, info, fits)
+}
+
+/// Refines all kernels of each channel jointly with the interpolated forward model
+/// ([`joint`]); the profile's per-tile figures then describe the refined kernels.
+#[allow(clippy::too_many_arguments)]
+fn refine_jointly(open_lin: &[Plane], pin_reg: &[Plane], data: &ValidData, layout: &Layout, channels: &[String], fits: &TileFits, kernels: &mut [Vec<Plane>], info: &mut EstimationInfo, opts: &EstimateOptions) {
+    let shape = PsfGrid { kernel_size: layout.kernel, columns: layout.columns, rows: layout.rows, centers: layout.centers.clone(), channels: channels.to_vec(), kernels: vec![] };
+    let o = crate::solve::primal_dual::SplitOptions { max_iterations: opts.joint_iterations, min_iterations: 5, tolerance: opts.tolerance * 0.1 };
+    let mut power = Vec::new();
+    let bar = progress_bar(opts.progress, (open_lin.len() * opts.joint_iterations) as u64, "joint refinement");
+    for c in 0..open_lin.len() {
+        let mut sharp = pin_reg[c].clone();
+        sharp.scale(data.ratio[c] as f32);
+        let (st, rms) = joint::refine_channel(&open_lin[c], &sharp, &data.valid_masks[c], &shape, &mut kernels[c], &fits[c], &o, &mut power, &bar, joint::JOINT_DATA_PIXELS);
+        bar.set_position(((c + 1) * opts.joint_iterations) as u64);
+        for t in 0..layout.tiles() {
+            info.iterations[c][t] += st.iterations;
+            info.residual_rms[c][t] = rms;
         }
-        bar.finish_and_clear();
     }
-    // the noise level per channel: median over tiles of the least-squares residual level
-    let noise: Vec<f64> = tile_noise
-        .into_iter()
-        .map(|mut v| {
-            v.sort_by(|a, b| a.total_cmp(b));
-            v[v.len() / 2]
-        })
-        .collect();
-    info.noise_sigma = noise.clone();
-    info.seconds = t0.elapsed().as_secs_f64();
-    let grid = PsfGrid { kernel_size: k, columns: cols, rows, centers: centers.clone(), channels: open.channels.clone(), kernels };
+    bar.finish_and_clear();
+}
+
+/// The profile of an estimate: grid, source description and metadata.
+fn assemble_profile(open: &Image, layout: &Layout, kernels: Vec<Vec<Plane>>, ratio: Vec<f64>, registration: RegistrationInfo, info: EstimationInfo, opts: &EstimateOptions) -> Profile {
+    let (w, h, k) = (open.width(), open.height(), layout.kernel);
+    let (cols, rows) = (layout.columns, layout.rows);
+    let grid = PsfGrid { kernel_size: k, columns: cols, rows, centers: layout.centers.clone(), channels: open.channels.clone(), kernels };
     let source = SourceInfo {
         width: w,
         height: h,
@@ -392,12 +464,12 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
         pinhole: None,
         black_level: opts.black_level.clone(),
     };
-    let psf = PsfTable { kernel_size: k, columns: cols, rows, centers, tile_size: Some([w / cols, h / rows]), files: BTreeMap::new() };
+    let psf = PsfTable { kernel_size: k, columns: cols, rows, centers: layout.centers.clone(), tile_size: Some([w / cols, h / rows]), files: BTreeMap::new() };
     let mut meta = Profile::new_meta(source, ratio, psf);
-    meta.registration = reg.info;
+    meta.registration = registration;
     meta.estimation = info;
     meta.raw = open.raw.clone();
-    Ok(Estimate { profile: Profile { meta, grid }, noise_sigma: noise, valid_masks, pinhole_registered: pin_reg, open_linear: open_lin })
+    Profile { meta, grid }
 }
 
 /// Builds the working domain of one tile: the tile plus the kernel radius on every side,
@@ -524,12 +596,12 @@ mod tests {
         let blank = Image::new(vec![Plane::filled(w, h, 0.4)]);
         let opts = EstimateOptions { kernel_size: Some(5), max_iterations: 5, joint_iterations: 0, ..Default::default() };
         match estimate(&textured, &blank, &opts) {
-            Err(EstimateError::Data(m)) => assert!(m.contains("pinhole image has no texture"), "{m}"),
-            other => panic!("expected a data error, got {:?}", other.map(|_| ())),
+            Err(e @ EstimateError::Blank { image: "pinhole", .. }) => assert!(e.to_string().contains("pinhole image has no texture"), "{e}"),
+            other => panic!("expected a blank-frame error, got {:?}", other.map(|_| ())),
         }
         match estimate(&blank, &textured, &opts) {
-            Err(EstimateError::Data(m)) => assert!(m.contains("wide-open image has no texture"), "{m}"),
-            other => panic!("expected a data error, got {:?}", other.map(|_| ())),
+            Err(e @ EstimateError::Blank { image: "wide-open", .. }) => assert!(e.to_string().contains("wide-open image has no texture"), "{e}"),
+            other => panic!("expected a blank-frame error, got {:?}", other.map(|_| ())),
         }
         assert!(estimate(&textured, &textured, &opts).is_ok());
     }

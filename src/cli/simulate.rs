@@ -33,8 +33,14 @@ pub fn run(a: &SimulateArgs) -> Result<()> {
         eprintln!("lensrig: note: {note}");
     }
     let mut sharp = loaded.image;
+    if sharp.raw.is_some() && sharp.channels != profile.grid.channels {
+        sharp = lensrig::image::raw::demosaic_bilinear(&sharp, &a.sharp)?;
+    }
     sharp.transfer = profile.meta.source.transfer;
-    let out = predict(&profile, &sharp).with_context(|| a.sharp.display().to_string())?;
+    let mut out = predict(&profile, &sharp).with_context(|| a.sharp.display().to_string())?;
+    // a raw sharp image in CFA planes: the prediction is written as bilinear RGB
+    out.raw = sharp.raw.clone();
+    let out = lensrig::image::raw::for_output(&out, &a.out)?;
     write_png16(&a.out, &out, if a.force { Overwrite::Replace } else { Overwrite::Never })?;
     println!("wrote {} ({}x{}, {} channel(s), 16-bit)", a.out.display(), out.width(), out.height(), out.channel_count());
     Ok(())

@@ -3,7 +3,8 @@
 //! Reads the input as stored, decodes it with the profile's source transfer curve (or the one
 //! given), subtracts the profile's black level (full-scale units), restores the linear planes
 //! with [`super::deblur`], adds the black level back, re-encodes with the same curve and
-//! writes a 16-bit PNG of the input's size. The input must have the profile's channel count
+//! writes a 16-bit PNG of the input's size (a camera raw input: a linear 16-bit TIFF, see
+//! [`crate::image::raw`]). The input must have the profile's channel count
 //! and the size the profile was measured on (tile centres are pixel positions).
 
 use super::{deblur, DeconvError, DeconvOptions, DeconvReport};
@@ -29,6 +30,8 @@ pub enum RestoreError {
     PngChannels { input: PathBuf, got: usize },
     #[error("{}: --mask-invalid drops pixels through the saturation mask, which is disabled (use a saturation level ≤ 1)", input.display())]
     MaskWithoutSaturation { input: PathBuf },
+    #[error("{}: a camera raw input is restored to a linear 16-bit TIFF; name the output .tiff", out.display())]
+    RawOutput { out: PathBuf },
     #[error("cannot restore {}", input.display())]
     Deconv { input: PathBuf, #[source] source: DeconvError },
 }
@@ -76,13 +79,22 @@ pub fn restore_file(job: &RestoreFile, opts: &DeconvOptions) -> Result<Restored,
     let mut img = loaded.image;
     let grid = &profile.grid;
     let src = &profile.meta.source;
+    // camera raw input: CFA planes, or bilinear RGB for a profile of demosaiced channels; the
+    // result is a linear 16-bit TIFF (crate::image::raw)
+    let raw_in = img.raw.is_some();
+    if raw_in && img.channels != grid.channels {
+        img = crate::image::raw::demosaic_bilinear(&img, job.input)?;
+    }
+    if raw_in && !job.out.extension().is_some_and(|e| e.eq_ignore_ascii_case("tif") || e.eq_ignore_ascii_case("tiff")) {
+        return Err(RestoreError::RawOutput { out: job.out.into() });
+    }
     if img.channel_count() != grid.channels.len() {
         return Err(RestoreError::Channels { input: job.input.into(), profile: job.profile.into(), got: img.channel_count(), expected: grid.channels.len(), names: grid.channels.join(",") });
     }
     if img.width() != src.width || img.height() != src.height {
         return Err(RestoreError::Size { input: job.input.into(), profile: job.profile.into(), got_width: img.width(), got_height: img.height(), width: src.width, height: src.height });
     }
-    if !matches!(img.channel_count(), 1 | 3) {
+    if !raw_in && !matches!(img.channel_count(), 1 | 3) {
         return Err(RestoreError::PngChannels { input: job.input.into(), got: img.channel_count() });
     }
     let transfer = job.transfer.unwrap_or(src.transfer);
@@ -122,7 +134,11 @@ pub fn restore_file(job: &RestoreFile, opts: &DeconvOptions) -> Result<Restored,
     lin.planes = planes;
     lin.transfer = Transfer::Linear;
     let out = lin.encoded(transfer);
-    write_png16(job.out, &out, job.overwrite)?;
+    if raw_in {
+        crate::image::raw::write_linear_tiff16(job.out, &out, job.overwrite)?;
+    } else {
+        write_png16(job.out, &out, job.overwrite)?;
+    }
     Ok(Restored { report, notes })
 }
 

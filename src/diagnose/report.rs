@@ -41,6 +41,7 @@ fn stored_image(d: &Diagnosis, planes: Vec<crate::image::Plane>) -> Image {
     img.channels = d.open.channels.clone();
     img.format = d.open.format;
     img.transfer = d.open.transfer;
+    img.raw = d.open.raw.clone();
     img
 }
 
@@ -86,11 +87,14 @@ impl Diagnosis {
 pub fn write_report(d: &Diagnosis, dir: &Path, src: &Sources) -> Result<(), ReportError> {
     std::fs::create_dir_all(dir).map_err(|source| ReportError::Io { path: dir.into(), source })?;
     let p = |n: &str| dir.join(n);
-    write_png16(&p("predicted_base.png"), &stored_image(d, d.base.predicted.clone()), Overwrite::Replace)?;
-    write_png16(&p("predicted_final.png"), &stored_image(d, d.final_fit.predicted.clone()), Overwrite::Replace)?;
+    // raw CFA planes are previewed as bilinear RGB (crate::image::raw::for_output)
+    let preview = |img: Image, name: &str| crate::image::raw::for_output(&img, &p(name));
+    write_png16(&p("predicted_base.png"), &preview(stored_image(d, d.base.predicted.clone()), "predicted_base.png")?, Overwrite::Replace)?;
+    write_png16(&p("predicted_final.png"), &preview(stored_image(d, d.final_fit.predicted.clone()), "predicted_final.png")?, Overwrite::Replace)?;
     for (name, fit) in [("residual_base.png", &d.base), ("residual_final.png", &d.final_fit)] {
-        let planes: Vec<_> = fit.normalized.iter().map(residual_image).collect();
-        write_png8(&p(name), &Image::new(planes), Overwrite::Replace)?;
+        let mut img = Image::new(fit.normalized.iter().map(residual_image).collect());
+        img.raw = d.open.raw.clone();
+        write_png8(&p(name), &preview(img, name)?, Overwrite::Replace)?;
     }
     d.profile.save(&p("profile"))?;
     let text = serde_json::to_string_pretty(&report_json(d, src))?;

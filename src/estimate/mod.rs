@@ -468,6 +468,7 @@ fn assemble_profile(open: &Image, layout: &Layout, kernels: Vec<Vec<Plane>>, rat
     let mut meta = Profile::new_meta(source, ratio, psf);
     meta.registration = registration;
     meta.estimation = info;
+    meta.raw = open.raw.clone();
     Profile { meta, grid }
 }
 

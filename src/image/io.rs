@@ -53,7 +53,8 @@ fn decode_err(path: &Path, e: impl std::error::Error + Send + Sync + 'static) ->
     ImageError::Decode { path: path.into(), source: Box::new(e) }
 }
 
-/// Reads a PNG or TIFF file (chosen by content, not by extension).
+/// Reads a PNG or TIFF file (chosen by content, not by extension), or a camera raw file
+/// (chosen by extension, see [`super::raw`]: CFA planes `R, G1, G2, B`, levels from the file).
 ///
 /// # Errors
 /// [`ImageError`] naming `path` for unreadable files, corrupt data, and unsupported layouts
@@ -69,8 +70,12 @@ pub fn read_image(path: &Path) -> Result<Image, ImageError> {
 /// # Errors
 /// As [`read_image`]; [`ImageError::NonFinite`] only under [`InvalidPixels::Refuse`].
 pub fn read_image_with(path: &Path, policy: InvalidPixels) -> Result<Loaded, ImageError> {
-    let bytes = std::fs::read(path).map_err(|source| ImageError::Io { path: path.into(), source })?;
-    let mut image = decode_image(path, &bytes)?;
+    let mut image = if super::raw::is_raw_path(path) {
+        super::raw::read_raw(path, super::raw::RawMethod::CfaPlanes)?
+    } else {
+        let bytes = std::fs::read(path).map_err(|source| ImageError::Io { path: path.into(), source })?;
+        decode_image(path, &bytes)?
+    };
     let values = check_values(&mut image, policy).map_err(|message| ImageError::NonFinite { path: path.into(), message })?;
     Ok(Loaded { image, values })
 }

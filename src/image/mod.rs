@@ -11,10 +11,13 @@
 //!   and stays encoded until [`Transfer::decode`] is applied. The physics (blur, exposure,
 //!   noise) is only valid on linear values.
 //! - An [`Image`] is a list of equally sized planes with channel names (`R`,`G`,`B` or `Y`,
-//!   or any names for multispectral data).
+//!   or any names for multispectral data). Camera raw files ([`raw`]) are read as four
+//!   half-resolution CFA planes `R`,`G1`,`G2`,`B` with the file's black level removed and its
+//!   white level at 1; [`Image::raw`] records the layout.
 
 pub mod filter;
 pub mod io;
+pub mod raw;
 pub mod resample;
 pub mod spectrum;
 pub mod validate;
@@ -285,6 +288,9 @@ pub struct Image {
     pub channels: Vec<String>,
     pub format: SampleFormat,
     pub transfer: Transfer,
+    /// Set for images read from a camera raw file: which raw channels the planes hold and
+    /// the levels taken from the file ([`raw`]).
+    pub raw: Option<raw::RawLayout>,
 }
 
 impl Image {
@@ -297,7 +303,7 @@ impl Image {
             assert!(planes.iter().all(|p| p.width == p0.width && p.height == p0.height), "planes differ in size");
         }
         let channels = default_channel_names(planes.len());
-        Self { planes, channels, format: SampleFormat::U16, transfer: Transfer::Linear }
+        Self { planes, channels, format: SampleFormat::U16, transfer: Transfer::Linear, raw: None }
     }
 
     pub fn width(&self) -> usize {

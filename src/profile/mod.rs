@@ -154,6 +154,11 @@ pub struct ProfileToml {
     /// Extra physics fitted by `diagnose` (effect name -> parameters), applied by `simulate`.
     #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     pub corrections: BTreeMap<String, toml::Value>,
+    /// For profiles estimated from camera raw files: the raw channels the kernels describe
+    /// (`R, G1, G2, B` CFA planes at half resolution, or bilinear `R, G, B`), the CFA pattern
+    /// and the levels taken from the file. Optional; absent for PNG/TIFF sources.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub raw: Option<crate::image::raw::RawLayout>,
 }
 
 /// A profile in memory.
@@ -347,6 +352,7 @@ impl Profile {
             estimation: EstimationInfo::default(),
             psf,
             corrections: BTreeMap::new(),
+            raw: None,
         }
     }
 }

@@ -12,4 +12,5 @@
 pub mod camera;
 pub mod config;
 pub mod controller;
+pub mod events;
 pub mod session;

@@ -1190,7 +1190,26 @@ pub struct SimHandle {
     _keepalive: Option<Box<dyn Send>>,
 }
 
+/// A view of a running board that another thread can hold: its faults and true state.
+#[derive(Clone)]
+pub struct SimObserver {
+    pub faults: Arc<Faults>,
+    state: Arc<Mutex<SimState>>,
+}
+
+impl SimObserver {
+    /// The firmware's true state (locks briefly).
+    pub fn state(&self) -> MutexGuard<'_, SimState> {
+        self.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
 impl SimHandle {
+    /// A cloneable view of the board for another thread.
+    pub fn observer(&self) -> SimObserver {
+        SimObserver { faults: self.faults.clone(), state: self.state.clone() }
+    }
+
     /// The firmware's true state (locks briefly).
     pub fn state(&self) -> MutexGuard<'_, SimState> {
         self.state.lock().unwrap_or_else(|e| e.into_inner())

@@ -7,6 +7,8 @@ pub mod bench;
 pub mod calibrate;
 pub mod capture;
 pub mod demo;
+pub mod devices;
+pub mod jog;
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
@@ -51,6 +53,11 @@ pub enum Command {
     /// Find where the profile's simulation and the recording disagree, name the missing
     /// physics, model it and refit (report.json, predictions and an HTML report).
     Diagnose(lensrig::diagnose::cli::DiagnoseArgs),
+    /// List cameras (V4L2 formats, sizes, controls) and serial ports; with --port, print a
+    /// grbl board's build info and settings and check them against --rig.
+    Devices(devices::DevicesArgs),
+    /// Move the rig's axes from the keyboard and print the machine position.
+    Jog(jog::JogArgs),
 }
 
 #[derive(Args, Debug)]
@@ -145,6 +152,8 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::CheckConfig(a) => capture::run_check_config(&a),
         Command::Calibrate(a) => calibrate::run(&a),
         Command::Diagnose(a) => lensrig::diagnose::cli::run(&a),
+        Command::Devices(a) => devices::run(&a),
+        Command::Jog(a) => jog::run(&a),
     }
 }
 

@@ -136,7 +136,7 @@ impl SessionError {
                 ControllerError::Timeout { .. } => Some("controller-timeout"),
                 ControllerError::Garbage { .. } => Some("unreadable"),
                 ControllerError::Protocol { .. } => Some("protocol"),
-                ControllerError::Grbl { .. } | ControllerError::LimitViolation { .. } => None,
+                ControllerError::Grbl { .. } | ControllerError::LimitViolation { .. } | ControllerError::HomingDisabled { .. } => None,
             },
             SessionError::Camera(CameraError::Timeout { .. }) => Some("camera-timeout"),
             SessionError::Drift { .. } => Some("drift"),

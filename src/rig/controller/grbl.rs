@@ -124,9 +124,30 @@ impl<T: Read + Write> GrblController<T> {
         }
         c.status()?;
         if c.opts.home_on_start {
+            // before any motion: a board with homing disabled would answer `$H` with error:5
+            let settings = c.settings()?;
+            if settings.get(&22).is_some_and(|v| *v == 0.0) {
+                return Err(ControllerError::HomingDisabled { port: c.name.clone() });
+            }
             c.home()?;
         }
         Ok(c)
+    }
+
+    /// The board's `$$` settings by number (values as numbers; a value that does not parse
+    /// is left out).
+    ///
+    /// # Errors
+    /// As [`GrblController::command`].
+    pub fn settings(&mut self) -> Result<std::collections::BTreeMap<u16, f64>, ControllerError> {
+        let lines = self.command(&Command::Settings)?;
+        Ok(lines
+            .into_iter()
+            .filter_map(|m| match m {
+                Message::Setting { number, value } => value.trim().parse().ok().map(|v| (number, v)),
+                _ => None,
+            })
+            .collect())
     }
 
     /// The port name or path used in errors.

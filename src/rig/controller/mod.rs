@@ -184,6 +184,9 @@ pub enum ControllerError {
     Locked { port: String, reason: String, hint: String },
     #[error("{port}: grbl rejected {command:?} with {error}")]
     Grbl { port: String, command: String, error: GrblError },
+    /// The config homes on start but the board has homing off: found before any motion.
+    #[error("{port}: the rig config homes on start (home_on_start = true) but homing is disabled on the board ($22=0); fix: send `$22=1` to the board (check the limit switches and $23 first), or set home_on_start = false")]
+    HomingDisabled { port: String },
     #[error("{port}: disconnected")]
     Disconnected { port: String },
     #[error("{port}: unreadable bytes from the controller (wrong baud rate or line noise?): {text:?}")]

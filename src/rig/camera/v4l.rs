@@ -156,7 +156,8 @@ pub fn list_formats_ext(dev: &dyn V4lDevice) -> io::Result<String> {
             _ => "",
         };
         let decodes = if decode::SUPPORTED.contains(&f) { "" } else { "  [lensrig cannot decode]" };
-        out += &format!("\t[{i}]: {f} ({what}){decodes}\n");
+        let what = if what.is_empty() { String::new() } else { format!(" ({what})") };
+        out += &format!("\t[{i}]: {f}{what}{decodes}\n");
         for (w, h) in dev.frame_sizes(f)? {
             out += &format!("\t\tSize: Discrete {w}x{h}\n");
         }
@@ -785,11 +786,13 @@ mod tests {
 
     #[test]
     fn listings_use_v4l2_ctl_vocabulary() {
-        let (dev, log) = uvc();
+        let (mut dev, log) = uvc();
+        dev.offered.push(FourCc(*b"H264"));
         let f = list_formats_ext(&dev).unwrap();
         assert!(f.starts_with("ioctl: VIDIOC_ENUM_FMT\n\tType: Video Capture\n"), "{f}");
         assert!(f.contains("\t[0]: 'YUYV' (YUYV 4:2:2)\n\t\tSize: Discrete 640x480\n\t\tSize: Discrete 320x240\n"), "{f}");
-        assert!(f.contains("\t[1]: 'MJPG' (Motion-JPEG, compressed)  [lensrig cannot decode]\n"), "{f}");
+        assert!(f.contains("\t[1]: 'MJPG' (Motion-JPEG, compressed)\n"), "{f}");
+        assert!(f.contains("\t[3]: 'H264'  [lensrig cannot decode]\n"), "{f}");
         assert!(f.contains("\t[2]: 'GREY' (8-bit Greyscale)\n"), "{f}");
         let c = list_ctrls(&dev).unwrap();
         let user = c.find("User Controls").unwrap();

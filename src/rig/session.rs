@@ -13,6 +13,13 @@
 //! average of that many frames at the shortest exposure (1 µs), aperture at pinhole — the
 //! black level `estimate --session` subtracts. (A capped lens is not needed at 1 µs.)
 //!
+//! # Pause instead of fail
+//! A pair that meets a fault retrying can get past ([`SessionError::pause_cause`]: a camera
+//! timeout, a lost port, a grbl alarm, a silent or unreadable controller, illumination drift
+//! beyond `retry.drift_tolerance`) is logged, paused `retry.pause_ms`, the rig recovered
+//! ([`Rig::recover`]) and the pair taken again from an empty `.partial` directory and its
+//! first move, at most `retry.max_tries` times; then [`SessionError::GaveUp`].
+//!
 //! The camera never sees the plan: after each move the controller's status report is read
 //! and written to the shared [`PositionSource`].
 //!
@@ -20,6 +27,7 @@
 //! ```text
 //! SESSION/session.toml                 what ran, with what, and how it ended
 //! SESSION/rig.toml                     a copy of the rig config
+//! SESSION/events.jsonl                 pauses, retries, recoveries, unreadable lines (super::events)
 //! SESSION/pairs/000-stage-X-20.000/    one finished pair:
 //!     open.png open.toml pinhole.png pinhole.toml [dark.png dark.toml]
 //! ```

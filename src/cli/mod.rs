@@ -12,8 +12,10 @@ pub mod capture;
 pub mod check_config;
 pub mod deblur;
 pub mod demo;
+pub mod devices;
 pub mod diagnose;
 pub mod estimate;
+pub mod jog;
 pub mod panic;
 pub mod report;
 pub mod simulate;
@@ -54,6 +56,11 @@ pub enum Command {
     /// Find where the profile's simulation and the recording disagree, name the missing
     /// physics, model it and refit (report.json, predictions and an HTML report).
     Diagnose(diagnose::DiagnoseArgs),
+    /// List cameras (V4L2 formats, sizes, controls) and serial ports; with --port, print a
+    /// grbl board's build info and settings and check them against --rig.
+    Devices(devices::DevicesArgs),
+    /// Move the rig's axes from the keyboard and print the machine position.
+    Jog(jog::JogArgs),
 }
 
 /// Runs a parsed command line.
@@ -69,6 +76,8 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::CheckConfig(a) => check_config::run(&a),
         Command::Calibrate(a) => calibrate::run(&a),
         Command::Diagnose(a) => diagnose::run(&a),
+        Command::Devices(a) => devices::run(&a),
+        Command::Jog(a) => jog::run(&a),
     }
 }
 

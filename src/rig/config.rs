@@ -30,6 +30,9 @@ pub struct RigConfig {
     #[serde(default)]
     pub plan: PlanConfig,
     pub target: Option<TargetConfig>,
+    /// How a capture pauses and retries instead of failing.
+    #[serde(default)]
+    pub retry: RetryConfig,
     /// Free-form parameters of the simulated lens (mock rigs).
     pub lens: Option<toml::Table>,
 }
@@ -62,6 +65,10 @@ pub struct CameraConfig {
     /// Frames dropped after any exposure, gain or axis change.
     #[serde(default = "three")]
     pub discard_after_change: u32,
+    /// Longest wait for one frame (ms) before the capture counts as a camera timeout; allow
+    /// the longest exposure plus the device's latency.
+    #[serde(default = "d_frame_timeout")]
+    pub frame_timeout_ms: u64,
 }
 
 impl CameraConfig {
@@ -175,6 +182,33 @@ impl Default for PlanConfig {
     }
 }
 
+/// `[retry]`: what a capture does when a pair meets a fault it can get past (a camera
+/// timeout, a serial disconnect, a grbl alarm, an unreadable controller, illumination
+/// drift): log a `pause`, wait `pause_ms`, recover (reconnect, reset, re-home or unlock as
+/// the fault needs) and capture the pair again from its first move, at most `max_tries`
+/// times in all.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RetryConfig {
+    /// Tries per pair, the first included (1 = fail at the first fault).
+    #[serde(default = "d_tries")]
+    pub max_tries: u32,
+    /// Wait before each retry and between reconnection attempts (ms).
+    #[serde(default = "d_pause")]
+    pub pause_ms: u64,
+    /// Largest relative change of a frame's light (mean linear level per µs of exposure)
+    /// against the session's first frame of the same role (open or pinhole) before the
+    /// pair is taken again; 0 turns the check off.
+    #[serde(default = "d_drift")]
+    pub drift_tolerance: f64,
+}
+
+impl Default for RetryConfig {
+    fn default() -> Self {
+        Self { max_tries: d_tries(), pause_ms: d_pause(), drift_tolerance: d_drift() }
+    }
+}
+
 /// `[target]`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -206,6 +240,18 @@ fn d_motion() -> u64 {
 }
 fn d_homing() -> u64 {
     120_000
+}
+fn d_frame_timeout() -> u64 {
+    5000
+}
+fn d_tries() -> u32 {
+    3
+}
+fn d_pause() -> u64 {
+    2000
+}
+fn d_drift() -> f64 {
+    0.1
 }
 fn d_settle() -> u64 {
     200
@@ -298,6 +344,16 @@ impl RigConfig {
         }
         if c.frames_to_average == 0 {
             return bad("camera.frames_to_average", "must be at least 1".into());
+        }
+        if c.frame_timeout_ms == 0 {
+            return bad("camera.frame_timeout_ms", "must be positive".into());
+        }
+        let r = &self.retry;
+        if r.max_tries == 0 {
+            return bad("retry.max_tries", "must be at least 1 (1 = no retry)".into());
+        }
+        if !(r.drift_tolerance.is_finite() && r.drift_tolerance >= 0.0) {
+            return bad("retry.drift_tolerance", format!("{} must be ≥ 0 (0 = off)", r.drift_tolerance));
         }
         let k = &self.controller;
         if k.kind == ControllerKind::Serial && k.port.as_deref().map_or(true, str::is_empty) {
@@ -510,6 +566,22 @@ mod tests {
         assert!(e.contains("controller.port"), "{e}");
         let e = err(&MOCK.replacen("pinhole_exposure_scale = 16.0", "pinhole_exposure_scale = 0.0", 1));
         assert!(e.contains("plan.pinhole_exposure_scale"), "{e}");
+    }
+
+    #[test]
+    fn retry_and_camera_timeouts_have_defaults_and_refuse_unknown_keys() {
+        let m = parse(MOCK, Path::new("m.toml")).unwrap();
+        assert_eq!(m.camera.frame_timeout_ms, 5000);
+        let r = parse(REAL, Path::new("r.toml")).unwrap();
+        assert_eq!(r.retry, RetryConfig { max_tries: 3, pause_ms: 5000, drift_tolerance: 0.1 });
+        assert_eq!(m.retry, RetryConfig { max_tries: 3, pause_ms: 200, drift_tolerance: 0.1 });
+        assert_eq!(r.camera.frame_timeout_ms, 8000);
+        let e = err(&MOCK.replacen("pause_ms = 200", "pause_ms = 200\nmax_retries = 2", 1));
+        assert!(e.contains("retry.max_retries") && e.contains("unknown field"), "{e}");
+        let e = err(&MOCK.replacen("max_tries = 3", "max_tries = 0", 1));
+        assert!(e.contains("retry.max_tries") && e.contains("at least 1"), "{e}");
+        let e = err(&MOCK.replacen("discard_after_change = 2", "discard_after_change = 2\nframe_timeout_ms = 0", 1));
+        assert!(e.contains("camera.frame_timeout_ms"), "{e}");
     }
 
     #[test]

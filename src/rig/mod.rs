@@ -12,4 +12,6 @@
 pub mod camera;
 pub mod config;
 pub mod controller;
+pub mod devices;
+pub mod events;
 pub mod session;

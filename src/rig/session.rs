@@ -13,6 +13,13 @@
 //! average of that many frames at the shortest exposure (1 µs), aperture at pinhole — the
 //! black level `estimate --session` subtracts. (A capped lens is not needed at 1 µs.)
 //!
+//! # Pause instead of fail
+//! A pair that meets a fault retrying can get past ([`SessionError::pause_cause`]: a camera
+//! timeout, a lost port, a grbl alarm, a silent or unreadable controller, illumination drift
+//! beyond `retry.drift_tolerance`) is logged, paused `retry.pause_ms`, the rig recovered
+//! ([`Rig::recover`]) and the pair taken again from an empty `.partial` directory and its
+//! first move, at most `retry.max_tries` times; then [`SessionError::GaveUp`].
+//!
 //! The camera never sees the plan: after each move the controller's status report is read
 //! and written to the shared [`PositionSource`].
 //!
@@ -20,6 +27,7 @@
 //! ```text
 //! SESSION/session.toml                 what ran, with what, and how it ended
 //! SESSION/rig.toml                     a copy of the rig config
+//! SESSION/events.jsonl                 pauses, retries, recoveries, unreadable lines (super::events)
 //! SESSION/pairs/000-stage-X-20.000/    one finished pair:
 //!     open.png open.toml pinhole.png pinhole.toml [dark.png dark.toml]
 //! ```
@@ -42,7 +50,8 @@ use super::camera::mock::{CameraFaults, MockCamera, MockOptics, PositionSource};
 use super::camera::{Camera, CameraError, Frame};
 use super::config::{CameraKind, ControllerKind, RigConfig};
 use super::controller::sim::{spawn_pty, SimHandle, SimOptions};
-use super::controller::{Axis, Controller, ControllerError, Position, SerialController, Status};
+use super::controller::{Axis, Controller, ControllerError, ControllerOptions, MachineState, Position, SerialController, Status};
+use super::events::{EventLog, EventLogError};
 use crate::fsutil::{write_atomic, Overwrite};
 use crate::image::io::{write_png16, ImageError};
 
@@ -55,6 +64,8 @@ pub enum SessionError {
     Camera(#[from] CameraError),
     #[error(transparent)]
     Image(#[from] ImageError),
+    #[error(transparent)]
+    Events(#[from] EventLogError),
     #[error("{path}: {source}")]
     Io {
         path: PathBuf,
@@ -72,12 +83,74 @@ pub enum SessionError {
     /// Auto-bracketing gave up: the open frame still clips.
     #[error("pair {pair}: the open frame still clips at {exposure_us} µs (99.9th percentile {p999:.3} of full scale) after {MAX_BRACKET_STEPS} exposure reductions; reduce the light or the gain")]
     Saturated { pair: String, exposure_us: u32, p999: f32 },
+    /// The light changed during the session by more than `retry.drift_tolerance`.
+    #[error("pair {pair}: illumination drift: the {role} frame's light is {change:+.1} % of the session's first {role} frame (tolerance ±{tolerance:.1} %)")]
+    Drift { pair: String, role: String, change: f64, tolerance: f64 },
+    /// A pair met faults `tries` times (`retry.max_tries`); the last one is the source.
+    #[error("{source} (pair {pair}: gave up after {tries} tries; see events.jsonl)")]
+    GaveUp {
+        pair: String,
+        tries: u32,
+        #[source]
+        source: Box<SessionError>,
+    },
+    #[error("cannot start the simulated controller")]
+    SimStart {
+        #[source]
+        source: io::Error,
+    },
+    /// The mock camera's `[lens]`/`[target]` settings.
     #[error("{0}")]
-    Setup(String),
+    MockCamera(String),
+    #[error("camera.kind = \"v4l2\" needs lensrig built with `--features v4l2`")]
+    NoV4l2,
+    #[error("{axis} target {target} mm outside the configured range [{min}, {max}] mm")]
+    OutOfRange { axis: Axis, target: f64, min: f64, max: f64 },
+    #[error("cannot encode {path}")]
+    Encode {
+        path: PathBuf,
+        #[source]
+        source: toml::ser::Error,
+    },
     #[error("session {0} already exists; pass --resume to continue it, or choose another --out (sessions are never overwritten)")]
     Exists(PathBuf),
-    #[error("{0}")]
-    Resume(String),
+    #[error("{config} differs from the config this session was captured with ({copy}); resume with the same config")]
+    ConfigChanged { config: PathBuf, copy: PathBuf },
+    /// A session or sidecar file that does not parse (`detail` has the line and key).
+    #[error("{path}: {detail}")]
+    Parse { path: PathBuf, detail: String },
+    #[error("{0} is missing")]
+    Missing(PathBuf),
+    #[error("{path}: unreadable frame")]
+    UnreadableFrame {
+        path: PathBuf,
+        #[source]
+        source: ImageError,
+    },
+    #[error("{0}: empty frame")]
+    EmptyFrame(PathBuf),
+}
+
+impl SessionError {
+    /// The fault class a pause names in the event log, or `None` when retrying cannot help
+    /// (a full disk, a rejected command, a config error, saturation).
+    pub fn pause_cause(&self) -> Option<&'static str> {
+        use crate::rig::controller::GrblError;
+        match self {
+            SessionError::Controller(c) => match c {
+                ControllerError::Disconnected { .. } | ControllerError::Io { .. } | ControllerError::Open { .. } => Some("disconnect"),
+                ControllerError::Alarm { .. } | ControllerError::Locked { .. } => Some("alarm"),
+                ControllerError::Grbl { error: GrblError::GcodeLock, .. } => Some("alarm"),
+                ControllerError::Timeout { .. } => Some("controller-timeout"),
+                ControllerError::Garbage { .. } => Some("unreadable"),
+                ControllerError::Protocol { .. } => Some("protocol"),
+                ControllerError::Grbl { .. } | ControllerError::LimitViolation { .. } | ControllerError::HomingDisabled { .. } => None,
+            },
+            SessionError::Camera(CameraError::Timeout { .. }) => Some("camera-timeout"),
+            SessionError::Drift { .. } => Some("drift"),
+            _ => None,
+        }
+    }
 }
 
 /// Exposure reductions auto-bracketing tries before [`SessionError::Saturated`].
@@ -113,12 +186,14 @@ pub struct Rig {
     pub mock_optics: Option<MockOptics>,
     /// The controller's port path.
     pub port: String,
+    /// How to open the port again after a disconnect (baud, options); `None`: no reconnect.
+    pub reconnect: Option<(u32, ControllerOptions)>,
 }
 
 impl Rig {
     /// Injects a camera and a controller.
     pub fn new(camera: Box<dyn Camera>, controller: Box<dyn Controller>, position: PositionSource, port: String) -> Self {
-        Self { camera, controller, position, sim: None, camera_faults: None, mock_optics: None, port }
+        Self { camera, controller, position, sim: None, camera_faults: None, mock_optics: None, port, reconnect: None }
     }
 
     /// Builds the rig a config describes: `controller.kind = "sim"` runs the simulated grbl
@@ -137,7 +212,7 @@ impl Rig {
                 if cfg.controller.home_on_start {
                     o = o.with(22, 1.0);
                 }
-                let (h, path) = spawn_pty(o).map_err(|e| SessionError::Setup(format!("cannot start the simulated controller: {e}")))?;
+                let (h, path) = spawn_pty(o).map_err(|source| SessionError::SimStart { source })?;
                 sim = Some(h);
                 path
             }
@@ -146,7 +221,7 @@ impl Rig {
         let position: PositionSource = Arc::new(Mutex::new(Position::ZERO));
         let (camera, faults, optics): (Box<dyn Camera>, _, _) = match cfg.camera.kind {
             CameraKind::Mock => {
-                let c = MockCamera::new(cfg, position.clone()).map_err(SessionError::Setup)?;
+                let c = MockCamera::new(cfg, position.clone()).map_err(SessionError::MockCamera)?;
                 let (f, o) = (c.faults.clone(), c.optics().clone());
                 (Box::new(c), Some(f), Some(o))
             }
@@ -156,16 +231,66 @@ impl Rig {
         rig.sim = sim;
         rig.camera_faults = faults;
         rig.mock_optics = optics;
+        rig.reconnect = Some((cfg.controller.baud, cfg.controller_options()));
         Ok(rig)
     }
 
-    /// Moves one axis, then reads the status report and publishes the reported position.
+    /// Moves one axis and publishes the position of the (clean, confirmed) final report.
     fn move_axis(&mut self, axis: Axis, mm: f64) -> Result<Status, SessionError> {
-        self.controller.move_to(&[(axis, mm)])?;
-        let st = self.controller.status()?;
+        let st = self.controller.move_to(&[(axis, mm)])?;
         *self.position.lock().unwrap_or_else(|e| e.into_inner()) = st.mpos;
         self.camera.invalidate();
         Ok(st)
+    }
+
+    /// Appends what the controller met since the last call to the event log.
+    ///
+    /// # Errors
+    /// The log cannot be written.
+    pub fn drain_events(&mut self, log: &mut EventLog) -> Result<(), SessionError> {
+        for e in self.controller.take_events() {
+            log.record(e.kind, &e.detail)?;
+        }
+        Ok(())
+    }
+
+    /// Brings the rig back after a fault of class `cause` ([`SessionError::pause_cause`]):
+    /// a lost port is opened again (the board then homes if the config says so, its position
+    /// being lost with its power); an alarm, a silent or unreadable controller gets a soft
+    /// reset, then a homing cycle when the config homes (`rehome`) or `$X` (`unlock`);
+    /// camera timeouts and drift need nothing but the pause. Each step is an event.
+    ///
+    /// # Errors
+    /// The step failed (the port is still gone, the board does not answer).
+    pub fn recover(&mut self, cause: &str, log: &mut EventLog) -> Result<(), SessionError> {
+        let home = self.reconnect.as_ref().is_some_and(|(_, o)| o.home_on_start);
+        match cause {
+            "disconnect" => {
+                let Some((baud, opts)) = self.reconnect.clone() else { return Ok(()) };
+                let ctl = SerialController::open(&self.port, baud, opts)?;
+                self.controller = Box::new(ctl);
+                log.record("reconnect", &format!("{} open again{}", self.port, if home { ", homed" } else { "" }))?;
+            }
+            "alarm" | "controller-timeout" | "unreadable" | "protocol" => {
+                let r = self.controller.reset();
+                self.drain_events(log)?;
+                r?;
+                log.record("reset", &format!("{}: soft reset (0x18)", self.port))?;
+                if home {
+                    let st = self.controller.home();
+                    self.drain_events(log)?;
+                    let st = st?;
+                    log.record("rehome", &format!("homed: machine position {}", st.mpos.format()))?;
+                } else if self.controller.status()?.state == MachineState::Alarm {
+                    self.controller.unlock()?;
+                    log.record("unlock", "$X: alarm lock cleared (no homing configured: positions are as the board reports them)")?;
+                }
+            }
+            _ => {}
+        }
+        self.drain_events(log)?;
+        self.camera.invalidate();
+        Ok(())
     }
 }
 
@@ -183,14 +308,14 @@ fn open_v4l(cfg: &RigConfig) -> Result<Box<dyn Camera>, SessionError> {
         gain: c.gain,
         discard_after_change: c.discard_after_change as usize,
         color: ColorMode::Luma,
-        frame_timeout: Duration::from_secs(5),
+        frame_timeout: Duration::from_millis(c.frame_timeout_ms),
     };
     Ok(Box::new(V4lCamera::open(&s)?))
 }
 
 #[cfg(not(feature = "v4l2"))]
 fn open_v4l(_cfg: &RigConfig) -> Result<Box<dyn Camera>, SessionError> {
-    Err(SessionError::Setup("camera.kind = \"v4l2\" needs lensrig built with `--features v4l2`".into()))
+    Err(SessionError::NoV4l2)
 }
 
 /// One stage position of the plan.
@@ -219,7 +344,7 @@ pub fn dry_run(cfg: &RigConfig) -> Result<Vec<String>, SessionError> {
         if v >= min && v <= max {
             Ok(())
         } else {
-            Err(SessionError::Setup(format!("{axis} target {v} mm outside the configured range [{min}, {max}] mm")))
+            Err(SessionError::OutOfRange { axis, target: v, min, max })
         }
     };
     let c = &cfg.camera;
@@ -320,7 +445,7 @@ pub struct FrameRecord {
 pub fn load_session(dir: &Path) -> Result<SessionRecord, SessionError> {
     let p = dir.join("session.toml");
     let text = fs::read_to_string(&p).map_err(io_err(&p))?;
-    toml::from_str(&text).map_err(|e| SessionError::Resume(format!("{}: {}", p.display(), crate::toml_error(&text, &e))))
+    toml::from_str(&text).map_err(|e| SessionError::Parse { path: p.clone(), detail: crate::toml_error(&text, &e) })
 }
 
 /// Reads a frame's sidecar.
@@ -329,12 +454,12 @@ pub fn load_session(dir: &Path) -> Result<SessionRecord, SessionError> {
 /// Missing or unreadable file.
 pub fn load_frame_record(path: &Path) -> Result<FrameRecord, SessionError> {
     let text = fs::read_to_string(path).map_err(io_err(path))?;
-    toml::from_str(&text).map_err(|e| SessionError::Resume(format!("{}: {}", path.display(), crate::toml_error(&text, &e))))
+    toml::from_str(&text).map_err(|e| SessionError::Parse { path: path.to_path_buf(), detail: crate::toml_error(&text, &e) })
 }
 
 fn save_record(dir: &Path, rec: &SessionRecord) -> Result<(), SessionError> {
     let p = dir.join("session.toml");
-    let text = toml::to_string_pretty(rec).map_err(|e| SessionError::Setup(format!("cannot encode session.toml: {e}")))?;
+    let text = toml::to_string_pretty(rec).map_err(|source| SessionError::Encode { path: p.clone(), source })?;
     write_atomic(&p, text.as_bytes(), Overwrite::Replace).map_err(io_err(&p))
 }
 
@@ -357,7 +482,7 @@ pub fn capture(rig: &mut Rig, cfg: &RigConfig, config_path: &Path, out: &Path, o
         let mut rec = load_session(out)?;
         let copy = fs::read_to_string(out.join("rig.toml")).map_err(io_err(&out.join("rig.toml")))?;
         if copy != config_text {
-            return Err(SessionError::Resume(format!("{} differs from the config this session was captured with ({}); resume with the same config", config_path.display(), out.join("rig.toml").display())));
+            return Err(SessionError::ConfigChanged { config: config_path.to_path_buf(), copy: out.join("rig.toml") });
         }
         rec.resumed.push(crate::timestamp_utc());
         rec
@@ -389,12 +514,16 @@ pub fn capture(rig: &mut Rig, cfg: &RigConfig, config_path: &Path, out: &Path, o
         recover(out, cfg, &pairs, &mut rec, o.progress)?;
     }
     save_record(out, &rec)?;
-    let result = run_pairs(rig, cfg, out, &pairs, &mut rec, o);
+    let mut log = EventLog::open(out)?;
+    log.record("session-start", if o.resume { "resumed" } else { "started" })?;
+    let result = run_pairs(rig, cfg, out, &pairs, &mut rec, o, &mut log);
     rec.finished = Some(crate::timestamp_utc());
     rec.status = match &result {
         Ok(()) => "complete".into(),
         Err(e) => format!("failed: {e}"),
     };
+    // best effort: a full disk fails this too, and the capture's error says so
+    let _ = rig.drain_events(&mut log).and_then(|()| Ok(log.record("session-end", &rec.status)?));
     match (result, save_record(out, &rec)) {
         (Ok(()), Ok(())) => Ok(rec),
         // the capture's own error matters more than a status that could not be written
@@ -416,20 +545,21 @@ fn pair_files(cfg: &RigConfig) -> Vec<&'static str> {
 /// parse and that the PNGs decode to the session's frame size.
 ///
 /// # Errors
-/// [`SessionError::Resume`] naming the first missing or unreadable file.
+/// [`SessionError::Missing`], [`SessionError::Parse`], [`SessionError::UnreadableFrame`] or
+/// [`SessionError::EmptyFrame`] naming the first bad file.
 pub fn verify_pair(dir: &Path, cfg: &RigConfig) -> Result<(), SessionError> {
     for f in pair_files(cfg) {
         let p = dir.join(f);
         if !p.is_file() {
-            return Err(SessionError::Resume(format!("{} is missing", p.display())));
+            return Err(SessionError::Missing(p));
         }
         if f.ends_with(".toml") {
             load_frame_record(&p)?;
         } else {
-            let img = crate::image::io::read_image(&p).map_err(|e| SessionError::Resume(format!("{}: unreadable frame: {e}", p.display())))?;
+            let img = crate::image::io::read_image(&p).map_err(|source| SessionError::UnreadableFrame { path: p.clone(), source })?;
             let (w, h) = (img.width() as u32, img.height() as u32);
             if w == 0 || h == 0 {
-                return Err(SessionError::Resume(format!("{}: empty frame", p.display())));
+                return Err(SessionError::EmptyFrame(p));
             }
         }
     }
@@ -501,11 +631,9 @@ fn pair_record(p: &PairPlan, dark: bool) -> PairRecord {
     }
 }
 
-fn run_pairs(rig: &mut Rig, cfg: &RigConfig, out: &Path, pairs: &[PairPlan], rec: &mut SessionRecord, o: &CaptureOptions) -> Result<(), SessionError> {
-    let (a, s) = (cfg.axes.aperture.clone(), cfg.axes.stage.clone());
-    let settle = Duration::from_millis(cfg.plan.settle_ms);
-    let n = cfg.camera.frames_to_average as usize;
+fn run_pairs(rig: &mut Rig, cfg: &RigConfig, out: &Path, pairs: &[PairPlan], rec: &mut SessionRecord, o: &CaptureOptions, log: &mut EventLog) -> Result<(), SessionError> {
     rig.camera.set_gain(cfg.camera.gain)?;
+    let mut light = LightReference::default();
     for p in pairs {
         let final_dir = out.join("pairs").join(&p.key);
         if final_dir.is_dir() {
@@ -515,62 +643,161 @@ fn run_pairs(rig: &mut Rig, cfg: &RigConfig, out: &Path, pairs: &[PairPlan], rec
             continue;
         }
         if o.progress {
-            eprintln!("pair {}/{} {}: stage {} → {:.3} mm", p.index + 1, pairs.len(), p.key, s.axis, p.stage_mm);
+            eprintln!("pair {}/{} {}: stage {} → {:.3} mm", p.index + 1, pairs.len(), p.key, cfg.axes.stage.axis, p.stage_mm);
         }
         let tmp = out.join("pairs").join(format!("{}.partial", p.key));
-        fs::create_dir_all(&tmp).map_err(io_err(&tmp))?;
-        rig.move_axis(s.axis, p.stage_mm)?;
-        // open
-        rig.move_axis(a.axis, a.open)?;
-        std::thread::sleep(settle);
-        let mut exp = cfg.camera.exposure_us;
-        rig.camera.set_exposure(exp)?;
-        if cfg.plan.auto_bracket {
-            for attempt in 0.. {
-                let f = rig.camera.capture(1)?;
-                let p999 = percentile(&f, 0.999);
-                if p999 < 0.95 {
-                    break;
-                }
-                if attempt == MAX_BRACKET_STEPS || exp <= 1 {
-                    return Err(SessionError::Saturated { pair: p.key.clone(), exposure_us: exp, p999 });
-                }
-                let factor = if p999 >= 0.999 { 0.5 } else { 0.9 / p999 as f64 };
-                exp = ((exp as f64 * factor) as u32).max(1);
-                exp = rig.camera.set_exposure(exp)?;
-                if o.progress {
-                    eprintln!("  open frame clips (99.9th percentile {p999:.3}); exposure → {exp} µs");
-                }
-            }
-        }
-        let open = rig.camera.capture(n)?;
-        write_frame(&tmp, "open", &open, rig, &a, &s)?;
-        // pinhole
-        rig.move_axis(a.axis, a.pinhole)?;
-        std::thread::sleep(settle);
-        let pexp = ((exp as f64 * cfg.plan.pinhole_exposure_scale).round() as u32).clamp(1, 10_000_000);
-        rig.camera.set_exposure(pexp)?;
-        let pin = rig.camera.capture(n)?;
-        write_frame(&tmp, "pinhole", &pin, rig, &a, &s)?;
-        let dark = cfg.plan.dark_frames > 0;
-        if dark {
-            rig.camera.set_exposure(1)?;
-            let d = rig.camera.capture(cfg.plan.dark_frames as usize)?;
-            write_frame(&tmp, "dark", &d, rig, &a, &s)?;
-        }
+        capture_with_retries(rig, cfg, p, &tmp, &mut light, o, log)?;
         fs::rename(&tmp, &final_dir).map_err(io_err(&final_dir))?;
         if let Ok(d) = fs::File::open(out.join("pairs")) {
             let _ = d.sync_all();
         }
-        rec.pairs.push(pair_record(p, dark));
+        rec.pairs.push(pair_record(p, cfg.plan.dark_frames > 0));
         // in plan order, also when a damaged pair was captured again after later ones
         rec.pairs.sort_by_key(|r| r.index);
         save_record(out, rec)?;
-        if o.progress {
-            eprintln!("  open {} µs, pinhole {} µs, {} frame(s) each: saved", open.meta.exposure_us, pin.meta.exposure_us, n);
-        }
     }
     Ok(())
+}
+
+/// Captures one pair into `tmp`, pausing and retrying after faults (see [`RetryConfig`](super::config::RetryConfig)):
+/// each try starts from an empty `tmp` and the pair's first move, so a finished pair holds
+/// exactly one frame of each role, taken in one go.
+fn capture_with_retries(rig: &mut Rig, cfg: &RigConfig, p: &PairPlan, tmp: &Path, light: &mut LightReference, o: &CaptureOptions, log: &mut EventLog) -> Result<(), SessionError> {
+    let r = &cfg.retry;
+    let pause = Duration::from_millis(r.pause_ms);
+    let mut tries = 0;
+    let give_up = |tries: u32, e: SessionError, log: &mut EventLog| {
+        let _ = log.record("gave-up", &format!("pair {}: {tries} tries: {e}", p.key));
+        if tries > 1 { SessionError::GaveUp { pair: p.key.clone(), tries, source: Box::new(e) } } else { e }
+    };
+    loop {
+        tries += 1;
+        if tmp.exists() {
+            fs::remove_dir_all(tmp).map_err(io_err(tmp))?;
+        }
+        fs::create_dir_all(tmp).map_err(io_err(tmp))?;
+        let result = capture_pair(rig, cfg, p, tmp, light, o);
+        rig.drain_events(log)?;
+        let e = match result {
+            Ok(()) => {
+                if tries > 1 {
+                    log.record("recovered", &format!("pair {}: complete on try {tries}", p.key))?;
+                }
+                return Ok(());
+            }
+            Err(e) => e,
+        };
+        let Some(cause) = e.pause_cause() else { return Err(e) };
+        if tries >= r.max_tries {
+            return Err(give_up(tries, e, log));
+        }
+        log.record("pause", &format!("pair {}: {cause}: {e}; try {tries} of {} failed, waiting {} ms", p.key, r.max_tries, r.pause_ms))?;
+        if o.progress {
+            eprintln!("  {cause}: {e}; pausing {} ms, then try {} of {}", r.pause_ms, tries + 1, r.max_tries);
+        }
+        std::thread::sleep(pause);
+        // the recovery itself may fail for a while (a port still unplugged): each failure
+        // uses up a try
+        while let Err(re) = rig.recover(cause, log) {
+            tries += 1;
+            if tries >= r.max_tries || re.pause_cause().is_none() {
+                log.record("recovery-failed", &format!("pair {}: {re}", p.key))?;
+                // the fault is the cause to name; the failed recovery is in the log
+                return Err(give_up(tries, e, log));
+            }
+            log.record("pause", &format!("pair {}: recovery from {cause} failed: {re}; waiting {} ms", p.key, r.pause_ms))?;
+            std::thread::sleep(pause);
+        }
+        log.record("retry", &format!("pair {}: try {} of {}", p.key, tries + 1, r.max_tries))?;
+    }
+}
+
+/// The session's first light level per role (mean linear value per µs of exposure), the
+/// reference of the drift check.
+#[derive(Debug, Default)]
+struct LightReference {
+    levels: Vec<(String, f64)>,
+}
+
+impl LightReference {
+    /// Compares a frame's light with the first frame of its role (which becomes the
+    /// reference when there is none yet).
+    fn check(&mut self, pair: &str, role: &str, f: &Frame, tolerance: f64) -> Result<(), SessionError> {
+        if tolerance <= 0.0 || f.meta.exposure_us == 0 {
+            return Ok(());
+        }
+        let t = f.image.transfer;
+        let (sum, n) = f.image.planes.iter().flat_map(|p| p.data.iter()).fold((0.0f64, 0usize), |(s, n), &v| (s + t.decode(v) as f64, n + 1));
+        let level = sum / n.max(1) as f64 / f.meta.exposure_us as f64;
+        let Some(&(_, first)) = self.levels.iter().find(|(r, _)| r == role) else {
+            self.levels.push((role.to_string(), level));
+            return Ok(());
+        };
+        let change = level / first - 1.0;
+        if first > 0.0 && change.abs() > tolerance {
+            return Err(SessionError::Drift { pair: pair.to_string(), role: role.to_string(), change: 100.0 * change, tolerance: 100.0 * tolerance });
+        }
+        Ok(())
+    }
+}
+
+/// One try of one pair: stage, open (auto-bracketed), pinhole, dark.
+fn capture_pair(rig: &mut Rig, cfg: &RigConfig, p: &PairPlan, tmp: &Path, light: &mut LightReference, o: &CaptureOptions) -> Result<(), SessionError> {
+    let (a, s) = (&cfg.axes.aperture, &cfg.axes.stage);
+    let settle = Duration::from_millis(cfg.plan.settle_ms);
+    let n = cfg.camera.frames_to_average as usize;
+    let tol = cfg.retry.drift_tolerance;
+    rig.move_axis(s.axis, p.stage_mm)?;
+    // open
+    rig.move_axis(a.axis, a.open)?;
+    std::thread::sleep(settle);
+    let exp = open_exposure(rig, cfg, p, o)?;
+    let open = rig.camera.capture(n)?;
+    light.check(&p.key, "open", &open, tol)?;
+    write_frame(tmp, "open", &open, rig, a, s)?;
+    // pinhole
+    rig.move_axis(a.axis, a.pinhole)?;
+    std::thread::sleep(settle);
+    let pexp = ((exp as f64 * cfg.plan.pinhole_exposure_scale).round() as u32).clamp(1, 10_000_000);
+    rig.camera.set_exposure(pexp)?;
+    let pin = rig.camera.capture(n)?;
+    light.check(&p.key, "pinhole", &pin, tol)?;
+    write_frame(tmp, "pinhole", &pin, rig, a, s)?;
+    if cfg.plan.dark_frames > 0 {
+        rig.camera.set_exposure(1)?;
+        let d = rig.camera.capture(cfg.plan.dark_frames as usize)?;
+        write_frame(tmp, "dark", &d, rig, a, s)?;
+    }
+    if o.progress {
+        eprintln!("  open {} µs, pinhole {} µs, {} frame(s) each: saved", open.meta.exposure_us, pin.meta.exposure_us, n);
+    }
+    Ok(())
+}
+
+/// Sets the open frame's exposure: `camera.exposure_us`, auto-bracketed down when the plan
+/// asks. Returns the exposure applied.
+fn open_exposure(rig: &mut Rig, cfg: &RigConfig, p: &PairPlan, o: &CaptureOptions) -> Result<u32, SessionError> {
+    let mut exp = rig.camera.set_exposure(cfg.camera.exposure_us)?;
+    if !cfg.plan.auto_bracket {
+        return Ok(exp);
+    }
+    for attempt in 0.. {
+        let f = rig.camera.capture(1)?;
+        let p999 = percentile(&f, 0.999);
+        if p999 < 0.95 {
+            break;
+        }
+        if attempt == MAX_BRACKET_STEPS || exp <= 1 {
+            return Err(SessionError::Saturated { pair: p.key.clone(), exposure_us: exp, p999 });
+        }
+        let factor = if p999 >= 0.999 { 0.5 } else { 0.9 / p999 as f64 };
+        exp = ((exp as f64 * factor) as u32).max(1);
+        exp = rig.camera.set_exposure(exp)?;
+        if o.progress {
+            eprintln!("  open frame clips (99.9th percentile {p999:.3}); exposure → {exp} µs");
+        }
+    }
+    Ok(exp)
 }
 
 fn percentile(f: &Frame, q: f64) -> f32 {
@@ -603,6 +830,6 @@ fn write_frame(dir: &Path, role: &str, f: &Frame, rig: &Rig, a: &super::config::
         temporal_noise: f.temporal_variance.as_ref().map(|v| f.image.planes.iter().zip(v).map(|(m, v)| super::camera::temporal_noise_curve(m, v, 16)).collect()),
     };
     let p = dir.join(format!("{role}.toml"));
-    let text = toml::to_string_pretty(&r).map_err(|e| SessionError::Setup(format!("cannot encode {}: {e}", p.display())))?;
+    let text = toml::to_string_pretty(&r).map_err(|source| SessionError::Encode { path: p.clone(), source })?;
     write_atomic(&p, text.as_bytes(), Overwrite::Never).map_err(io_err(&p))
 }

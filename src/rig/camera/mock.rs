@@ -17,7 +17,8 @@
 //! `pinhole` (`"f-number"` or `"ideal"`), `pixels_per_cell` (1.6), `cells_per_mm` (1.0),
 //! `brightness` (300, full-scale per second at f/1), `full_well_e` (20000), `read_noise_e` (6),
 //! `bands` (`"rgb"` or `"mono"`, default `"mono"`), `seed` (1), and the fault
-//! `timeout_after_captures` (a capture after that many returns [`CameraError::Timeout`],
+//! `timeout_after_captures` (a capture after that many returns [`CameraError::Timeout`]
+//! after `camera.frame_timeout_ms`,
 //! for resume tests; the environment variable `LENSRIG_MOCK_TIMEOUT_AFTER_CAPTURES` does the
 //! same without changing the config; `LENSRIG_MOCK_PANIC_AFTER_CAPTURES` makes the capture after
 //! that many *panic*, for the panic-consistency test). `focal_length_mm`, `pixel_pitch_um` are accepted and informational.
@@ -26,7 +27,7 @@
 
 use std::collections::HashMap;
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, SystemTime};
 
@@ -54,6 +55,13 @@ pub struct CameraFaults {
     pub timeout_after_captures: AtomicUsize,
     /// When > 0: the capture after this many succeeded panics (a bug mid-session; test-only).
     pub panic_after_captures: AtomicUsize,
+    /// One-shot: the next capture stalls this long (ms). Longer than the camera's
+    /// `frame_timeout_ms`, it waits the timeout and fails with [`CameraError::Timeout`];
+    /// shorter, the capture is just late.
+    pub stall_once_ms: AtomicU64,
+    /// The next this-many captures see the light dimmed to 70 % (a passing cloud, a lamp
+    /// flickering): an illumination drift.
+    pub dim_captures: AtomicUsize,
 }
 
 /// The simulated optics and sensor a mock rig uses, from the config's `[lens]` table.
@@ -192,6 +200,7 @@ pub struct MockCamera {
     cache: HashMap<(u64, i64), Vec<Plane>>,
     rng: Rng,
     format: FrameFormat,
+    timeout: Duration,
 }
 
 impl MockCamera {
@@ -227,6 +236,7 @@ impl MockCamera {
             captures: 0,
             cache: HashMap::new(),
             format,
+            timeout: Duration::from_millis(cfg.camera.frame_timeout_ms),
         })
     }
 
@@ -315,7 +325,7 @@ impl Camera for MockCamera {
     }
 
     fn capture(&mut self, frames: usize) -> Result<Frame, CameraError> {
-        let after = Duration::from_millis(1000);
+        let after = self.timeout;
         let limit = self.faults.timeout_after_captures.load(Ordering::SeqCst);
         if self.faults.timeout.load(Ordering::SeqCst) || (limit > 0 && self.captures >= limit) {
             return Err(CameraError::Timeout { device: self.device(), after });
@@ -324,12 +334,20 @@ impl Camera for MockCamera {
         if panic_after > 0 && self.captures >= panic_after {
             panic!("mock camera: injected panic after {} captures (test fault)", self.captures);
         }
+        let stall = Duration::from_millis(self.faults.stall_once_ms.swap(0, Ordering::SeqCst));
+        if !stall.is_zero() {
+            std::thread::sleep(stall.min(after));
+            if stall > after {
+                return Err(CameraError::Timeout { device: self.device(), after });
+            }
+        }
         if frames == 0 {
             return Err(CameraError::InvalidArgument { device: self.device(), what: "capture needs at least one frame".into() });
         }
         let time = SystemTime::now();
         let clean = self.clean();
-        let white = self.white_level();
+        let dim = self.faults.dim_captures.fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| n.checked_sub(1)).is_ok();
+        let white = self.white_level() * if dim { 0.7 } else { 1.0 };
         let mut discarded = std::mem::take(&mut self.owed_discards);
         let mut sum: Vec<Vec<f64>> = clean.iter().map(|p| vec![0.0; p.data.len()]).collect();
         let mut repeats = super::Repeats::default();
@@ -472,6 +490,21 @@ mod tests {
         c.faults.drop_frames.store(2, Ordering::SeqCst);
         let f = c.capture(3).unwrap();
         assert_eq!((f.meta.frames_averaged, f.meta.frames_discarded), (3, 2));
+        // a stall longer than the configured timeout fails once, after the timeout
+        c.timeout = Duration::from_millis(100);
+        c.faults.stall_once_ms.store(400, Ordering::SeqCst);
+        let t0 = std::time::Instant::now();
+        let e = c.capture(1).unwrap_err();
+        assert!(matches!(e, CameraError::Timeout { after, .. } if after == Duration::from_millis(100)), "{e}");
+        assert!((100..350).contains(&t0.elapsed().as_millis()), "{:?}", t0.elapsed());
+        c.capture(1).unwrap();
+        // dimmed captures see 70 % of the light, then it is back
+        let level = |f: &Frame| f.image.planes[0].data.iter().map(|&v| v as f64).sum::<f64>();
+        let bright = level(&c.capture(1).unwrap());
+        c.faults.dim_captures.store(1, Ordering::SeqCst);
+        let dim = level(&c.capture(1).unwrap());
+        assert!((dim / bright - 0.7).abs() < 0.02, "{}", dim / bright);
+        assert!((level(&c.capture(1).unwrap()) / bright - 1.0).abs() < 0.02);
         c.faults.timeout.store(true, Ordering::SeqCst);
         let e = c.capture(1).unwrap_err();
         assert!(matches!(e, CameraError::Timeout { .. }), "{e}");

@@ -7,7 +7,8 @@
 //! [`super::decode`].
 //!
 //! The camera logic talks to the device only through [`V4lDevice`], the handful of V4L2 calls
-//! it makes. With cargo feature `v4l2`, `V4lCamera::open` runs them as ioctls through `v4l`
+//! it makes. [`list_formats_ext`] and [`list_ctrls`] print what a device offers in
+//! `v4l2-ctl`'s words (`lensrig devices`). With cargo feature `v4l2`, `V4lCamera::open` runs them as ioctls through `v4l`
 //! 0.14; without it (and in the unit tests, which use a fake device that behaves like a UVC
 //! camera) the logic still builds and is tested: [`V4lCamera::with_device`].
 //!
@@ -89,6 +90,107 @@ pub trait V4lDevice {
     fn control(&self, id: u32) -> io::Result<i64>;
     /// The next frame (bytes used, sequence number); starts streaming on the first call.
     fn next_frame(&mut self, timeout: Duration) -> io::Result<(Vec<u8>, u32)>;
+
+    /// Discrete frame sizes offered for `fourcc` (`VIDIOC_ENUM_FRAMESIZES`); empty when the
+    /// backend does not enumerate them.
+    fn frame_sizes(&self, _fourcc: FourCc) -> io::Result<Vec<(u32, u32)>> {
+        Ok(Vec::new())
+    }
+
+    /// The controls with names, types and current values, as `v4l2-ctl --list-ctrls` shows
+    /// them. The default derives them from [`V4lDevice::controls`], [`V4lDevice::control`]
+    /// and the names of the IDs lensrig knows.
+    fn describe_controls(&self) -> io::Result<Vec<ControlDesc>> {
+        Ok(self
+            .controls()?
+            .into_iter()
+            .map(|c| {
+                let (name, kind) = known_control(c.id);
+                ControlDesc { id: c.id, name: name.into(), kind, minimum: c.minimum, maximum: c.maximum, step: 1, default: None, value: self.control(c.id).ok() }
+            })
+            .collect())
+    }
+}
+
+/// A control as `VIDIOC_QUERYCTRL` describes it, plus its current value.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ControlDesc {
+    pub id: u32,
+    /// v4l2-ctl's name (`exposure_time_absolute`).
+    pub name: String,
+    /// `int`, `bool` or `menu`.
+    pub kind: &'static str,
+    pub minimum: i64,
+    pub maximum: i64,
+    pub step: i64,
+    pub default: Option<i64>,
+    pub value: Option<i64>,
+}
+
+/// v4l2-ctl's name and type of a control ID lensrig uses.
+fn known_control(id: u32) -> (&'static str, &'static str) {
+    match id {
+        CID_EXPOSURE_AUTO => ("auto_exposure", "menu"),
+        CID_EXPOSURE_ABSOLUTE => ("exposure_time_absolute", "int"),
+        CID_EXPOSURE => ("exposure", "int"),
+        CID_AUTO_WHITE_BALANCE => ("white_balance_automatic", "bool"),
+        CID_AUTOGAIN => ("gain_automatic", "bool"),
+        CID_GAIN => ("gain", "int"),
+        _ => ("unknown", "int"),
+    }
+}
+
+/// The listing of `v4l2-ctl --list-formats-ext`: every format with its frame sizes.
+///
+/// # Errors
+/// The device's `errno`.
+pub fn list_formats_ext(dev: &dyn V4lDevice) -> io::Result<String> {
+    let mut out = String::from("ioctl: VIDIOC_ENUM_FMT\n\tType: Video Capture\n\n");
+    for (i, f) in dev.formats()?.into_iter().enumerate() {
+        let what = match &f.0 {
+            b"YUYV" => "YUYV 4:2:2",
+            b"MJPG" => "Motion-JPEG, compressed",
+            b"GREY" => "8-bit Greyscale",
+            b"Y16 " => "16-bit Greyscale",
+            b"RGB3" => "24-bit RGB 8-8-8",
+            _ => "",
+        };
+        let decodes = if decode::SUPPORTED.contains(&f) { "" } else { "  [lensrig cannot decode]" };
+        let what = if what.is_empty() { String::new() } else { format!(" ({what})") };
+        out += &format!("\t[{i}]: {f}{what}{decodes}\n");
+        for (w, h) in dev.frame_sizes(f)? {
+            out += &format!("\t\tSize: Discrete {w}x{h}\n");
+        }
+    }
+    Ok(out)
+}
+
+/// The listing of `v4l2-ctl --list-ctrls`: user-class then camera-class controls, each
+/// with its range, default and current value.
+///
+/// # Errors
+/// The device's `errno`.
+pub fn list_ctrls(dev: &dyn V4lDevice) -> io::Result<String> {
+    let mut ctrls = dev.describe_controls()?;
+    ctrls.sort_by_key(|c| c.id);
+    let mut out = String::new();
+    let mut class = 0;
+    for c in ctrls {
+        if c.id >> 16 != class {
+            class = c.id >> 16;
+            out += match class {
+                0x98 => "\nUser Controls\n\n",
+                0x9a => "\nCamera Controls\n\n",
+                _ => "\nOther Controls\n\n",
+            };
+        }
+        let range = if c.kind == "bool" { String::new() } else { format!("min={} max={} ", c.minimum, c.maximum) };
+        let step = if c.kind == "int" { format!("step={} ", c.step) } else { String::new() };
+        let default = c.default.map(|d| format!("default={d} ")).unwrap_or_default();
+        let value = c.value.map(|v| format!("value={v}")).unwrap_or_default();
+        out += &format!("{:>31} {:#010x} {:<8} : {range}{step}{default}{value}\n", c.name, c.id, format!("({})", c.kind));
+    }
+    Ok(out)
 }
 
 /// How to open a [`V4lCamera`].
@@ -214,6 +316,15 @@ impl V4lCamera {
             Err(e) => Err(io_err(&self.device, e)),
         }
     }
+}
+
+/// Opens a device for listing only (no format or control is changed).
+///
+/// # Errors
+/// The device cannot be opened.
+#[cfg(feature = "v4l2")]
+pub fn open_device(path: &Path) -> io::Result<Box<dyn V4lDevice>> {
+    Ok(Box::new(real::RealDevice::open(path)?))
 }
 
 fn open_err(path: &Path, e: io::Error) -> CameraError {
@@ -521,6 +632,9 @@ mod tests {
         fn control(&self, id: u32) -> io::Result<i64> {
             self.values.get(&id).copied().ok_or_else(|| io::Error::from_raw_os_error(22))
         }
+        fn frame_sizes(&self, _fourcc: FourCc) -> io::Result<Vec<(u32, u32)>> {
+            Ok(self.sizes.clone())
+        }
         fn next_frame(&mut self, _timeout: Duration) -> io::Result<(Vec<u8>, u32)> {
             if let Some(k) = self.fail_frames {
                 return Err(io::Error::new(k, "fake"));
@@ -668,6 +782,28 @@ mod tests {
         dev.controls.retain(|c| c.id != CID_EXPOSURE_AUTO);
         let e = V4lCamera::with_device(Box::new(dev), &settings(b"GREY")).err().unwrap().to_string();
         assert!(e.contains("exposure_time_absolute") && e.contains("inactive"), "{e}");
+    }
+
+    #[test]
+    fn listings_use_v4l2_ctl_vocabulary() {
+        let (mut dev, log) = uvc();
+        dev.offered.push(FourCc(*b"H264"));
+        let f = list_formats_ext(&dev).unwrap();
+        assert!(f.starts_with("ioctl: VIDIOC_ENUM_FMT\n\tType: Video Capture\n"), "{f}");
+        assert!(f.contains("\t[0]: 'YUYV' (YUYV 4:2:2)\n\t\tSize: Discrete 640x480\n\t\tSize: Discrete 320x240\n"), "{f}");
+        assert!(f.contains("\t[1]: 'MJPG' (Motion-JPEG, compressed)\n"), "{f}");
+        assert!(f.contains("\t[3]: 'H264'  [lensrig cannot decode]\n"), "{f}");
+        assert!(f.contains("\t[2]: 'GREY' (8-bit Greyscale)\n"), "{f}");
+        let c = list_ctrls(&dev).unwrap();
+        let user = c.find("User Controls").unwrap();
+        let camera = c.find("Camera Controls").unwrap();
+        assert!(user < camera, "{c}");
+        assert!(c.contains("         exposure_time_absolute 0x009a0902 (int)    : min=1 max=5000 step=1 value=156\n"), "{c}");
+        assert!(c.contains("                  auto_exposure 0x009a0901 (menu)   : min=0 max=3 value=3\n"), "{c}");
+        assert!(c.contains("        white_balance_automatic 0x0098090c (bool)   : value=1\n"), "{c}");
+        assert!(c.contains("                           gain 0x00980913 (int)    : min=0 max=255 step=1 value=64\n"), "{c}");
+        // listing only reads: nothing was set, no format changed, no frame taken
+        assert!(log.lock().unwrap().is_empty());
     }
 
     #[test]

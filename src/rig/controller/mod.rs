@@ -10,7 +10,10 @@
 //!   `G53 G0 …` so work offsets a user set on the board never shift the rig.
 //! - With grbl's default homing direction the machine space is negative, `[−max_travel, 0]`,
 //!   and homing ends at `−pull_off` on each axis.
-//! - Every operation is bounded in time ([`Timeouts`]); none retries silently. Unlocking (`$X`)
+//! - Every operation is bounded in time ([`Timeouts`]); none retries silently. A garbled
+//!   line is noise, not an error: it is logged ([`Controller::take_events`]), answered
+//!   with another poll or a resync, and an operation fails only when nothing parseable
+//!   arrives within its timeout. Unlocking (`$X`)
 //!   or resetting (`0x18`) after an alarm happens only as the [`RecoveryPolicy`] allows, or
 //!   when the caller asks for it.
 
@@ -66,6 +69,23 @@ pub trait Controller {
     /// # Errors
     /// No banner within the timeout, a lost link.
     fn reset(&mut self) -> Result<(), ControllerError>;
+
+    /// What happened on the link since the last call that did not stop an operation
+    /// (unreadable lines, resynchronisations), oldest first. The session appends them to
+    /// its event log.
+    fn take_events(&mut self) -> Vec<ControllerEvent> {
+        Vec::new()
+    }
+}
+
+/// Something the client met and got past: kinds `corrupt-line` (an unparseable line; the
+/// detail quotes it), `resync` (a `?` sent to find the line's response again),
+/// `response-assumed` (the unreadable line was the response), `stray-response` (an
+/// `ok`/`error` with no line pending, skipped).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ControllerEvent {
+    pub kind: &'static str,
+    pub detail: String,
 }
 
 /// What the controller client may do on its own after an alarm.
@@ -164,6 +184,9 @@ pub enum ControllerError {
     Locked { port: String, reason: String, hint: String },
     #[error("{port}: grbl rejected {command:?} with {error}")]
     Grbl { port: String, command: String, error: GrblError },
+    /// The config homes on start but the board has homing off: found before any motion.
+    #[error("{port}: the rig config homes on start (home_on_start = true) but homing is disabled on the board ($22=0); fix: send `$22=1` to the board (check the limit switches and $23 first), or set home_on_start = false")]
+    HomingDisabled { port: String },
     #[error("{port}: disconnected")]
     Disconnected { port: String },
     #[error("{port}: unreadable bytes from the controller (wrong baud rate or line noise?): {text:?}")]

@@ -47,7 +47,7 @@
 
 use std::collections::{BTreeMap, VecDeque};
 use std::io::{self, Read, Write};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
@@ -68,6 +68,12 @@ pub struct Faults {
     /// The limit switches never trigger (unplugged): a homing cycle searches 1.5 × max
     /// travel, then fails with `ALARM:9`.
     pub homing_switch_missing: AtomicBool,
+    /// Corrupt this fraction of status reports, in parts per million (10 000 = 1 %), as a
+    /// noisy line does: a dropped or doubled delimiter (`FS:50,,0`), a number character
+    /// replaced by noise, or the report run into the line around it (interleaved output,
+    /// which can swallow an `ok`). Every corruption makes the line unparseable; the count is
+    /// [`SimState::reports_corrupted`].
+    pub corrupt_reports_ppm: AtomicU32,
 }
 
 /// What the test harness can observe of the firmware (the truth, not what was reported).
@@ -86,6 +92,8 @@ pub struct SimState {
     pub realtime_received: Vec<(u8, MachineState)>,
     /// Status reports transmitted.
     pub status_reports_sent: usize,
+    /// Of those, corrupted by [`Faults::corrupt_reports_ppm`].
+    pub reports_corrupted: usize,
 }
 
 /// Start-up configuration of the simulated board.
@@ -242,6 +250,9 @@ pub struct Firmware {
     log_lines: Vec<String>,
     log_realtime: Vec<(u8, MachineState)>,
     reports_sent: usize,
+    reports_corrupted: usize,
+    /// xorshift state of the line-noise fault.
+    noise_rng: u64,
     /// [`Faults::homing_switch_missing`], as of the last tick.
     switches_missing: bool,
 }
@@ -280,6 +291,9 @@ impl Firmware {
             log_lines: Vec::new(),
             log_realtime: Vec::new(),
             reports_sent: 0,
+            reports_corrupted: 0,
+            // chosen so that the first report drawn at a rate ≥ 1 % is corrupted: a test meets one
+            noise_rng: 0x9E37_79B9_7F4A_7C0A,
             switches_missing: false,
         };
         if fw.setting(22) != 0.0 {
@@ -941,9 +955,68 @@ impl Firmware {
         if self.status_requested {
             self.status_requested = false;
             let r = self.report();
-            self.line(&r);
             self.reports_sent += 1;
+            // the generator only advances while the fault is on
+            let ppm = faults.corrupt_reports_ppm.load(Ordering::SeqCst) as u64;
+            if ppm > 0 && self.noise() % 1_000_000 < ppm {
+                self.reports_corrupted += 1;
+                self.corrupt_line(&r);
+            } else {
+                self.line(&r);
+            }
         }
+    }
+
+    fn noise(&mut self) -> u64 {
+        let x = &mut self.noise_rng;
+        *x ^= *x << 13;
+        *x ^= *x >> 7;
+        *x ^= *x << 17;
+        *x
+    }
+
+    /// Transmits `report` damaged as a noisy line would (see [`Faults::corrupt_reports_ppm`]).
+    fn corrupt_line(&mut self, report: &str) {
+        let mut b = report.as_bytes().to_vec();
+        let pick = |fw: &mut Self, b: &[u8], f: &dyn Fn(u8) -> bool| {
+            let idx: Vec<usize> = (0..b.len()).filter(|&i| f(b[i])).collect();
+            let n = fw.noise() as usize;
+            idx.get(n % idx.len().max(1)).copied()
+        };
+        match self.noise() % 4 {
+            0 => {
+                if let Some(i) = pick(self, &b, &|c| b"|,:<>".contains(&c)) {
+                    b.remove(i);
+                }
+            }
+            1 => {
+                if let Some(i) = pick(self, &b, &|c| b"|,:".contains(&c)) {
+                    b.insert(i, b[i]);
+                }
+            }
+            2 => {
+                if let Some(i) = pick(self, &b, &|c| c.is_ascii_digit() || c == b'.' || c == b'-') {
+                    b[i] = if self.noise() % 2 == 0 { 0xFF } else { b'#' };
+                }
+            }
+            _ => {
+                // interleaved: into the middle of the line sent just before, else run into
+                // whatever comes next
+                let text_end = self.out.len().saturating_sub(2);
+                if self.out.ends_with(b"\r\n") && text_end > 0 {
+                    let start = self.out[..text_end].iter().rposition(|&c| c == b'\n').map_or(0, |p| p + 1);
+                    if text_end - start >= 2 {
+                        let mid = start + (text_end - start) / 2;
+                        self.out.splice(mid..mid, b);
+                        return;
+                    }
+                }
+                self.out.extend_from_slice(&b);
+                return;
+            }
+        }
+        self.out.extend_from_slice(&b);
+        self.out.extend_from_slice(b"\r\n");
     }
 
     /// One integration step; false when nothing moves.
@@ -1062,6 +1135,7 @@ impl Firmware {
         s.received_lines.append(&mut self.log_lines);
         s.realtime_received.append(&mut self.log_realtime);
         s.status_reports_sent = self.reports_sent;
+        s.reports_corrupted = self.reports_corrupted;
     }
 
     fn snapshot(&mut self) -> SimState {
@@ -1074,6 +1148,7 @@ impl Firmware {
             received_lines: Vec::new(),
             realtime_received: Vec::new(),
             status_reports_sent: 0,
+            reports_corrupted: 0,
         };
         self.snapshot_into(&mut s);
         s
@@ -1115,7 +1190,26 @@ pub struct SimHandle {
     _keepalive: Option<Box<dyn Send>>,
 }
 
+/// A view of a running board that another thread can hold: its faults and true state.
+#[derive(Clone)]
+pub struct SimObserver {
+    pub faults: Arc<Faults>,
+    state: Arc<Mutex<SimState>>,
+}
+
+impl SimObserver {
+    /// The firmware's true state (locks briefly).
+    pub fn state(&self) -> MutexGuard<'_, SimState> {
+        self.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
 impl SimHandle {
+    /// A cloneable view of the board for another thread.
+    pub fn observer(&self) -> SimObserver {
+        SimObserver { faults: self.faults.clone(), state: self.state.clone() }
+    }
+
     /// The firmware's true state (locks briefly).
     pub fn state(&self) -> MutexGuard<'_, SimState> {
         self.state.lock().unwrap_or_else(|e| e.into_inner())
@@ -1546,6 +1640,37 @@ mod tests {
         b.advance(0.5);
         let r = b.send(b"?");
         assert!(r.starts_with("<Run|MPos:-") && !r.contains("|FS:0,"), "{r}");
+    }
+
+    #[test]
+    fn corrupted_reports_never_parse_and_rates_hold() {
+        use super::super::protocol::{parse_line, Message};
+        let mut b = Bench::new(SimOptions::default());
+        b.fw.take_output();
+        b.send(b"G0 X-50\n");
+        b.faults.corrupt_reports_ppm.store(1_000_000, Ordering::SeqCst);
+        let mut out = Vec::new();
+        for _ in 0..300 {
+            b.fw.receive(b"?", b.t);
+            b.fw.tick(b.t, &b.faults);
+            out.extend(b.fw.take_output());
+            b.t += Duration::from_millis(5);
+        }
+        let text = String::from_utf8_lossy(&out);
+        assert!(text.contains(",,") || text.contains("||") || text.contains("::"), "a doubled delimiter appears");
+        for line in text.split("\r\n").filter(|l| !l.is_empty()) {
+            assert!(!matches!(parse_line(line), Message::Status(_)), "{line:?} parses");
+        }
+        assert_eq!(b.fw.reports_corrupted, 300);
+        // 10 %: about one report in ten
+        let mut b = Bench::new(SimOptions::default());
+        b.faults.corrupt_reports_ppm.store(100_000, Ordering::SeqCst);
+        for _ in 0..2000 {
+            b.fw.receive(b"?", b.t);
+            b.fw.tick(b.t, &b.faults);
+            b.fw.take_output();
+        }
+        assert!((150..=250).contains(&b.fw.reports_corrupted), "{}", b.fw.reports_corrupted);
     }
 
     #[test]

@@ -33,6 +33,7 @@ pub mod optics;
 pub mod rig;
 pub mod solve;
 pub mod profile;
+pub mod report;
 pub mod rng;
 pub mod target;
 

@@ -27,6 +27,7 @@
 pub mod deconv;
 pub mod diagnose;
 pub mod estimate;
+pub mod export;
 pub mod fsutil;
 pub mod image;
 pub mod optics;

@@ -7,6 +7,8 @@ pub mod bench;
 pub mod calibrate;
 pub mod capture;
 pub mod demo;
+pub mod export;
+pub mod report;
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
@@ -51,6 +53,11 @@ pub enum Command {
     /// Find where the profile's simulation and the recording disagree, name the missing
     /// physics, model it and refit (report.json, predictions and an HTML report).
     Diagnose(lensrig::diagnose::cli::DiagnoseArgs),
+    /// MTF and colour report of a profile or profile set.
+    Report(report::ReportArgs),
+    /// Lens data for other tools (lensfun).
+    #[command(subcommand)]
+    Export(export::ExportCommand),
 }
 
 #[derive(Args, Debug)]
@@ -145,6 +152,8 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::CheckConfig(a) => capture::run_check_config(&a),
         Command::Calibrate(a) => calibrate::run(&a),
         Command::Diagnose(a) => lensrig::diagnose::cli::run(&a),
+        Command::Report(a) => report::run(&a),
+        Command::Export(c) => export::run(&c),
     }
 }
 

@@ -10,16 +10,22 @@ use super::{deblur, DeconvOptions};
 use crate::fsutil::Overwrite;
 use crate::image::io::{read_image, write_png16};
 use crate::image::Transfer;
-use crate::profile::Profile;
 use anyhow::{bail, Context};
 use std::path::PathBuf;
 
 /// Arguments of `lensrig deblur`.
 #[derive(clap::Args, Debug, Clone)]
 pub struct DeblurArgs {
-    /// Lens profile directory (written by `lensrig estimate`).
+    /// Lens profile directory (written by `lensrig estimate`), or a profile set (a directory
+    /// with `index.toml`; then give --distance and --aperture).
     #[arg(long, value_name = "PROFILE_DIR")]
     pub profile: PathBuf,
+    /// Focus distance (m) of the capture, to choose or interpolate within a profile set.
+    #[arg(long)]
+    pub distance: Option<f64>,
+    /// Aperture (f-number) of the capture, to choose within a profile set.
+    #[arg(long)]
+    pub aperture: Option<f64>,
     /// Blurred capture (PNG or TIFF) taken through the profiled lens.
     #[arg(long = "in", value_name = "BLURRED")]
     pub input: PathBuf,
@@ -83,7 +89,11 @@ pub fn run(args: &DeblurArgs) -> anyhow::Result<()> {
     if !args.force && args.out.exists() {
         bail!("{} already exists and is never overwritten (use --force to replace it)", args.out.display());
     }
-    let profile = Profile::load(&args.profile).with_context(|| format!("cannot load profile {}", args.profile.display()))?;
+    let resolved = crate::profile::set::load_profile_or_set(&args.profile, args.distance, args.aperture).with_context(|| format!("cannot load profile {}", args.profile.display()))?;
+    if crate::profile::set::is_set(&args.profile) && !args.quiet {
+        eprintln!("profile set {}: {}", args.profile.display(), resolved.description);
+    }
+    let profile = resolved.profile;
     let mut img = read_image(&args.input)?;
     let grid = &profile.grid;
     let src = &profile.meta.source;
@@ -165,7 +175,7 @@ mod tests {
     use super::*;
     use crate::deconv::synth::SyntheticLens;
     use crate::image::{Image, Plane, SampleFormat};
-    use crate::profile::{PsfTable, SourceInfo};
+    use crate::profile::{Profile, PsfTable, SourceInfo};
     use std::collections::BTreeMap;
     use std::path::Path;
 
@@ -188,6 +198,8 @@ mod tests {
     fn args(dir: &Path, input: &str) -> DeblurArgs {
         DeblurArgs {
             profile: dir.join("profile"),
+            distance: None,
+            aperture: None,
             input: dir.join(input),
             out: dir.join("out.png"),
             transfer: None,

@@ -116,7 +116,16 @@ pub fn run(a: &CalibrateArgs) -> Result<()> {
         }
         let rep = lensrig::report::analyse(g, prof.meta.source.width, prof.meta.source.height, facts.pixel_pitch_um);
         lensrig::report::write_assets(&dir, g, &rep)?;
-        let mtf_truth = truth_grid.as_ref().map(|t| mtf50_vs_truth(&rep, &lensrig::report::analyse(t, prof.meta.source.width, prof.meta.source.height, None)));
+        // the truth at this profile's tile centres (as `truth_error` compares kernels)
+        let truth_here = truth_grid.as_ref().map(|t| PsfGrid {
+            kernel_size: t.kernel_size,
+            columns: g.columns,
+            rows: g.rows,
+            centers: g.centers.clone(),
+            channels: t.channels.clone(),
+            kernels: (0..t.channels.len()).map(|c| g.centers.iter().map(|&[x, y]| t.kernel_at(c, x, y)).collect()).collect(),
+        });
+        let mtf_truth = truth_here.as_ref().map(|t| mtf50_vs_truth(&rep, &lensrig::report::analyse(t, prof.meta.source.width, prof.meta.source.height, None)));
         if let Some(d) = &mtf_truth {
             let s: Vec<String> = rep.channels.iter().zip(d).map(|(c, v)| format!("{c} {:.1} %", v * 100.0)).collect();
             html.push_str(&format!("<p>MTF50 against the simulator's truth, median |relative difference| over tiles and directions: {}.</p>", s.join(", ")));

@@ -316,7 +316,7 @@ pub fn html_section(r: &ProfileReport, prefix: &str) -> String {
         let _ = write!(h, "<td>{} … {}</td><td>{}</td><td>{}</td></tr>", fixed(lo, 3), fixed(hi, 3), fixed(a.ee80[c], 2), fixed(a.rms[c], 2));
     }
     h.push_str("</table><p>Longitudinal colour: the per-channel blur on axis (EE and RMS radius columns above); a channel focused behind or in front of the others is larger.</p>");
-    h.push_str("<p>MTF50 across the field (c/px; tangential = frequency along the radius, sagittal = across it):</p><div class=row>");
+    h.push_str("<p>MTF50 across the field (c/px; tangential = frequency along the radius, sagittal = across it; 0.500 means the modulation is still above one half at Nyquist):</p><div class=row>");
     for ch in &r.channels {
         for d in ["tan", "sag"] {
             let _ = write!(h, "<figure><img src=\"{prefix}mtf50-{ch}-{d}.svg\" alt=\"MTF50 map {ch} {d}\"><figcaption>{ch} {d}</figcaption></figure>");

@@ -99,6 +99,8 @@ fn prepare(out: &Path, scene: &Path) -> anyhow::Result<()> {
     let d = lensrig::deconv::DeconvOptions::default();
     let args = DeblurArgs {
         profile: dir.join("profile"),
+        distance: None,
+        aperture: None,
         input: dir.join("blurred.png"),
         out: dir.join("lensrig.png"),
         transfer: None,

@@ -188,7 +188,7 @@ pub fn fit_vignetting(flat: &Image) -> Option<Vignetting> {
         }
     }
     let p = lstsq(&rows)?;
-    if !(p[0] > 1e-6) {
+    if p[0].is_nan() || p[0] <= 1e-6 {
         return None;
     }
     let res = (rows.iter().map(|(a, y, _)| ((a.iter().zip(&p).map(|(x, q)| x * q).sum::<f64>() - y) / p[0]).powi(2)).sum::<f64>() / rows.len() as f64).sqrt();

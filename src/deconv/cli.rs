@@ -90,7 +90,7 @@ pub fn run(args: &DeblurArgs) -> anyhow::Result<()> {
         bail!("{} already exists and is never overwritten (use --force to replace it)", args.out.display());
     }
     let resolved = crate::profile::set::load_profile_or_set(&args.profile, args.distance, args.aperture).with_context(|| format!("cannot load profile {}", args.profile.display()))?;
-    if crate::profile::set::is_set(&args.profile) && !args.quiet {
+    if crate::profile::set::is_set(&args.profile) {
         eprintln!("profile set {}: {}", args.profile.display(), resolved.description);
     }
     let profile = resolved.profile;

@@ -106,7 +106,7 @@ fn prepare(out: &Path, scene: &Path) -> anyhow::Result<()> {
         ..d
     };
     let (profile, input, restored) = (dir.join("profile"), dir.join("blurred.png"), dir.join("lensrig.png"));
-    let job = RestoreFile { profile: &profile, input: &input, out: &restored, transfer: None, overwrite: Overwrite::Replace, progress: false, invalid: lensrig::image::validate::InvalidPixels::Refuse };
+    let job = RestoreFile { profile: &profile, input: &input, out: &restored, transfer: None, overwrite: Overwrite::Replace, progress: false, invalid: lensrig::image::validate::InvalidPixels::Refuse, distance: None, aperture: None };
     if std::env::var("LR_NO_RUN").is_ok_and(|v| v == "1") {
         return Ok(());
     }

@@ -27,12 +27,14 @@
 pub mod deconv;
 pub mod diagnose;
 pub mod estimate;
+pub mod export;
 pub mod fsutil;
 pub mod image;
 pub mod optics;
 pub mod rig;
 pub mod solve;
 pub mod profile;
+pub mod report;
 pub mod rng;
 pub mod target;
 

@@ -1,23 +1,24 @@
 //! `lensrig calibrate`: capture a session with the rig, estimate one profile per stage
-//! position, and write an HTML report (`RUN_DIR/index.html`): the PSF grid per channel, an
-//! encircled-energy (80 %) radius map across the field (pixels), and previews of the
-//! captures. On a mock rig the kernels are also compared with the simulator's truth
-//! (`summary.json`: median and max relative L2 error at the tile centres).
+//! position, and write an HTML report (`RUN_DIR/index.html`): per profile the
+//! [`lensrig::report`] section (PSF grids per channel, MTF50 maps, MTF curves, lateral-colour
+//! arrows, longitudinal colour, sub-pixel encircled energy; files in `report/<key>/`) and
+//! previews of the captures. On a mock rig the kernels and their MTF50 are also compared with
+//! the simulator's truth (`summary.json`).
 
 use super::args::{EstimateArgs, RigArgs};
 use super::capture::capture_session;
-use super::report::{html_head, psf_mosaic};
+use super::report::{facts_of, RigFacts};
 use anyhow::{Context, Result};
 use clap::Args;
 use lensrig::estimate::session::estimate_session;
-use lensrig::estimate::{energy_radius, kernel_errors, median_max, Estimate};
+use lensrig::estimate::{kernel_errors, median_max, Estimate};
 use lensrig::fsutil::{write_atomic, Overwrite};
 use lensrig::image::io::{read_image, write_png8};
 use lensrig::optics::psf_grid::PsfGrid;
-use lensrig::profile::Profile;
-use lensrig::rig::camera::mock::MockOptics;
+use lensrig::report::ProfileReport;
 use lensrig::rig::session::PairRecord;
 use std::path::{Path, PathBuf};
+
 use std::time::Instant;
 
 #[derive(Args, Debug)]
@@ -35,27 +36,32 @@ pub struct CalibrateArgs {
 }
 
 /// Median and max relative L2 error of a profile's kernels against the mock's truth at the
-/// tile centres (the f-number the mock renders at the open aperture).
-pub fn truth_error(optics: &MockOptics, g: &PsfGrid) -> (f64, f64) {
-    median_max(&kernel_errors(g, &optics.truth_grid(optics.f_number_open)))
+/// tile centres (`truth`: the grid the mock renders at the open aperture).
+pub fn truth_error(truth: &PsfGrid, g: &PsfGrid) -> (f64, f64) {
+    median_max(&kernel_errors(g, truth))
 }
 
-fn ee_map(p: &Profile, c: usize) -> String {
-    let g = &p.grid;
-    let r: Vec<f64> = g.kernels[c].iter().map(|k| energy_radius(k, 0.8)).collect();
-    let mx = r.iter().copied().fold(1e-9, f64::max);
-    let mut s = String::from("<table class=ee>");
-    for row in 0..g.rows {
-        s.push_str("<tr>");
-        for col in 0..g.columns {
-            let v = r[row * g.columns + col];
-            let shade = (255.0 * (1.0 - 0.7 * v / mx)) as u8;
-            s.push_str(&format!("<td style=\"background:rgb(255,{shade},{shade})\">{v:.1}</td>"));
-        }
-        s.push_str("</tr>");
+/// Per channel, the median over tiles and both directions of |MTF50 / truth − 1|.
+fn mtf50_vs_truth(r: &ProfileReport, t: &ProfileReport) -> Vec<f64> {
+    (0..r.channels.len())
+        .map(|c| {
+            let mut d: Vec<f64> = r.tiles.iter().zip(&t.tiles).flat_map(|(a, b)| [(a.mtf50_tan[c] / b.mtf50_tan[c] - 1.0).abs(), (a.mtf50_sag[c] / b.mtf50_sag[c] - 1.0).abs()]).filter(|v| v.is_finite()).collect();
+            d.sort_by(f64::total_cmp);
+            d.get(d.len() / 2).copied().unwrap_or(0.0)
+        })
+        .collect()
+}
+
+/// The truth sampled at a profile's own tile centres (as [`truth_error`] compares kernels).
+fn truth_at_centres(truth: &PsfGrid, g: &PsfGrid) -> PsfGrid {
+    PsfGrid {
+        kernel_size: truth.kernel_size,
+        columns: g.columns,
+        rows: g.rows,
+        centers: g.centers.clone(),
+        channels: truth.channels.clone(),
+        kernels: (0..truth.channels.len()).map(|c| g.centers.iter().map(|&[x, y]| truth.kernel_at(c, x, y)).collect()).collect(),
     }
-    s.push_str("</table>");
-    s
 }
 
 /// One pair's report: its HTML section, its `summary.json` entry and its (median, max)
@@ -66,26 +72,31 @@ struct PairReport {
     truth: Option<(f64, f64)>,
 }
 
-/// The report section of one pair (PSF mosaics, encircled-energy map, capture previews,
+/// The report section of one pair (the [`lensrig::report`] section and capture previews,
 /// written under `report/<key>/`) and its `summary.json` entry.
-fn pair_section(out: &Path, session_dir: &Path, p: &PairRecord, est: &Estimate, optics: Option<&MockOptics>) -> Result<PairReport> {
+fn pair_section(out: &Path, session_dir: &Path, p: &PairRecord, est: &Estimate, truth_grid: Option<&PsfGrid>, facts: &RigFacts) -> Result<PairReport> {
     let prof = &est.profile;
     let g = &prof.grid;
     let dir = out.join("report").join(&p.key);
     std::fs::create_dir_all(&dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    let ratios: Vec<String> = prof.meta.exposure_ratio.iter().map(|r| lensrig::report::significant(*r, 3)).collect();
     let mut html = format!(
-        "<h2>{} (stage {} mm)</h2><p>Profile <code>profiles/{}/</code>: {}x{} tiles, {} px kernels, exposure ratio {:?}.</p>",
-        p.key, p.stage_mm, p.key, g.columns, g.rows, g.kernel_size, prof.meta.exposure_ratio
+        "<h2>{} (stage {} mm)</h2><p>Profile <code>profiles/{}/</code>: {}x{} tiles, {} px kernels, exposure ratio (open/pinhole) {}.</p>",
+        p.key, p.stage_mm, p.key, g.columns, g.rows, g.kernel_size, ratios.join(", ")
     );
-    let truth = optics.map(|o| truth_error(o, g));
+    let truth = truth_grid.map(|t| truth_error(t, g));
     if let Some((med, max)) = truth {
         html.push_str(&format!("<p>Against the simulator's truth at the tile centres: median relative L2 kernel error <b>{:.1}%</b> (max {:.1}%).</p>", med * 100.0, max * 100.0));
     }
-    for (c, name) in g.channels.iter().enumerate() {
-        let f = format!("report/{}/psf-{name}.png", p.key);
-        write_png8(&out.join(&f), &psf_mosaic(g, c), Overwrite::Replace)?;
-        html.push_str(&format!("<h3>Channel {name}</h3><p>PSFs per tile (each scaled to its peak, square-root display):</p><img src=\"{f}\"><p>80% encircled-energy radius (px) across the field:</p>{}", ee_map(prof, c)));
+    let (w, h) = (prof.meta.source.width, prof.meta.source.height);
+    let rep = lensrig::report::analyse(g, w, h, facts.pixel_pitch_um);
+    lensrig::report::write_assets(&dir, g, &rep)?;
+    let mtf_truth = truth_grid.map(|t| mtf50_vs_truth(&rep, &lensrig::report::analyse(&truth_at_centres(t, g), w, h, None)));
+    if let Some(d) = &mtf_truth {
+        let s: Vec<String> = rep.channels.iter().zip(d).map(|(c, v)| format!("{c} {:.1} %", v * 100.0)).collect();
+        html.push_str(&format!("<p>MTF50 against the simulator's truth, median |relative difference| over tiles and directions: {}.</p>", s.join(", ")));
     }
+    html.push_str(&lensrig::report::html_section(&rep, &format!("report/{}/", p.key)));
     html.push_str("<p>Captures (open, pinhole):</p>");
     for role in ["open", "pinhole"] {
         let img = read_image(&session_dir.join(&p.dir).join(format!("{role}.png")))?;
@@ -94,13 +105,14 @@ fn pair_section(out: &Path, session_dir: &Path, p: &PairRecord, est: &Estimate, 
         prev.planes.iter_mut().for_each(|q| q.data.iter_mut().for_each(|v| *v = (*v / mx).sqrt()));
         let f = format!("report/{}/{role}.png", p.key);
         write_png8(&out.join(&f), &prev, Overwrite::Replace)?;
-        html.push_str(&format!("<img src=\"{f}\" title=\"{role}\"> "));
+        html.push_str(&format!("<img class=capture src=\"{f}\" title=\"{role}\" alt=\"{role} capture\"> "));
     }
     let json = serde_json::json!({
         "key": p.key, "stage_mm": p.stage_mm, "profile": format!("profiles/{}", p.key),
         "columns": g.columns, "rows": g.rows, "kernel_size": g.kernel_size,
         "exposure_ratio": prof.meta.exposure_ratio,
         "truth_median_relative_error": truth.map(|t| t.0), "truth_max_relative_error": truth.map(|t| t.1),
+        "mtf50_median_relative_difference_vs_truth": mtf_truth,
     });
     Ok(PairReport { html, json, truth })
 }
@@ -118,7 +130,9 @@ pub fn run(a: &CalibrateArgs) -> Result<()> {
     opts.kernel_size = opts.kernel_size.or(optics.as_ref().map(|o| o.kernel_size));
     opts.progress = progress;
     let ests = estimate_session(&session_dir, &a.out.join("profiles"), &opts, progress)?;
-    let mut html = html_head("lensrig calibration", "4px 10px", "table.ee td{text-align:right;font-size:80%}");
+    let mut html = String::from("<!doctype html><meta charset=utf-8><title>lensrig calibration</title><style>");
+    html.push_str(lensrig::report::STYLE);
+    html.push_str("img.capture{max-width:45%}</style>");
     html.push_str(&format!(
         "<h1>lensrig calibration</h1><p>Rig config <code>{}</code>; camera: {}; session <code>session/</code> ({} pair(s), {}).</p>",
         a.rig.rig.display(),
@@ -126,10 +140,12 @@ pub fn run(a: &CalibrateArgs) -> Result<()> {
         rec.pairs.len(),
         rec.status
     ));
+    let truth_grid = optics.as_ref().map(|o| o.truth_grid(o.f_number_open));
+    let facts = facts_of(&cfg);
     let mut pairs_json = Vec::new();
     let mut medians = Vec::new();
     for (p, est) in &ests {
-        let r = pair_section(&a.out, &session_dir, p, est, optics.as_ref())?;
+        let r = pair_section(&a.out, &session_dir, p, est, truth_grid.as_ref(), &facts)?;
         html.push_str(&r.html);
         pairs_json.push(r.json);
         medians.extend(r.truth.map(|t| t.0));

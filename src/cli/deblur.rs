@@ -14,9 +14,16 @@ use std::path::PathBuf;
 /// Arguments of `lensrig deblur`.
 #[derive(Args, Debug, Clone)]
 pub struct DeblurArgs {
-    /// Lens profile directory (written by `lensrig estimate`).
+    /// Lens profile directory (written by `lensrig estimate`), or a profile set (a directory
+    /// with `index.toml`; then give --distance and --aperture).
     #[arg(long, value_name = "PROFILE_DIR")]
     pub profile: PathBuf,
+    /// Focus distance (m) of the capture, to choose or interpolate within a profile set.
+    #[arg(long)]
+    pub distance: Option<f64>,
+    /// Aperture (f-number) of the capture, to choose within a profile set.
+    #[arg(long)]
+    pub aperture: Option<f64>,
     /// Blurred capture (PNG or TIFF) taken through the profiled lens.
     #[arg(long = "in", value_name = "BLURRED")]
     pub input: PathBuf,
@@ -88,6 +95,8 @@ pub fn run(args: &DeblurArgs) -> Result<()> {
         transfer: args.transfer,
         overwrite: if args.force { Overwrite::Replace } else { Overwrite::Never },
         progress: !args.quiet,
+        distance: args.distance,
+        aperture: args.aperture,
         invalid: if args.mask_invalid { InvalidPixels::Mask } else { InvalidPixels::Refuse },
     };
     let Restored { report, notes } = restore_file(&job, &args.options())?;

@@ -9,7 +9,7 @@
 //! `summary.json` and `index.html` into `--out`.
 
 use super::args::EstimateArgs;
-use super::report::{html_head, psf_mosaic};
+use super::html::{html_head, psf_mosaic};
 use anyhow::{Context, Result};
 use clap::Args;
 use lensrig::diagnose::simulate::predict;

@@ -15,6 +15,8 @@ pub mod demo;
 pub mod devices;
 pub mod diagnose;
 pub mod estimate;
+pub mod export;
+pub mod html;
 pub mod jog;
 pub mod panic;
 pub mod report;
@@ -61,6 +63,11 @@ pub enum Command {
     Devices(devices::DevicesArgs),
     /// Move the rig's axes from the keyboard and print the machine position.
     Jog(jog::JogArgs),
+    /// MTF and colour report of a profile or profile set.
+    Report(report::ReportArgs),
+    /// Lens data for other tools (lensfun).
+    #[command(subcommand)]
+    Export(export::ExportCommand),
 }
 
 /// Runs a parsed command line.
@@ -78,6 +85,8 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Diagnose(a) => diagnose::run(&a),
         Command::Devices(a) => devices::run(&a),
         Command::Jog(a) => jog::run(&a),
+        Command::Report(a) => report::run(&a),
+        Command::Export(c) => export::run(&c),
     }
 }
 

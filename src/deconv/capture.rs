@@ -12,7 +12,8 @@ use crate::fsutil::Overwrite;
 use crate::image::io::{read_image_with, write_png16, ImageError};
 use crate::image::validate::{InvalidPixels, MASKED_VALUE};
 use crate::image::Transfer;
-use crate::profile::{Profile, ProfileError};
+use crate::profile::set::{is_set, load_profile_or_set};
+use crate::profile::ProfileError;
 use std::path::{Path, PathBuf};
 
 /// Why a capture could not be restored. Every variant names the input or the profile.
@@ -39,8 +40,12 @@ pub enum RestoreError {
 /// A restoration of one file.
 #[derive(Clone, Debug)]
 pub struct RestoreFile<'a> {
-    /// Lens profile directory.
+    /// Lens profile directory, or a profile set (a directory with `index.toml`).
     pub profile: &'a Path,
+    /// Focus distance (m) and aperture (f-number) of the capture, to choose or interpolate
+    /// within a profile set; ignored for a single profile.
+    pub distance: Option<f64>,
+    pub aperture: Option<f64>,
     pub input: &'a Path,
     /// 16-bit PNG to write.
     pub out: &'a Path,
@@ -70,12 +75,17 @@ pub struct Restored {
 /// match the profile (naming the file and both values), a failed restoration, an unwritable
 /// output.
 pub fn restore_file(job: &RestoreFile, opts: &DeconvOptions) -> Result<Restored, RestoreError> {
-    let profile = Profile::load(job.profile).map_err(|source| RestoreError::Profile { path: job.profile.to_path_buf(), source })?;
+    let resolved = load_profile_or_set(job.profile, job.distance, job.aperture).map_err(|source| RestoreError::Profile { path: job.profile.to_path_buf(), source })?;
+    let mut notes = Vec::new();
+    if is_set(job.profile) {
+        notes.push(format!("profile set {}: {}", job.profile.display(), resolved.description));
+    }
+    let profile = resolved.profile;
     let loaded = read_image_with(job.input, job.invalid)?;
     if loaded.values.masked > 0 && opts.saturation.is_none() {
         return Err(RestoreError::MaskWithoutSaturation { input: job.input.into() });
     }
-    let notes = loaded.values.notes(job.input);
+    notes.extend(loaded.values.notes(job.input));
     let mut img = loaded.image;
     let grid = &profile.grid;
     let src = &profile.meta.source;
@@ -147,7 +157,7 @@ mod tests {
     use super::*;
     use crate::deconv::synth::SyntheticLens;
     use crate::image::{Image, Plane, SampleFormat};
-    use crate::profile::{PsfTable, SourceInfo};
+    use crate::profile::{Profile, PsfTable, SourceInfo};
     use std::collections::BTreeMap;
 
     fn profile(dir: &Path, w: usize, h: usize, transfer: Transfer) {
@@ -170,7 +180,7 @@ mod tests {
     /// dark term).
     fn run(dir: &Path, input: &str) -> Result<Restored, RestoreError> {
         let (profile, input, out) = (dir.join("profile"), dir.join(input), dir.join("out.png"));
-        let job = RestoreFile { profile: &profile, input: &input, out: &out, transfer: None, overwrite: Overwrite::Replace, progress: false, invalid: InvalidPixels::Refuse };
+        let job = RestoreFile { profile: &profile, input: &input, out: &out, transfer: None, overwrite: Overwrite::Replace, progress: false, invalid: InvalidPixels::Refuse, distance: None, aperture: None };
         let opts = DeconvOptions { cross_weight: 3.0, dark_weight: 0.0, residual_steps: 1, max_iterations: 30, saturation: Some(0.99), ..DeconvOptions::default() };
         restore_file(&job, &opts)
     }

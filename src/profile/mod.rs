@@ -26,6 +26,8 @@ use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
+pub mod set;
+
 /// The format version this build writes and reads.
 pub const FORMAT_VERSION: u32 = 1;
 

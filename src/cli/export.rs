@@ -1,0 +1,120 @@
+//! `lensrig export lensfun`: a lensfun database file from a profile (TCA), a flat-field
+//! capture (vignetting) and the lens's identity. See [`lensrig::export::lensfun`] for what is
+//! written and why.
+
+use super::report::rig_facts;
+use anyhow::{bail, Context, Result};
+use clap::{Args, Subcommand};
+use lensrig::export::lensfun::{fit_tca, fit_vignetting, lensfun_xml, LensInfo};
+use lensrig::fsutil::{write_atomic, Overwrite};
+use lensrig::image::io::read_image;
+use lensrig::profile::Profile;
+use std::path::PathBuf;
+
+#[derive(Subcommand, Debug)]
+pub enum ExportCommand {
+    /// A lensfun database file (format version 1): TCA from the profile, vignetting from --flat.
+    Lensfun(LensfunArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct LensfunArgs {
+    /// Profile directory (an R, G, B profile gives TCA).
+    #[arg(long)]
+    pub profile: PathBuf,
+    /// Output file, e.g. lens.xml (lensfun reads ~/.local/share/lensfun/*.xml).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Flat-field capture (wide open, uniform target or diffuser) for the vignetting block.
+    #[arg(long)]
+    pub flat: Option<PathBuf>,
+    /// Rig config for the focal length, crop factor (from the pixel pitch) and f-number.
+    #[arg(long)]
+    pub rig: Option<PathBuf>,
+    #[arg(long, default_value = "lensrig")]
+    pub maker: String,
+    #[arg(long, default_value = "Simple lens")]
+    pub model: String,
+    #[arg(long, default_value = "Generic")]
+    pub mount: String,
+    /// Focal length, mm (default: the rig config's).
+    #[arg(long)]
+    pub focal_mm: Option<f64>,
+    /// Crop factor (default: 43.27 mm / the sensor diagonal from the rig's pixel pitch).
+    #[arg(long)]
+    pub crop_factor: Option<f64>,
+    /// f-number of the flat field (default: the rig's open aperture).
+    #[arg(long)]
+    pub aperture: Option<f64>,
+    /// Focus distance of the flat field, m.
+    #[arg(long, default_value_t = 1000.0)]
+    pub distance_m: f64,
+    /// Replace the output file if it exists.
+    #[arg(long)]
+    pub force: bool,
+}
+
+pub fn run(c: &ExportCommand) -> Result<()> {
+    match c {
+        ExportCommand::Lensfun(a) => run_lensfun(a),
+    }
+}
+
+fn run_lensfun(a: &LensfunArgs) -> Result<()> {
+    let p = Profile::load(&a.profile).with_context(|| format!("cannot load profile {}", a.profile.display()))?;
+    let (w, h) = (p.meta.source.width, p.meta.source.height);
+    let facts = match &a.rig {
+        Some(r) => Some(rig_facts(r)?),
+        None => None,
+    };
+    let focal = a.focal_mm.or(facts.and_then(|f| f.focal_length_mm)).context("the focal length is unknown: give --focal-mm or --rig with [lens] focal_length_mm")?;
+    let crop = match a.crop_factor {
+        Some(c) => c,
+        None => {
+            let pitch = facts.and_then(|f| f.pixel_pitch_um).context("the crop factor is unknown: give --crop-factor, or --rig with a pixel pitch")?;
+            43.27 / (pitch / 1000.0 * ((w * w + h * h) as f64).sqrt())
+        }
+    };
+    let aperture = a.aperture.or(facts.and_then(|f| f.f_number_open));
+    let info = LensInfo { maker: a.maker.clone(), model: a.model.clone(), mount: a.mount.clone(), focal_mm: focal, crop_factor: crop, aperture: aperture.unwrap_or(0.0), distance_m: a.distance_m, width: w, height: h };
+    let report = lensrig::report::analyse(&p.grid, w, h, None);
+    let tca = fit_tca(&report);
+    let mut prov = vec![
+        format!("Written by lensrig {} at {}.", env!("CARGO_PKG_VERSION"), lensrig::timestamp_utc()),
+        format!("Profile {} (created {}, {}x{} px, channels {}).", a.profile.display(), p.meta.created, w, h, p.grid.channels.join(" ")),
+    ];
+    match &tca {
+        Some(t) => prov.push(format!("Measured: tca (poly3) from the R and B kernel centroids against G at {} tiles off axis; RMS radial residual {:.3} px.", t.tiles, t.residual_px)),
+        None => prov.push("Not measured: tca (needs an R, G, B profile with at least four tiles off axis).".into()),
+    }
+    let vig = match &a.flat {
+        Some(f) => {
+            if aperture.is_none() {
+                bail!("the flat field's f-number is unknown: give --aperture or --rig");
+            }
+            let img = read_image(f).with_context(|| format!("cannot read flat field {}", f.display()))?;
+            if img.width() != w || img.height() != h {
+                bail!("{}: is {}x{} but the profile was measured on {}x{}", f.display(), img.width(), img.height(), w, h);
+            }
+            let v = fit_vignetting(&img).with_context(|| format!("{}: too small or dark for a vignetting fit", f.display()))?;
+            prov.push(format!("Measured: vignetting (pa) from the flat field {} at f/{} ({} blocks, RMS residual {:.2} % of the centre).", f.display(), info.aperture, v.samples, v.residual * 100.0));
+            Some(v)
+        }
+        None => {
+            prov.push("Not measured: vignetting (no flat-field capture given; the open/pinhole exposure ratio is relative vignetting between two apertures and is not exported).".into());
+            None
+        }
+    };
+    prov.push("Not measured: distortion (registering the pinhole capture to the target file is not implemented).".into());
+    let xml = lensfun_xml(&info, tca.as_ref(), vig.as_ref(), &prov);
+    write_atomic(&a.out, xml.as_bytes(), if a.force { Overwrite::Replace } else { Overwrite::Never }).with_context(|| format!("cannot write {}", a.out.display()))?;
+    println!(
+        "wrote {} ({}{}; crop factor {:.2}, focal {} mm)",
+        a.out.display(),
+        if tca.is_some() { "tca" } else { "no tca" },
+        if vig.is_some() { ", vignetting" } else { ", no vignetting" },
+        crop,
+        focal
+    );
+    Ok(())
+}

@@ -509,6 +509,80 @@ fn convolve_spec(fft: &Fft2, v: &[f32], ks: &KernelSpectrum) -> Vec<f32> {
     fft.inverse(s)
 }
 
+/// 0/1 data weights that drop saturated pixels (`None` for channels without any, or without a
+/// saturation level); counts them into `stats.saturated`.
+fn saturation_masks(windows: &[Vec<f32>], saturation: Option<f32>, stats: &mut TileStats) -> Vec<Option<Vec<f32>>> {
+    windows
+        .iter()
+        .map(|win| {
+            let thr = saturation?;
+            let n = win.iter().filter(|v| **v >= thr).count();
+            stats.saturated += n;
+            (n > 0).then(|| win.iter().map(|v| if *v >= thr { 0.0 } else { 1.0 }).collect())
+        })
+        .collect()
+}
+
+/// Pyramid depth: halve while the kernel stays informative (≥ 11 px) and the domain stays
+/// sizeable (≥ 32 px, divisible).
+fn pyramid_depth(kernels: &[Plane], width: usize, height: usize, max_levels: usize) -> usize {
+    let mut levels = 1;
+    let mut ksz = kernels.iter().map(|k| k.width).max().unwrap_or(1);
+    while levels < max_levels
+        && ksz >= 11
+        && width % (1 << levels) == 0
+        && height % (1 << levels) == 0
+        && width >> levels >= 32
+        && height >> levels >= 32
+    {
+        levels += 1;
+        ksz = ksz / 2 + 1;
+    }
+    levels
+}
+
+/// Unknown boundary: data weight 0 within the kernel radius of the window edge (there the
+/// periodic `B` wraps around), so the estimate extends past the data instead of being fitted
+/// to the mirrored window.
+fn mask_boundary(m: Option<Vec<f32>>, k: &Plane, w: usize, h: usize) -> Vec<f32> {
+    let (rx, ry) = (k.width / 2, k.height / 2);
+    let mut m = m.unwrap_or_else(|| vec![1.0; w * h]);
+    for y in 0..h {
+        for x in 0..w {
+            if x < rx || x + rx >= w || y < ry || y + ry >= h {
+                m[y * w + x] = 0.0;
+            }
+        }
+    }
+    m
+}
+
+/// The dark-region weight `w²` at pyramid level `z`: the share of the other channels that are
+/// dark (≤ `threshold`) where this channel's data `own` is dark too, smoothed, squared.
+fn dark_region_weight(others: &[&Vec<f32>], own: &[f32], threshold: f32, pw: usize, ph: usize, z: usize) -> Vec<f32> {
+    let mut t = vec![0.0f32; pw * ph];
+    for o in others {
+        t.iter_mut().zip(o.iter()).for_each(|(t, v)| *t += if *v <= threshold { 1.0 } else { 0.0 });
+    }
+    // the paper's T covers the other channels; also require this channel's data to be
+    // dark, so a bright channel is never pulled towards a dark one's flat gradients
+    t.iter_mut().zip(own).for_each(|(v, j)| *v = if *j <= threshold { *v / others.len() as f32 } else { 0.0 });
+    let wgt = gaussian_blur_periodic(&t, pw, ph, (3.0 / (1u32 << z) as f32).max(0.75));
+    wgt.iter().map(|v| v * v).collect::<Vec<f32>>()
+}
+
+/// The cross-channel block against the restored channel `o` at pyramid level `z`.
+fn cross_channel<'a>(o: &'a [f32], opts: &DeconvOptions, lam: f32, pw: usize, ph: usize, z: usize) -> CrossChannel<'a> {
+    if opts.cross_local > 0.0 {
+        // β_k = cross · λ / max(ī_l(k), 0.05), ī_l = i_l smoothed
+        let sm = gaussian_blur_periodic(o, pw, ph, (opts.cross_local / (1u32 << z) as f32).max(0.75));
+        let pixel = sm.iter().map(|v| 1.0 / v.max(0.05)).collect();
+        return CrossChannel { beta: opts.cross_weight * lam, image: o, grad: gradients(o, pw, ph), pixel: Some(pixel) };
+    }
+    let mean = o.iter().map(|v| *v as f64).sum::<f64>() / (pw * ph) as f64;
+    CrossChannel { beta: opts.cross_weight * lam / (mean as f32).max(0.05), image: o, grad: gradients(o, pw, ph), pixel: None }
+}
+
 /// Restores all channels of one tile window (`windows[c]`, `width × height`, linear) blurred
 /// by `kernels[c]`; returns the restored windows (periodic domain: crop the margin).
 pub fn restore_tile(windows: &[Vec<f32>], kernels: &[Plane], setup: &TileSetup) -> (Vec<Vec<f32>>, TileStats) {
@@ -516,50 +590,15 @@ pub fn restore_tile(windows: &[Vec<f32>], kernels: &[Plane], setup: &TileSetup) 
     let nch = windows.len();
     let mut stats = TileStats::default();
     // saturation masks (only channels that have saturated pixels)
-    let masks0: Vec<Option<Vec<f32>>> = windows
-        .iter()
-        .map(|win| {
-            let thr = opts.saturation?;
-            let n = win.iter().filter(|v| **v >= thr).count();
-            stats.saturated += n;
-            (n > 0).then(|| win.iter().map(|v| if *v >= thr { 0.0 } else { 1.0 }).collect())
-        })
-        .collect();
+    let masks0 = saturation_masks(windows, opts.saturation, &mut stats);
     // pyramid depth: halve while the kernel stays informative and the domain stays sizeable
-    let mut levels = 1;
-    let mut ksz = kernels.iter().map(|k| k.width).max().unwrap_or(1);
-    while levels < opts.max_levels
-        && ksz >= 11
-        && setup.width % (1 << levels) == 0
-        && setup.height % (1 << levels) == 0
-        && setup.width >> levels >= 32
-        && setup.height >> levels >= 32
-    {
-        levels += 1;
-        ksz = ksz / 2 + 1;
-    }
+    let levels = pyramid_depth(kernels, setup.width, setup.height, opts.max_levels);
     stats.levels = levels;
     // unknown boundary: data weight 0 within the kernel radius of the window edge (there the
     // periodic B wraps around), so the estimate extends past the data instead of being fitted
     // to the mirrored window
     let masks0: Vec<Option<Vec<f32>>> = if opts.unknown_boundary {
-        masks0
-            .into_iter()
-            .zip(kernels)
-            .map(|(m, k)| {
-                let (rx, ry) = (k.width / 2, k.height / 2);
-                let (w, h) = (setup.width, setup.height);
-                let mut m = m.unwrap_or_else(|| vec![1.0; w * h]);
-                for y in 0..h {
-                    for x in 0..w {
-                        if x < rx || x + rx >= w || y < ry || y + ry >= h {
-                            m[y * w + x] = 0.0;
-                        }
-                    }
-                }
-                Some(m)
-            })
-            .collect()
+        masks0.into_iter().zip(kernels).map(|(m, k)| Some(mask_boundary(m, k, setup.width, setup.height))).collect()
     } else {
         masks0
     };
@@ -589,38 +628,15 @@ pub fn restore_tile(windows: &[Vec<f32>], kernels: &[Plane], setup: &TileSetup) 
             };
             let mut est = vec![0.0; n];
             let others: Vec<&Vec<f32>> = setup.order[..pos].iter().filter_map(|&l| restored[l].as_ref()).collect();
-            let dark_w2: Option<Vec<f32>> = (opts.dark_weight > 0.0 && !others.is_empty())
-                .then(|| {
-                    let mut t = vec![0.0f32; n];
-                    for o in &others {
-                        t.iter_mut().zip(o.iter()).for_each(|(t, v)| *t += if *v <= opts.dark_threshold { 1.0 } else { 0.0 });
-                    }
-                    // the paper's T covers the other channels; also require this channel's data to be
-                    // dark, so a bright channel is never pulled towards a dark one's flat gradients
-                    let own = &js[z][c];
-                    t.iter_mut().zip(own).for_each(|(v, j)| *v = if *j <= opts.dark_threshold { *v / others.len() as f32 } else { 0.0 });
-                    let wgt = gaussian_blur_periodic(&t, pw, ph, (3.0 / (1u32 << z) as f32).max(0.75));
-                    wgt.iter().map(|v| v * v).collect::<Vec<f32>>()
-                })
+            let dark_w2 = (opts.dark_weight > 0.0 && !others.is_empty())
+                .then(|| dark_region_weight(&others, &js[z][c], opts.dark_threshold, pw, ph, z))
                 .filter(|w2: &Vec<f32>| w2.iter().any(|v| *v > 1e-4));
             let weight = transfer_weight_map(&js[z][c], pw, ph, opts.output_transfer, opts.transfer_weight, (2.0 / (1u32 << z) as f32).max(0.75));
             let lam0 = setup.lambda[c];
             let mut lam = lam0;
             let solve = |data: &[f32], warm: Vec<f32>, est: &[f32], lam: f32, stats: &mut TileStats| -> Vec<f32> {
                 let cross: Vec<CrossChannel> = if opts.cross_weight > 0.0 {
-                    others
-                        .iter()
-                        .map(|o| {
-                            if opts.cross_local > 0.0 {
-                                // β_k = cross · λ / max(ī_l(k), 0.05), ī_l = i_l smoothed
-                                let sm = gaussian_blur_periodic(o, pw, ph, (opts.cross_local / (1u32 << z) as f32).max(0.75));
-                                let pixel = sm.iter().map(|v| 1.0 / v.max(0.05)).collect();
-                                return CrossChannel { beta: opts.cross_weight * lam, image: o, grad: gradients(o, pw, ph), pixel: Some(pixel) };
-                            }
-                            let mean = o.iter().map(|v| *v as f64).sum::<f64>() / n as f64;
-                            CrossChannel { beta: opts.cross_weight * lam / (mean as f32).max(0.05), image: o, grad: gradients(o, pw, ph), pixel: None }
-                        })
-                        .collect()
+                    others.iter().map(|o| cross_channel(o, opts, lam, pw, ph, z)).collect()
                 } else {
                     Vec::new()
                 };

@@ -340,22 +340,9 @@ pub fn deblur(
     opts: &DeconvOptions,
     progress: &(dyn Fn(usize, usize) + Sync),
 ) -> Result<(Vec<Plane>, DeconvReport), DeconvError> {
+    check_inputs(planes, grid, opts)?;
     let nch = planes.len();
-    if nch != grid.kernels.len() {
-        return Err(DeconvError::ChannelCount { got: nch, expected: grid.kernels.len(), names: grid.channels.join(",") });
-    }
     let (w, h) = (planes[0].width, planes[0].height);
-    if w == 0 || h == 0 {
-        return Err(DeconvError::Empty);
-    }
-    if planes.iter().any(|p| p.width != w || p.height != h) {
-        return Err(DeconvError::PlaneSizes);
-    }
-    if let Some(l) = &opts.lambda {
-        if l.len() != nch && l.len() != 1 {
-            return Err(DeconvError::Option(format!("{} lambda values for {nch} channels", l.len())));
-        }
-    }
     let noise: Vec<f32> = planes.iter().map(noise::estimate_sigma).collect();
     let kappa = if opts.denoise > 0.0 { opts.denoise_lambda_per_variance } else { opts.lambda_per_variance };
     let lambda: Vec<f32> = (0..nch)
@@ -372,16 +359,7 @@ pub fn deblur(
     // extends past the used data by the kernel radius
     let margin = opts.margin.unwrap_or(if opts.unknown_boundary { (3 * k / 4).max(16) } else { (2 * k).max(16) });
     let levels = opts.max_levels.max(1);
-    let default_core = {
-        let budget = 512usize.saturating_sub(2 * margin + opts.overlap).max(96);
-        let spacing = |v: &[f64]| if v.len() > 1 { (v[1] - v[0]).abs() as usize } else { usize::MAX };
-        let gs = spacing(&grid.column_xs()).min(spacing(&grid.row_ys()));
-        // small cores follow a quickly varying PSF; on a sparse grid (12-MP captures, spacing
-        // ~1000 px) a core of a sixth of the spacing loses ~0.04 dB and saves a quarter of the work
-        let cap = if opts.unknown_boundary { budget.min((gs / 6).max(96)) } else { budget };
-        (gs.saturating_mul(3) / 2).clamp(48, cap)
-    };
-    let core = opts.tile_core.unwrap_or(default_core).max(16);
+    let core = opts.tile_core.unwrap_or_else(|| default_core(grid, opts, margin)).max(16);
     let mut xs = tiles::spans(w, core, opts.overlap);
     let mut ys = tiles::spans(h, core, opts.overlap);
     let pw = fft_size(tiles::max_keep(&xs) + 2 * margin, levels);
@@ -402,22 +380,7 @@ pub fn deblur(
         let field = FieldWindow { grid, x0: sx.window0, y0: sy.window0, image_width: w, image_height: h };
         let setup = TileSetup { width: pw, height: ph, lambda: &lambda, order: &order, opts, field: Some(field) };
         let (restored, st) = restore_tile(&windows, &kernels, &setup);
-        {
-            let mut o = out.lock().unwrap_or_else(|e| e.into_inner());
-            let (ox, oy) = ((sx.keep0 as isize - sx.window0) as usize, (sy.keep0 as isize - sy.window0) as usize);
-            let wx: Vec<f32> = (sx.keep0..sx.keep1).map(|x| sx.weight(x)).collect();
-            for y in sy.keep0..sy.keep1 {
-                let wy = sy.weight(y);
-                let ry = oy + (y - sy.keep0);
-                for (c, plane) in o.iter_mut().enumerate() {
-                    let src = &restored[c][ry * pw + ox..ry * pw + ox + wx.len()];
-                    let dst = &mut plane.data[y * w + sx.keep0..y * w + sx.keep1];
-                    for ((d, s), a) in dst.iter_mut().zip(src).zip(&wx) {
-                        *d += wy * a * s;
-                    }
-                }
-            }
-        }
+        blend_tile(&mut out.lock().unwrap_or_else(|e| e.into_inner()), &restored, sx, sy, pw);
         {
             let mut c = counters.lock().unwrap_or_else(|e| e.into_inner());
             c.0 += st.cp_iterations;
@@ -455,6 +418,57 @@ pub fn deblur(
         saturated_pixels: sat,
     };
     Ok((out, report))
+}
+
+/// The argument checks of [`deblur`].
+fn check_inputs(planes: &[Plane], grid: &PsfGrid, opts: &DeconvOptions) -> Result<(), DeconvError> {
+    let nch = planes.len();
+    if nch != grid.kernels.len() {
+        return Err(DeconvError::ChannelCount { got: nch, expected: grid.kernels.len(), names: grid.channels.join(",") });
+    }
+    let (w, h) = (planes[0].width, planes[0].height);
+    if w == 0 || h == 0 {
+        return Err(DeconvError::Empty);
+    }
+    if planes.iter().any(|p| p.width != w || p.height != h) {
+        return Err(DeconvError::PlaneSizes);
+    }
+    if let Some(l) = &opts.lambda {
+        if l.len() != nch && l.len() != 1 {
+            return Err(DeconvError::Option(format!("{} lambda values for {nch} channels", l.len())));
+        }
+    }
+    Ok(())
+}
+
+/// The default tile core (px) from the PSF grid spacing and the FFT budget (512 px windows).
+fn default_core(grid: &PsfGrid, opts: &DeconvOptions, margin: usize) -> usize {
+    let budget = 512usize.saturating_sub(2 * margin + opts.overlap).max(96);
+    let spacing = |v: &[f64]| if v.len() > 1 { (v[1] - v[0]).abs() as usize } else { usize::MAX };
+    let gs = spacing(&grid.column_xs()).min(spacing(&grid.row_ys()));
+    // small cores follow a quickly varying PSF; on a sparse grid (12-MP captures, spacing
+    // ~1000 px) a core of a sixth of the spacing loses ~0.04 dB and saves a quarter of the work
+    let cap = if opts.unknown_boundary { budget.min((gs / 6).max(96)) } else { budget };
+    (gs.saturating_mul(3) / 2).clamp(48, cap)
+}
+
+/// Adds a restored tile's kept part (window of width `pw`), weighted by the spans' blending
+/// ramps, into the output planes.
+fn blend_tile(out: &mut [Plane], restored: &[Vec<f32>], sx: &tiles::Span, sy: &tiles::Span, pw: usize) {
+    let (ox, oy) = ((sx.keep0 as isize - sx.window0) as usize, (sy.keep0 as isize - sy.window0) as usize);
+    let wx: Vec<f32> = (sx.keep0..sx.keep1).map(|x| sx.weight(x)).collect();
+    for y in sy.keep0..sy.keep1 {
+        let wy = sy.weight(y);
+        let ry = oy + (y - sy.keep0);
+        for (c, plane) in out.iter_mut().enumerate() {
+            let w = plane.width;
+            let src = &restored[c][ry * pw + ox..ry * pw + ox + wx.len()];
+            let dst = &mut plane.data[y * w + sx.keep0..y * w + sx.keep1];
+            for ((d, s), a) in dst.iter_mut().zip(src).zip(&wx) {
+                *d += wy * a * s;
+            }
+        }
+    }
 }
 
 /// Shared settings of every tile.

@@ -68,13 +68,20 @@ fn periodic_rows(v: &[f32], w: usize, h: usize, y: usize) -> (&[f32], &[f32], &[
     (&v[y * w..(y + 1) * w], &v[yn * w..(yn + 1) * w], &v[yp * w..(yp + 1) * w])
 }
 
-/// `out = H v` (overwrites `out`).
-pub fn apply(d: Derivative, v: &[f32], w: usize, h: usize, out: &mut [f32]) {
+/// Calls `f(row, below, above, out_row, tmp)` for every row of a periodic `w × h` array: the
+/// shared loop of [`apply`] and [`add_adjoint`]; `tmp` is a `w`-long scratch row (`Dxy` only).
+fn for_each_row(d: Derivative, v: &[f32], w: usize, h: usize, out: &mut [f32], mut f: impl FnMut(&[f32], &[f32], &[f32], &mut [f32], &mut [f32])) {
     debug_assert_eq!(v.len(), w * h);
     let mut tmp = if d == Derivative::Dxy { vec![0.0; w] } else { Vec::new() };
     for y in 0..h {
         let (row, rown, rowp) = periodic_rows(v, w, h, y);
-        let o = &mut out[y * w..(y + 1) * w];
+        f(row, rown, rowp, &mut out[y * w..(y + 1) * w], &mut tmp);
+    }
+}
+
+/// `out = H v` (overwrites `out`).
+pub fn apply(d: Derivative, v: &[f32], w: usize, h: usize, out: &mut [f32]) {
+    for_each_row(d, v, w, h, out, |row, rown, rowp, o, tmp| {
         match d {
             Derivative::Dx => forward_diff(row, o, 1.0, false),
             Derivative::Dy => o.iter_mut().zip(rown).zip(row).for_each(|((o, n), c)| *o = n - c),
@@ -86,19 +93,15 @@ pub fn apply(d: Derivative, v: &[f32], w: usize, h: usize, out: &mut [f32]) {
             }
             Derivative::Dxy => {
                 tmp.iter_mut().zip(rown).zip(row).for_each(|((t, n), c)| *t = n - c);
-                forward_diff(&tmp, o, 1.0, false);
+                forward_diff(tmp, o, 1.0, false);
             }
         }
-    }
+    });
 }
 
 /// `out += s · Hᵀ v`.
 pub fn add_adjoint(d: Derivative, v: &[f32], w: usize, h: usize, s: f32, out: &mut [f32]) {
-    debug_assert_eq!(v.len(), w * h);
-    let mut tmp = if d == Derivative::Dxy { vec![0.0; w] } else { Vec::new() };
-    for y in 0..h {
-        let (row, rown, rowp) = periodic_rows(v, w, h, y);
-        let o = &mut out[y * w..(y + 1) * w];
+    for_each_row(d, v, w, h, out, |row, rown, rowp, o, tmp| {
         match d {
             // (Dxᵀ v)[x] = v[x−1] − v[x]
             Derivative::Dx => backward_diff_add(row, o, s),
@@ -112,10 +115,10 @@ pub fn add_adjoint(d: Derivative, v: &[f32], w: usize, h: usize, s: f32, out: &m
             // Dxy = Dx∘Dy, so Dxyᵀ = Dyᵀ∘Dxᵀ: e = v[y−1] − v[y], then e[x−1] − e[x]
             Derivative::Dxy => {
                 tmp.iter_mut().zip(rowp).zip(row).for_each(|((t, p), c)| *t = p - c);
-                backward_diff_add(&tmp, o, s);
+                backward_diff_add(tmp, o, s);
             }
         }
-    }
+    });
 }
 
 /// The squared operator norm of each filter (largest `|Ĥ|²`): 4, 4, 16, 16, 16.

@@ -340,22 +340,9 @@ pub fn deblur(
     opts: &DeconvOptions,
     progress: &(dyn Fn(usize, usize) + Sync),
 ) -> Result<(Vec<Plane>, DeconvReport), DeconvError> {
+    check_inputs(planes, grid, opts)?;
     let nch = planes.len();
-    if nch != grid.kernels.len() {
-        return Err(DeconvError::ChannelCount { got: nch, expected: grid.kernels.len(), names: grid.channels.join(",") });
-    }
     let (w, h) = (planes[0].width, planes[0].height);
-    if w == 0 || h == 0 {
-        return Err(DeconvError::Empty);
-    }
-    if planes.iter().any(|p| p.width != w || p.height != h) {
-        return Err(DeconvError::PlaneSizes);
-    }
-    if let Some(l) = &opts.lambda {
-        if l.len() != nch && l.len() != 1 {
-            return Err(DeconvError::Option(format!("{} lambda values for {nch} channels", l.len())));
-        }
-    }
     let noise: Vec<f32> = planes.iter().map(noise::estimate_sigma).collect();
     let kappa = if opts.denoise > 0.0 { opts.denoise_lambda_per_variance } else { opts.lambda_per_variance };
     let lambda: Vec<f32> = (0..nch)
@@ -372,16 +359,7 @@ pub fn deblur(
     // extends past the used data by the kernel radius
     let margin = opts.margin.unwrap_or(if opts.unknown_boundary { (3 * k / 4).max(16) } else { (2 * k).max(16) });
     let levels = opts.max_levels.max(1);
-    let default_core = {
-        let budget = 512usize.saturating_sub(2 * margin + opts.overlap).max(96);
-        let spacing = |v: &[f64]| if v.len() > 1 { (v[1] - v[0]).abs() as usize } else { usize::MAX };
-        let gs = spacing(&grid.column_xs()).min(spacing(&grid.row_ys()));
-        // small cores follow a quickly varying PSF; on a sparse grid (12-MP captures, spacing
-        // ~1000 px) a core of a sixth of the spacing loses ~0.04 dB and saves a quarter of the work
-        let cap = if opts.unknown_boundary { budget.min((gs / 6).max(96)) } else { budget };
-        (gs.saturating_mul(3) / 2).clamp(48, cap)
-    };
-    let core = opts.tile_core.unwrap_or(default_core).max(16);
+    let core = opts.tile_core.unwrap_or_else(|| default_core(grid, opts, margin)).max(16);
     let mut xs = tiles::spans(w, core, opts.overlap);
     let mut ys = tiles::spans(h, core, opts.overlap);
     let pw = fft_size(tiles::max_keep(&xs) + 2 * margin, levels);
@@ -402,22 +380,7 @@ pub fn deblur(
         let field = FieldWindow { grid, x0: sx.window0, y0: sy.window0, image_width: w, image_height: h };
         let setup = TileSetup { width: pw, height: ph, lambda: &lambda, order: &order, opts, field: Some(field) };
         let (restored, st) = restore_tile(&windows, &kernels, &setup);
-        {
-            let mut o = out.lock().unwrap_or_else(|e| e.into_inner());
-            let (ox, oy) = ((sx.keep0 as isize - sx.window0) as usize, (sy.keep0 as isize - sy.window0) as usize);
-            let wx: Vec<f32> = (sx.keep0..sx.keep1).map(|x| sx.weight(x)).collect();
-            for y in sy.keep0..sy.keep1 {
-                let wy = sy.weight(y);
-                let ry = oy + (y - sy.keep0);
-                for (c, plane) in o.iter_mut().enumerate() {
-                    let src = &restored[c][ry * pw + ox..ry * pw + ox + wx.len()];
-                    let dst = &mut plane.data[y * w + sx.keep0..y * w + sx.keep1];
-                    for ((d, s), a) in dst.iter_mut().zip(src).zip(&wx) {
-                        *d += wy * a * s;
-                    }
-                }
-            }
-        }
+        blend_tile(&mut out.lock().unwrap_or_else(|e| e.into_inner()), &restored, sx, sy, pw);
         {
             let mut c = counters.lock().unwrap_or_else(|e| e.into_inner());
             c.0 += st.cp_iterations;
@@ -455,6 +418,57 @@ pub fn deblur(
         saturated_pixels: sat,
     };
     Ok((out, report))
+}
+
+/// The argument checks of [`deblur`].
+fn check_inputs(planes: &[Plane], grid: &PsfGrid, opts: &DeconvOptions) -> Result<(), DeconvError> {
+    let nch = planes.len();
+    if nch != grid.kernels.len() {
+        return Err(DeconvError::ChannelCount { got: nch, expected: grid.kernels.len(), names: grid.channels.join(",") });
+    }
+    let (w, h) = (planes[0].width, planes[0].height);
+    if w == 0 || h == 0 {
+        return Err(DeconvError::Empty);
+    }
+    if planes.iter().any(|p| p.width != w || p.height != h) {
+        return Err(DeconvError::PlaneSizes);
+    }
+    if let Some(l) = &opts.lambda {
+        if l.len() != nch && l.len() != 1 {
+            return Err(DeconvError::Option(format!("{} lambda values for {nch} channels", l.len())));
+        }
+    }
+    Ok(())
+}
+
+/// The default tile core (px) from the PSF grid spacing and the FFT budget (512 px windows).
+fn default_core(grid: &PsfGrid, opts: &DeconvOptions, margin: usize) -> usize {
+    let budget = 512usize.saturating_sub(2 * margin + opts.overlap).max(96);
+    let spacing = |v: &[f64]| if v.len() > 1 { (v[1] - v[0]).abs() as usize } else { usize::MAX };
+    let gs = spacing(&grid.column_xs()).min(spacing(&grid.row_ys()));
+    // small cores follow a quickly varying PSF; on a sparse grid (12-MP captures, spacing
+    // ~1000 px) a core of a sixth of the spacing loses ~0.04 dB and saves a quarter of the work
+    let cap = if opts.unknown_boundary { budget.min((gs / 6).max(96)) } else { budget };
+    (gs.saturating_mul(3) / 2).clamp(48, cap)
+}
+
+/// Adds a restored tile's kept part (window of width `pw`), weighted by the spans' blending
+/// ramps, into the output planes.
+fn blend_tile(out: &mut [Plane], restored: &[Vec<f32>], sx: &tiles::Span, sy: &tiles::Span, pw: usize) {
+    let (ox, oy) = ((sx.keep0 as isize - sx.window0) as usize, (sy.keep0 as isize - sy.window0) as usize);
+    let wx: Vec<f32> = (sx.keep0..sx.keep1).map(|x| sx.weight(x)).collect();
+    for y in sy.keep0..sy.keep1 {
+        let wy = sy.weight(y);
+        let ry = oy + (y - sy.keep0);
+        for (c, plane) in out.iter_mut().enumerate() {
+            let w = plane.width;
+            let src = &restored[c][ry * pw + ox..ry * pw + ox + wx.len()];
+            let dst = &mut plane.data[y * w + sx.keep0..y * w + sx.keep1];
+            for ((d, s), a) in dst.iter_mut().zip(src).zip(&wx) {
+                *d += wy * a * s;
+            }
+        }
+    }
 }
 
 /// Shared settings of every tile.
@@ -509,6 +523,80 @@ fn convolve_spec(fft: &Fft2, v: &[f32], ks: &KernelSpectrum) -> Vec<f32> {
     fft.inverse(s)
 }
 
+/// 0/1 data weights that drop saturated pixels (`None` for channels without any, or without a
+/// saturation level); counts them into `stats.saturated`.
+fn saturation_masks(windows: &[Vec<f32>], saturation: Option<f32>, stats: &mut TileStats) -> Vec<Option<Vec<f32>>> {
+    windows
+        .iter()
+        .map(|win| {
+            let thr = saturation?;
+            let n = win.iter().filter(|v| **v >= thr).count();
+            stats.saturated += n;
+            (n > 0).then(|| win.iter().map(|v| if *v >= thr { 0.0 } else { 1.0 }).collect())
+        })
+        .collect()
+}
+
+/// Pyramid depth: halve while the kernel stays informative (≥ 11 px) and the domain stays
+/// sizeable (≥ 32 px, divisible).
+fn pyramid_depth(kernels: &[Plane], width: usize, height: usize, max_levels: usize) -> usize {
+    let mut levels = 1;
+    let mut ksz = kernels.iter().map(|k| k.width).max().unwrap_or(1);
+    while levels < max_levels
+        && ksz >= 11
+        && width % (1 << levels) == 0
+        && height % (1 << levels) == 0
+        && width >> levels >= 32
+        && height >> levels >= 32
+    {
+        levels += 1;
+        ksz = ksz / 2 + 1;
+    }
+    levels
+}
+
+/// Unknown boundary: data weight 0 within the kernel radius of the window edge (there the
+/// periodic `B` wraps around), so the estimate extends past the data instead of being fitted
+/// to the mirrored window.
+fn mask_boundary(m: Option<Vec<f32>>, k: &Plane, w: usize, h: usize) -> Vec<f32> {
+    let (rx, ry) = (k.width / 2, k.height / 2);
+    let mut m = m.unwrap_or_else(|| vec![1.0; w * h]);
+    for y in 0..h {
+        for x in 0..w {
+            if x < rx || x + rx >= w || y < ry || y + ry >= h {
+                m[y * w + x] = 0.0;
+            }
+        }
+    }
+    m
+}
+
+/// The dark-region weight `w²` at pyramid level `z`: the share of the other channels that are
+/// dark (≤ `threshold`) where this channel's data `own` is dark too, smoothed, squared.
+fn dark_region_weight(others: &[&Vec<f32>], own: &[f32], threshold: f32, pw: usize, ph: usize, z: usize) -> Vec<f32> {
+    let mut t = vec![0.0f32; pw * ph];
+    for o in others {
+        t.iter_mut().zip(o.iter()).for_each(|(t, v)| *t += if *v <= threshold { 1.0 } else { 0.0 });
+    }
+    // the paper's T covers the other channels; also require this channel's data to be
+    // dark, so a bright channel is never pulled towards a dark one's flat gradients
+    t.iter_mut().zip(own).for_each(|(v, j)| *v = if *j <= threshold { *v / others.len() as f32 } else { 0.0 });
+    let wgt = gaussian_blur_periodic(&t, pw, ph, (3.0 / (1u32 << z) as f32).max(0.75));
+    wgt.iter().map(|v| v * v).collect::<Vec<f32>>()
+}
+
+/// The cross-channel block against the restored channel `o` at pyramid level `z`.
+fn cross_channel<'a>(o: &'a [f32], opts: &DeconvOptions, lam: f32, pw: usize, ph: usize, z: usize) -> CrossChannel<'a> {
+    if opts.cross_local > 0.0 {
+        // β_k = cross · λ / max(ī_l(k), 0.05), ī_l = i_l smoothed
+        let sm = gaussian_blur_periodic(o, pw, ph, (opts.cross_local / (1u32 << z) as f32).max(0.75));
+        let pixel = sm.iter().map(|v| 1.0 / v.max(0.05)).collect();
+        return CrossChannel { beta: opts.cross_weight * lam, image: o, grad: gradients(o, pw, ph), pixel: Some(pixel) };
+    }
+    let mean = o.iter().map(|v| *v as f64).sum::<f64>() / (pw * ph) as f64;
+    CrossChannel { beta: opts.cross_weight * lam / (mean as f32).max(0.05), image: o, grad: gradients(o, pw, ph), pixel: None }
+}
+
 /// Restores all channels of one tile window (`windows[c]`, `width × height`, linear) blurred
 /// by `kernels[c]`; returns the restored windows (periodic domain: crop the margin).
 pub fn restore_tile(windows: &[Vec<f32>], kernels: &[Plane], setup: &TileSetup) -> (Vec<Vec<f32>>, TileStats) {
@@ -516,50 +604,15 @@ pub fn restore_tile(windows: &[Vec<f32>], kernels: &[Plane], setup: &TileSetup) 
     let nch = windows.len();
     let mut stats = TileStats::default();
     // saturation masks (only channels that have saturated pixels)
-    let masks0: Vec<Option<Vec<f32>>> = windows
-        .iter()
-        .map(|win| {
-            let thr = opts.saturation?;
-            let n = win.iter().filter(|v| **v >= thr).count();
-            stats.saturated += n;
-            (n > 0).then(|| win.iter().map(|v| if *v >= thr { 0.0 } else { 1.0 }).collect())
-        })
-        .collect();
+    let masks0 = saturation_masks(windows, opts.saturation, &mut stats);
     // pyramid depth: halve while the kernel stays informative and the domain stays sizeable
-    let mut levels = 1;
-    let mut ksz = kernels.iter().map(|k| k.width).max().unwrap_or(1);
-    while levels < opts.max_levels
-        && ksz >= 11
-        && setup.width % (1 << levels) == 0
-        && setup.height % (1 << levels) == 0
-        && setup.width >> levels >= 32
-        && setup.height >> levels >= 32
-    {
-        levels += 1;
-        ksz = ksz / 2 + 1;
-    }
+    let levels = pyramid_depth(kernels, setup.width, setup.height, opts.max_levels);
     stats.levels = levels;
     // unknown boundary: data weight 0 within the kernel radius of the window edge (there the
     // periodic B wraps around), so the estimate extends past the data instead of being fitted
     // to the mirrored window
     let masks0: Vec<Option<Vec<f32>>> = if opts.unknown_boundary {
-        masks0
-            .into_iter()
-            .zip(kernels)
-            .map(|(m, k)| {
-                let (rx, ry) = (k.width / 2, k.height / 2);
-                let (w, h) = (setup.width, setup.height);
-                let mut m = m.unwrap_or_else(|| vec![1.0; w * h]);
-                for y in 0..h {
-                    for x in 0..w {
-                        if x < rx || x + rx >= w || y < ry || y + ry >= h {
-                            m[y * w + x] = 0.0;
-                        }
-                    }
-                }
-                Some(m)
-            })
-            .collect()
+        masks0.into_iter().zip(kernels).map(|(m, k)| Some(mask_boundary(m, k, setup.width, setup.height))).collect()
     } else {
         masks0
     };
@@ -589,38 +642,15 @@ pub fn restore_tile(windows: &[Vec<f32>], kernels: &[Plane], setup: &TileSetup) 
             };
             let mut est = vec![0.0; n];
             let others: Vec<&Vec<f32>> = setup.order[..pos].iter().filter_map(|&l| restored[l].as_ref()).collect();
-            let dark_w2: Option<Vec<f32>> = (opts.dark_weight > 0.0 && !others.is_empty())
-                .then(|| {
-                    let mut t = vec![0.0f32; n];
-                    for o in &others {
-                        t.iter_mut().zip(o.iter()).for_each(|(t, v)| *t += if *v <= opts.dark_threshold { 1.0 } else { 0.0 });
-                    }
-                    // the paper's T covers the other channels; also require this channel's data to be
-                    // dark, so a bright channel is never pulled towards a dark one's flat gradients
-                    let own = &js[z][c];
-                    t.iter_mut().zip(own).for_each(|(v, j)| *v = if *j <= opts.dark_threshold { *v / others.len() as f32 } else { 0.0 });
-                    let wgt = gaussian_blur_periodic(&t, pw, ph, (3.0 / (1u32 << z) as f32).max(0.75));
-                    wgt.iter().map(|v| v * v).collect::<Vec<f32>>()
-                })
+            let dark_w2 = (opts.dark_weight > 0.0 && !others.is_empty())
+                .then(|| dark_region_weight(&others, &js[z][c], opts.dark_threshold, pw, ph, z))
                 .filter(|w2: &Vec<f32>| w2.iter().any(|v| *v > 1e-4));
             let weight = transfer_weight_map(&js[z][c], pw, ph, opts.output_transfer, opts.transfer_weight, (2.0 / (1u32 << z) as f32).max(0.75));
             let lam0 = setup.lambda[c];
             let mut lam = lam0;
             let solve = |data: &[f32], warm: Vec<f32>, est: &[f32], lam: f32, stats: &mut TileStats| -> Vec<f32> {
                 let cross: Vec<CrossChannel> = if opts.cross_weight > 0.0 {
-                    others
-                        .iter()
-                        .map(|o| {
-                            if opts.cross_local > 0.0 {
-                                // β_k = cross · λ / max(ī_l(k), 0.05), ī_l = i_l smoothed
-                                let sm = gaussian_blur_periodic(o, pw, ph, (opts.cross_local / (1u32 << z) as f32).max(0.75));
-                                let pixel = sm.iter().map(|v| 1.0 / v.max(0.05)).collect();
-                                return CrossChannel { beta: opts.cross_weight * lam, image: o, grad: gradients(o, pw, ph), pixel: Some(pixel) };
-                            }
-                            let mean = o.iter().map(|v| *v as f64).sum::<f64>() / n as f64;
-                            CrossChannel { beta: opts.cross_weight * lam / (mean as f32).max(0.05), image: o, grad: gradients(o, pw, ph), pixel: None }
-                        })
-                        .collect()
+                    others.iter().map(|o| cross_channel(o, opts, lam, pw, ph, z)).collect()
                 } else {
                     Vec::new()
                 };

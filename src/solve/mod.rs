@@ -1,8 +1,9 @@
 //! Numerical machinery shared by estimation, deconvolution and diagnosis: FFT plans,
 //! convolution, the [`operator::LinearOperator`] trait, proxes, power iteration, and the loops
-//! (Chambolle–Pock / Condat–Vũ, FISTA, conjugate gradients). Values are `f32`, reductions
+//! (Chambolle–Pock / Condat–Vũ, FISTA, ADMM, conjugate gradients). Values are `f32`, reductions
 //! `f64`; FFT conventions in [`fft`], the PSF convention in [`conv`].
 
+pub mod admm;
 pub mod cg;
 pub mod conv;
 pub mod fft;

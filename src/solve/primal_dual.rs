@@ -84,6 +84,23 @@ pub struct Stats {
 /// margin keeps `στL² < 1` when the iteration undershoots.
 pub const NORM_SAFETY: f64 = 1.01;
 
+/// `(primal_len, dual_len)`, checked against `x` and `y`.
+fn lengths<P: PrimalDual + ?Sized>(p: &P, x: &[f32], y: &[f32]) -> (usize, usize) {
+    let (n, m) = (p.primal_len(), p.dual_len());
+    assert_eq!(x.len(), n);
+    assert_eq!(y.len(), m);
+    (n, m)
+}
+
+/// The dual step both loops share: `y ← prox_{σF*}(y + σ K x̄)` (`kx`: scratch, `dual_len`).
+fn dual_step<P: PrimalDual + ?Sized>(p: &mut P, x_bar: &[f32], sigma: f32, kx: &mut [f32], y: &mut [f32]) {
+    p.apply_k(x_bar, kx);
+    for (yi, k) in y.iter_mut().zip(kx.iter()) {
+        *yi += sigma * k;
+    }
+    p.prox_f_conj(sigma, y);
+}
+
 /// Runs Chambolle–Pock from `(x, y)` (both updated in place).
 ///
 /// `on_check(iteration, criterion)` is called at every check; returning `false` cancels.
@@ -95,10 +112,7 @@ pub fn chambolle_pock<P: PrimalDual + ?Sized>(
     operator_norm: Option<f32>,
     mut on_check: impl FnMut(usize, f64) -> bool,
 ) -> Stats {
-    let n = p.primal_len();
-    let m = p.dual_len();
-    assert_eq!(x.len(), n);
-    assert_eq!(y.len(), m);
+    let (n, m) = lengths(&*p, x, y);
     let l = operator_norm.unwrap_or_else(|| power::operator_norm(&PrimalDualOperator(&*p), 30, NORM_SAFETY));
     let sigma = opts.sigma;
     let tau = if l > 0.0 { 0.9 / (sigma * l * l) } else { 1.0 };
@@ -111,11 +125,7 @@ pub fn chambolle_pock<P: PrimalDual + ?Sized>(
     for it in 1..=opts.max_iterations {
         y_old.copy_from_slice(y);
         x_old.copy_from_slice(x);
-        p.apply_k(&x_bar, &mut kx);
-        for (yi, k) in y.iter_mut().zip(&kx) {
-            *yi += sigma * k;
-        }
-        p.prox_f_conj(sigma, y);
+        dual_step(p, &x_bar, sigma, &mut kx, y);
         p.apply_kt(y, &mut kty);
         for (xi, k) in x.iter_mut().zip(&kty) {
             *xi -= tau * k;
@@ -219,10 +229,7 @@ pub fn condat_vu<P: SmoothPrimalDual + ?Sized>(
     l_k: f32,
     mut on_check: impl FnMut(usize, f64) -> bool,
 ) -> Stats {
-    let n = p.primal_len();
-    let m = p.dual_len();
-    assert_eq!(x.len(), n);
-    assert_eq!(y.len(), m);
+    let (n, m) = lengths(&*p, x, y);
     let tau = 1.0 / l_smooth.max(1e-30);
     let sigma = 0.5 * l_smooth / (l_k * l_k).max(1e-30);
     let mut grad = vec![0.0; n];
@@ -245,11 +252,7 @@ pub fn condat_vu<P: SmoothPrimalDual + ?Sized>(
             x2 += (x_new[i] as f64) * (x_new[i] as f64);
             x_bar[i] = x_new[i] + d;
         }
-        p.apply_k(&x_bar, &mut kx);
-        for (yi, k) in y.iter_mut().zip(&kx) {
-            *yi += sigma * k;
-        }
-        p.prox_f_conj(sigma, y);
+        dual_step(p, &x_bar, sigma, &mut kx, y);
         x.copy_from_slice(&x_new);
         p.after_iteration(x, &x_bar);
         stats.iterations = it;

@@ -17,7 +17,7 @@ pub enum Derivative {
     Dxy,
 }
 
-/// All five, in the order of METHOD.md (`H_1..H_5`).
+/// All five, in the order of docs/method.md (`H_1..H_5`).
 pub const ALL: [Derivative; 5] = [Derivative::Dx, Derivative::Dy, Derivative::Dxx, Derivative::Dyy, Derivative::Dxy];
 /// The first-order pair used by the cross-channel and dark-region terms (`H_1, H_2`).
 pub const FIRST: [Derivative; 2] = [Derivative::Dx, Derivative::Dy];

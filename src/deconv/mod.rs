@@ -1,5 +1,5 @@
 //! Cross-channel deconvolution with spatially varying PSFs (Heide et al. 2013, Sec. 5;
-//! METHOD.md §1–§5): the restoration behind `lensrig deblur`.
+//! docs/method.md §1–§5): the restoration behind `lensrig deblur`.
 //!
 //! # Pipeline
 //! 1. Per channel, the noise level `σ_c` of the (linear) input is estimated ([`noise`]) and the
@@ -11,7 +11,7 @@
 //!    noise) more and bright ones less. On the photograph benchmark this was worth +0.4 dB
 //!    (γ = 0.5); γ = 1 (the full linearisation) with κ = 7 gains a further 0.1–0.2 dB.
 //!    The derivative prior is `λ (Σ_{a=1,2} ‖H_a x‖₁ + μ₂ Σ_{a=3..5} ‖H_a x‖₁)` with μ₂ = 0.5
-//!    ([`DeconvOptions::order2_weight`]; METHOD.md §3 prints μ₂ = 1), +0.1 to +0.3 dB.
+//!    ([`DeconvOptions::order2_weight`]; the paper prints μ₂ = 1, docs/method.md §3), +0.1 to +0.3 dB.
 //!    The cross-channel weight is normalised *locally*: for each pixel `k`,
 //!    `β_k = cross_weight · λ / max((i_l * G_s)(k), 0.05)` (`G_s` a Gaussian of width
 //!    `s = 4` px, [`DeconvOptions::cross_local`]) instead of by the tile mean of `i_l`, so the
@@ -94,8 +94,8 @@
 //! re-encoding is the caller's job ([`cli`]). PSFs follow [`crate::solve::conv`]. Outputs are not
 //! clipped.
 //!
-//! # Deviation from METHOD.md §4
-//! The dark-region weight printed there, `w = 1 − (Σ β T(i_l) / Σ β) * K_σ` with `T = 1` on
+//! # Deviation from the paper (docs/method.md §4)
+//! The dark-region weight the paper prints, `w = 1 − (Σ β T(i_l) / Σ β) * K_σ` with `T = 1` on
 //! dark pixels, is 0 in dark regions, which contradicts its stated purpose (and the paper's text:
 //! "`D_w` is a spatial mask that selects dark regions"). lensrig uses the blurred dark fraction
 //! itself, `w = (Σ β T(i_l) / Σ β) * K_σ`, which is 1 where the other channels are dark.

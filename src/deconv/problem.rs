@@ -1,5 +1,5 @@
 //! One channel's deconvolution problem on one tile, in the form [`PrimalDual`] needs
-//! (METHOD.md §3–§5).
+//! (docs/method.md §3–§5).
 //!
 //! The unknown `x` is the *increment* of a residual step (§5): the tile's current estimate `I_k`
 //! is fixed, the data are the residual `ΔJ = J − B I_k`, and
@@ -15,7 +15,7 @@
 //! - `K` stacks the ℓ1 operators with their weights inside, `F = ‖·‖₁` (dual prox: clamp to
 //!   `[−1, 1]`).
 //! - `G` is the data term plus the dark-region term. Without saturated pixels and without dark
-//!   regions its prox is the closed-form Fourier division of METHOD.md §3. With a 0/1 saturation
+//!   regions its prox is the closed-form Fourier division of docs/method.md §3. With a 0/1 saturation
 //!   mask `M` or a dark-region weight `w` it is the linear system of §4,
 //!   `(2τ BᵀMB + I + 2τ λ_b Σ H_aᵀ D_w² H_a) u = 2τ BᵀM ΔJ + ũ + 2τ λ_b Σ H_aᵀ D_w² H_a (i_l − I_k)`,
 //!   solved by conjugate gradients preconditioned with the unmasked Fourier inverse and warm
@@ -116,7 +116,7 @@ pub struct ChannelProblem<'a> {
     /// each pixel's threshold by `((|H_a x| + ε)/ε)^(q−1)` from the current iterate (`None`: ℓ1).
     pub reweight: Option<(f32, f32)>,
     /// Relative weight `μ₂` of the second-order derivative blocks `H_3..H_5` (the prior is
-    /// `λ (Σ_{a=1,2} ‖H_a x‖₁ + μ₂ Σ_{a=3..5} ‖H_a x‖₁)`); 1: METHOD.md §3 as printed.
+    /// `λ (Σ_{a=1,2} ‖H_a x‖₁ + μ₂ Σ_{a=3..5} ‖H_a x‖₁)`); 1: docs/method.md §3 as printed.
     pub order2_weight: f32,
     /// Penalty `ρ_v` of the data split `v = B x` in [`ChannelProblem::solve_admm`] (`None`: no
     /// split). With it the data term `‖M(v − ΔJ)‖²` is an elementwise prox, so the mask `M`

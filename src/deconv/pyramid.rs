@@ -1,4 +1,4 @@
-//! Scale space for the coarse-to-fine solve (METHOD.md §5): bicubic 2× downsampling of tile
+//! Scale space for the coarse-to-fine solve (docs/method.md §5): bicubic 2× downsampling of tile
 //! images (periodic, like the tile domain) and of kernels (about their centre, renormalised to
 //! sum 1), nearest-neighbour upsampling of results.
 //!

@@ -1,4 +1,4 @@
-//! The catalogue of physical effects (METHOD.md §7) as candidate extensions of a fitted model,
+//! The catalogue of physical effects (docs/method.md §7) as candidate extensions of a fitted model,
 //! each with the evidence in the current residual that speaks for it.
 //!
 //! | name | equation (see [`super::model`]) | parameters |

@@ -1,6 +1,6 @@
 //! Model-mismatch diagnosis (`lensrig diagnose`): where the base model (tile-wise PSFs, sharp
-//! pinhole reference, linear radiometry with one exposure ratio; METHOD.md §6) and the
-//! recording disagree, which physics it left out (METHOD.md §7), the refit with that physics,
+//! pinhole reference, linear radiometry with one exposure ratio; docs/method.md §6) and the
+//! recording disagree, which physics it left out (docs/method.md §7), the refit with that physics,
 //! and the fit against the noise floor.
 //!
 //! # Pipeline

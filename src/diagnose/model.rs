@@ -22,7 +22,7 @@
 //!    capture relative to `s` times the reference's.
 //! 7. encode (step 1), then `saturation` — `min(value, clip_level)` on the stored axis.
 //!
-//! Every correction is optional; an empty table is the base model of METHOD.md §6.
+//! Every correction is optional; an empty table is the base model of docs/method.md §6.
 
 use crate::estimate::register;
 use crate::image::resample::{warp_with_variance, Affine, Interpolation};

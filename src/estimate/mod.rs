@@ -1,4 +1,4 @@
-//! PSF estimation from a wide-open / pinhole pair (Heide et al. 2013, Sec. 6; METHOD.md §6).
+//! PSF estimation from a wide-open / pinhole pair (Heide et al. 2013, Sec. 6; docs/method.md §6).
 //!
 //! # Pipeline
 //! 1. Both captures are linearised ([`crate::image::Transfer`]) and the black level removed.

@@ -1,4 +1,4 @@
-//! One window, one channel: the TV-regularised PSF of Heide et al. 2013, Sec. 6 / METHOD.md §6.
+//! One window, one channel: the TV-regularised PSF of Heide et al. 2013, Sec. 6 / docs/method.md §6.
 //!
 //! # Problem
 //! On a periodic working domain of `P = Pw × Ph` pixels around the fit window, with `I` the
@@ -8,7 +8,7 @@
 //!
 //! `b* = argmin_b ½‖M ⊙ (I ⊛ b − j)‖² + λ TV(b),  b ≥ 0, 1ᵀb = σ_sum, supp b ⊂ k × k`
 //!
-//! (METHOD.md writes the data term scaled by `1/λ` with `s` on the other side; `I` carrying `s`
+//! (docs/method.md writes the data term scaled by `1/λ` with `s` on the other side; `I` carrying `s`
 //! keeps `j`'s noise unscaled.) TV is the isotropic total variation of the `k × k` kernel with
 //! zero outside its support (forward differences). The paper's soft sum-to-one penalty
 //! `(μ/2)(1ᵀb − 1)²` is replaced by its closed-form effect on the sum: the data term alone wants

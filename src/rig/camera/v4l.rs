@@ -456,12 +456,26 @@ mod real {
     use ::v4l::video::Capture;
     use ::v4l::{Device, FourCC};
 
-    use super::{ControlRange, ControlValue, DeviceFormat, V4lDevice, BUFFERS};
+    use super::{ControlDesc, ControlRange, ControlValue, DeviceFormat, V4lDevice, BUFFERS};
     use crate::rig::camera::FourCc;
 
     pub struct RealDevice {
         dev: Device,
         stream: Option<MmapStream<'static>>,
+    }
+
+    /// v4l2-ctl's spelling of a driver's control name: lower case, runs of other characters
+    /// as one `_` ("Exposure Time, Absolute" → `exposure_time_absolute`).
+    fn v4l2_ctl_name(name: &str) -> String {
+        let mut out = String::new();
+        for ch in name.chars() {
+            if ch.is_ascii_alphanumeric() {
+                out.push(ch.to_ascii_lowercase());
+            } else if !out.ends_with('_') && !out.is_empty() {
+                out.push('_');
+            }
+        }
+        out.trim_end_matches('_').to_string()
     }
 
     impl RealDevice {
@@ -507,6 +521,43 @@ mod real {
                 Value::Boolean(b) => Ok(i64::from(b)),
                 _ => Err(io::Error::new(io::ErrorKind::InvalidData, format!("control {id:#x} is not an integer"))),
             }
+        }
+
+        /// Discrete sizes as listed; a stepwise range as its smallest and largest size (what
+        /// `v4l2-ctl --list-formats-ext` prints as "Stepwise MINxMIN - MAXxMAX").
+        fn frame_sizes(&self, fourcc: FourCc) -> io::Result<Vec<(u32, u32)>> {
+            use ::v4l::framesize::FrameSizeEnum;
+            let mut sizes = Vec::new();
+            for f in self.dev.enum_framesizes(FourCC::new(&fourcc.0))? {
+                match f.size {
+                    FrameSizeEnum::Discrete(d) => sizes.push((d.width, d.height)),
+                    FrameSizeEnum::Stepwise(s) => {
+                        sizes.push((s.min_width, s.min_height));
+                        sizes.push((s.max_width, s.max_height));
+                    }
+                }
+            }
+            Ok(sizes)
+        }
+
+        /// The driver's own names, types, steps and defaults (`VIDIOC_QUERY_EXT_CTRL`) and the
+        /// current value of every integer, boolean and menu control; control classes and
+        /// buttons are skipped, as `v4l2-ctl --list-ctrls` lists them only as headings.
+        fn describe_controls(&self) -> io::Result<Vec<ControlDesc>> {
+            use ::v4l::control::Type as T;
+            let mut out = Vec::new();
+            for d in self.dev.query_controls()? {
+                let kind = match d.typ {
+                    T::Integer | T::Integer64 => "int",
+                    T::Boolean => "bool",
+                    T::Menu | T::IntegerMenu => "menu",
+                    _ => continue,
+                };
+                let name = v4l2_ctl_name(&d.name);
+                let value = self.control(d.id).ok();
+                out.push(ControlDesc { id: d.id, name, kind, minimum: d.minimum, maximum: d.maximum, step: d.step as i64, default: Some(d.default), value });
+            }
+            Ok(out)
         }
 
         fn next_frame(&mut self, timeout: Duration) -> io::Result<(Vec<u8>, u32)> {

@@ -308,9 +308,9 @@ fn decoder_error(path: &Path, e: &rawler::RawlerError) -> ImageError {
         ),
         R::Unsupported { what, make, model, .. } => unsupported(path, one_line(&format!("{what} (camera '{make} {model}')"))),
         R::DecoderFailed(m) if m.contains("EOF") => {
-            ImageError::Decode { path: path.into(), message: "the file is truncated: the image data runs past its end".into() }
+            ImageError::Decode { path: path.into(), source: "the file is truncated: the image data runs past its end".into() }
         }
-        R::DecoderFailed(m) => ImageError::Decode { path: path.into(), message: format!("corrupt raw data: {}", one_line(m)) },
+        R::DecoderFailed(m) => ImageError::Decode { path: path.into(), source: format!("corrupt raw data: {}", one_line(m)).into() },
     }
 }
 
@@ -335,7 +335,7 @@ fn decode_mosaic(path: &Path) -> Result<Mosaic, ImageError> {
     let (sw, sh) = (raw.width, raw.height);
     let (ax, ay, aw, ah) = match raw.active_area {
         Some(r) if r.p.x + r.d.w <= sw && r.p.y + r.d.h <= sh && r.d.w > 0 && r.d.h > 0 => (r.p.x, r.p.y, r.d.w, r.d.h),
-        Some(r) => return Err(ImageError::Decode { path: path.into(), message: format!("active area {r:?} lies outside the {sw}x{sh} sensor") }),
+        Some(r) => return Err(ImageError::Decode { path: path.into(), source: format!("active area {r:?} lies outside the {sw}x{sh} sensor").into() }),
         None => (0, 0, sw, sh),
     };
     let (aw, ah) = (aw & !1, ah & !1);
@@ -367,11 +367,11 @@ fn decode_mosaic(path: &Path) -> Result<Mosaic, ImageError> {
     let black = [black_at(ax, ay), black_at(ax + 1, ay), black_at(ax, ay + 1), black_at(ax + 1, ay + 1)];
     let white = raw.whitelevel.0.first().copied().unwrap_or(u16::MAX as u32) as f32;
     if black.iter().any(|&b| !(b.is_finite() && b < white)) {
-        return Err(ImageError::Decode { path: path.into(), message: format!("black level {black:?} is not below the white level {white}") });
+        return Err(ImageError::Decode { path: path.into(), source: format!("black level {black:?} is not below the white level {white}").into() });
     }
     let samples = raw.data.as_f32();
     if samples.len() < sw * sh {
-        return Err(ImageError::Decode { path: path.into(), message: format!("{} samples for a {sw}x{sh} sensor (truncated file?)", samples.len()) });
+        return Err(ImageError::Decode { path: path.into(), source: format!("{} samples for a {sw}x{sh} sensor (truncated file?)", samples.len()).into() });
     }
     let plane = Plane::from_fn(aw, ah, |x, y| {
         let b = black[(y % 2) * 2 + (x % 2)];

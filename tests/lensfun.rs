@@ -8,6 +8,7 @@
 use lensrig::export::lensfun::{tca_norm, vignetting_norm};
 use lensrig::fsutil::Overwrite;
 use lensrig::image::io::write_png16;
+use lensrig::image::filter::pixel_gaussian as gaussian;
 use lensrig::image::{Image, Plane, SampleFormat, Transfer};
 use lensrig::optics::psf_grid::PsfGrid;
 use lensrig::profile::{Profile, PsfTable, SourceInfo};
@@ -33,25 +34,6 @@ fn falloff(x: f64, y: f64) -> f64 {
     let (cx, cy) = ((W as f64 - 1.0) / 2.0, (H as f64 - 1.0) / 2.0);
     let r2 = ((x - cx).powi(2) + (y - cy).powi(2)) * vignetting_norm(W, H).powi(2);
     1.0 + VIG[0] * r2 + VIG[1] * r2 * r2 + VIG[2] * r2 * r2 * r2
-}
-
-/// A pixel-integrated Gaussian, `k × k`, centroid at `(ox, oy)` from the centre pixel.
-fn gaussian(k: usize, sigma: f64, ox: f64, oy: f64) -> Plane {
-    let c = (k as f64 - 1.0) / 2.0;
-    let mut p = Plane::from_fn(k, k, |x, y| {
-        let mut s = 0.0;
-        for j in 0..5 {
-            for i in 0..5 {
-                let xx = x as f64 - 0.4 + 0.2 * i as f64 - c - ox;
-                let yy = y as f64 - 0.4 + 0.2 * j as f64 - c - oy;
-                s += (-(xx * xx + yy * yy) / (2.0 * sigma * sigma)).exp();
-            }
-        }
-        s as f32
-    });
-    let t = p.sum() as f32;
-    p.scale(1.0 / t);
-    p
 }
 
 fn write_inputs(dir: &Path) -> PsfGrid {

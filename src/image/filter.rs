@@ -88,6 +88,27 @@ pub fn gaussian_blur_periodic(v: &[f32], w: usize, h: usize, sigma: f32) -> Vec<
     filter_separable(v, w, h, &gaussian_taps(sigma as f64, 1), Boundary::Periodic)
 }
 
+/// A `k × k` Gaussian spot of width `sigma` (px), integrated over each pixel (5 × 5 samples),
+/// with its centre `(ox, oy)` px from the centre pixel, normalised to sum 1: a test and
+/// benchmark PSF with a known centroid and blur.
+pub fn pixel_gaussian(k: usize, sigma: f64, ox: f64, oy: f64) -> Plane {
+    let c = (k as f64 - 1.0) / 2.0;
+    let mut p = Plane::from_fn(k, k, |x, y| {
+        let mut s = 0.0;
+        for j in 0..5 {
+            for i in 0..5 {
+                let xx = x as f64 - 0.4 + 0.2 * i as f64 - c - ox;
+                let yy = y as f64 - 0.4 + 0.2 * j as f64 - c - oy;
+                s += (-(xx * xx + yy * yy) / (2.0 * sigma * sigma)).exp();
+            }
+        }
+        s as f32
+    });
+    let t = p.sum() as f32;
+    p.scale(1.0 / t);
+    p
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -56,24 +56,7 @@ pub fn encircled_energy_radius(k: &Plane, frac: f64) -> f64 {
 mod tests {
     use super::*;
 
-    fn gaussian(k: usize, sigma: f64, ox: f64, oy: f64) -> Plane {
-        let c = (k as f64 - 1.0) / 2.0;
-        let mut p = Plane::from_fn(k, k, |x, y| {
-            // integrate over the pixel (5 × 5 samples)
-            let mut s = 0.0;
-            for j in 0..5 {
-                for i in 0..5 {
-                    let xx = x as f64 - 0.4 + 0.2 * i as f64 - c - ox;
-                    let yy = y as f64 - 0.4 + 0.2 * j as f64 - c - oy;
-                    s += (-(xx * xx + yy * yy) / (2.0 * sigma * sigma)).exp();
-                }
-            }
-            s as f32
-        });
-        let t = p.sum() as f32;
-        p.scale(1.0 / t);
-        p
-    }
+    use crate::image::filter::pixel_gaussian as gaussian;
 
     #[test]
     fn ee80_of_a_gaussian_is_sub_pixel_accurate() {

@@ -126,26 +126,7 @@ fn golden(data: &Data, current: &Fit, p: [f64; 2], which: usize, half: f64) -> [
         let (info, init, _) = similarity_model(current, &data.base_registration, with(v));
         fit(data, &Corrections { misregistration: Some(info), ..c0.clone() }, &init, quick).chi2()
     };
-    let (mut a, mut b) = (p[which] - half, p[which] + half);
-    let gr = 0.5 * (5f64.sqrt() - 1.0);
-    let (mut x1, mut x2) = (b - gr * (b - a), a + gr * (b - a));
-    let (mut f1, mut f2) = (eval(x1), eval(x2));
-    for _ in 0..6 {
-        if f1 < f2 {
-            b = x2;
-            x2 = x1;
-            f2 = f1;
-            x1 = b - gr * (b - a);
-            f1 = eval(x1);
-        } else {
-            a = x1;
-            x1 = x2;
-            f1 = f2;
-            x2 = a + gr * (b - a);
-            f2 = eval(x2);
-        }
-    }
-    with(if f1 < f2 { x1 } else { x2 })
+    with(lower(golden_section(p[which] - half, p[which] + half, 6, &eval)).0)
 }
 
 /// Glare widths tried, as fractions of the image diagonal.
@@ -165,178 +146,207 @@ fn channel_list(data: &Data) -> String {
     data.open.channels.join(",")
 }
 
-/// The candidates for extending `current`.
+/// The candidates for extending `current`, in catalogue order (each effect only while the
+/// current model lacks it; `psf_field_variation` while the grid can still grow).
 pub fn propose(data: &Data, current: &Fit, a: &Analysis) -> Vec<Candidate> {
     let c0 = &current.model.corrections;
-    let nch = data.open.channel_count();
-    let loc = |what: &str| format!("{what}; channels {}; {}", channel_list(data), where_text(a));
     let mut out = Vec::new();
     if c0.vignetting.is_none() {
-        out.push(Candidate {
-            name: "vignetting",
-            corrections: Corrections { vignetting: Some(VignettingCorrection { k1: 0.0, k2: 0.0, k3: 0.0 }), ..c0.clone() },
-            evidence: format!("residual against radius: {}", curve_text(a, "radius")),
-            init: None,
-            location: loc("radial, centre to corners"),
-        });
+        out.push(vignetting_candidate(data, c0, a));
     }
     if c0.illumination_gradient.is_none() {
-        out.push(Candidate {
-            name: "illumination_gradient",
-            corrections: Corrections { illumination_gradient: Some(GradientCorrection { gx: 0.0, gy: 0.0 }), ..c0.clone() },
-            evidence: format!("planar trend of the residual: z ≈ {:+.3} {:+.3}·x̂ {:+.3}·ŷ", a.planar[0], a.planar[1], a.planar[2]),
-            init: None,
-            location: loc("planar across the field"),
-        });
+        out.push(gradient_candidate(data, c0, a));
     }
     if c0.black_level.is_none() {
-        out.push(Candidate {
-            name: "black_level",
-            corrections: Corrections { black_level: Some(BlackLevelCorrection { offset: vec![0.0; nch] }), ..c0.clone() },
-            evidence: format!("residual against intensity (an offset weighs most in the dark): {}", curve_text(a, "intensity")),
-            init: None,
-            location: loc("dark regions first"),
-        });
+        out.push(black_level_candidate(data, c0, a));
     }
     if c0.tone_curve.is_none() && data.open.transfer == Transfer::Linear {
-        let lin: Vec<f64> = data.curves.iter().map(|c| super::noise::PoissonGaussian::fit(c, Transfer::Linear).misfit).collect();
-        let srgb: Vec<f64> = data.curves.iter().map(|c| super::noise::PoissonGaussian::fit(c, Transfer::Srgb).misfit).collect();
-        out.push(Candidate {
-            name: "tone_curve",
-            corrections: Corrections { tone_curve: Some(ToneCorrection { transfer: Transfer::Srgb }), ..c0.clone() },
-            evidence: format!(
-                "residual against intensity: {}; the noise curve misfits a linear Poisson–Gaussian law by {:.0}% and an sRGB-decoded one by {:.0}%",
-                curve_text(a, "intensity"),
-                100.0 * lin.iter().sum::<f64>() / lin.len().max(1) as f64,
-                100.0 * srgb.iter().sum::<f64>() / srgb.len().max(1) as f64
-            ),
-            init: linearised_estimate(data, current, Transfer::Srgb),
-            location: loc("all intensities, nonlinear"),
-        });
+        out.push(tone_candidate(data, current, a));
     }
     if c0.veiling_glare.is_none() {
-        let diag = ((data.open.width().pow(2) + data.open.height().pow(2)) as f64).sqrt();
-        // screen the width with the kernels held fixed
-        let screen = FitSettings { rounds: 1, kernel_iterations: 0 };
-        let eval = |sigma: f64| -> f64 {
-            let c = Corrections { veiling_glare: Some(GlareCorrection { fraction: 0.02, sigma_px: sigma }), ..c0.clone() };
-            fit(data, &c, &current.model, screen).chi2()
-        };
-        let mut best: Option<(f64, f64)> = None;
-        for frac in GLARE_SIGMAS {
-            let sigma = (frac * diag).max(2.0);
-            let v = eval(sigma);
-            if best.map_or(true, |b| v < b.1) {
-                best = Some((sigma, v));
-            }
-        }
-        // refine log σ between the neighbours of the best grid value (golden section)
-        if let Some((s0, _)) = best {
-            // a halo wider than a quarter of the diagonal is, over a target this size, an
-            // offset plus a gain (`black_level` and the exposure ratio): not searched
-            let (mut a, mut b) = ((s0 / 2.0).ln(), (s0 * 2.0).min(GLARE_SIGMAS[GLARE_SIGMAS.len() - 1] * diag).ln());
-            let gr = 0.5 * (5f64.sqrt() - 1.0);
-            let (mut x1, mut x2) = (b - gr * (b - a), a + gr * (b - a));
-            let (mut f1, mut f2) = (eval(x1.exp()), eval(x2.exp()));
-            for _ in 0..6 {
-                if f1 < f2 {
-                    (b, x2, f2) = (x2, x1, f1);
-                    x1 = b - gr * (b - a);
-                    f1 = eval(x1.exp());
-                } else {
-                    (a, x1, f1) = (x1, x2, f2);
-                    x2 = a + gr * (b - a);
-                    f2 = eval(x2.exp());
-                }
-            }
-            let (xb, fb) = if f1 < f2 { (x1, f1) } else { (x2, f2) };
-            if best.map_or(true, |q| fb < q.1) {
-                best = Some(((xb.exp() * 10.0).round() / 10.0, fb));
-            }
-        }
-        if let Some((sigma, _)) = best {
-            out.push(Candidate {
-                name: "veiling_glare",
-                corrections: Corrections { veiling_glare: Some(GlareCorrection { fraction: 0.02, sigma_px: sigma }), ..c0.clone() },
-                evidence: format!("residual against the large-scale brightness of the scene: {}", curve_text(a, "large_scale_brightness")),
-                init: None,
-            location: loc("beyond the kernel support, around bright regions"),
-            });
-        }
+        out.extend(glare_candidate(data, current, a));
     }
     if c0.misregistration.is_none() {
-        if let Some(p0) = centroid_similarity(current) {
-            let (info, init, corner) = similarity_model(current, &data.base_registration, refine_similarity(data, current, p0));
-            let (a11, a21) = (info.matrix[0], info.matrix[2]);
-            let rot = a21.atan2(a11).to_degrees();
-            let scale = (a11 * a11 + a21 * a21).sqrt() - 1.0;
-            if corner >= 0.25 {
-                out.push(Candidate {
-                    name: "misregistration",
-                    evidence: format!(
-                        "the fitted kernels' centroids follow a similarity across the field: rotation {rot:+.3}°, scale {scale:+.5}, i.e. {corner:.2} px at the corners, which tile-wise kernels follow only at the tile centres; residual against position in tile: {}",
-                        curve_text(a, "position_in_tile")
-                    ),
-                    corrections: Corrections { misregistration: Some(info), ..c0.clone() },
-            location: loc("growing towards the corners"),
-                    init: Some(init),
-                });
-            }
-        }
+        out.extend(misregistration_candidate(data, current, a));
     }
     if c0.saturation.is_none() {
-        let clipped: usize = data.open.planes.iter().chain(&data.pinhole.planes).map(|p| p.data.iter().filter(|&&v| v >= CLIP).count()).sum();
-        if clipped > 0 {
-            let mut zc = (0.0f64, 0usize);
-            for c in 0..nch {
-                for (i, &v) in data.open.planes[c].data.iter().enumerate() {
-                    if v >= CLIP && current.eval[c][i] {
-                        zc.0 += (current.normalized[c].data[i] as f64).powi(2);
-                        zc.1 += 1;
-                    }
-                }
-            }
-            out.push(Candidate {
-                name: "saturation",
-                corrections: Corrections { saturation: Some(SaturationCorrection { clip_level: 1.0 }), ..c0.clone() },
-                evidence: format!(
-                    "{clipped} stored values at ≥ {CLIP} of full scale; mean z² on the clipped wide-open pixels {:.1}; residual against intensity: {}",
-                    zc.0 / zc.1.max(1) as f64,
-                    curve_text(a, "intensity")
-                ),
-                init: None,
-            location: loc("the brightest regions"),
-            });
-        }
+        out.extend(saturation_candidate(data, current, a));
     }
     if c0.pinhole_diffraction.is_none() {
-        if let Some(c) = diffraction_candidate(data, current, a) {
-            out.push(c);
-        }
+        out.extend(diffraction_candidate(data, current, a));
     }
-    // a finer kernel grid: twice the tiles per axis, at most one tile per two kernel widths;
-    // proposed again while the grid can still grow
-    {
-        let g = &current.model.grid;
-        let (w, h) = (data.open.width(), data.open.height());
-        let (cmax, rmax) = ((w / (2 * g.kernel_size)).max(1), (h / (2 * g.kernel_size)).max(1));
-        let (cols, rows) = ((2 * g.columns).min(cmax).max(g.columns), (2 * g.rows).min(rmax).max(g.rows));
-        if cols > g.columns || rows > g.rows {
-            let spread = a.tiles.iter().map(|t| t.reduced_chi2).fold(0.0f64, f64::max) - a.tiles.iter().map(|t| t.reduced_chi2).fold(f64::INFINITY, f64::min);
-            out.push(Candidate {
-                name: "psf_field_variation",
-                corrections: Corrections { psf_field_variation: Some(FieldCorrection { columns: cols, rows }), ..c0.clone() },
-                evidence: format!(
-                    "residual against position inside the tile: {}; per-tile reduced χ² spans {:.2}",
-                    curve_text(a, "position_in_tile"),
-                    spread
-                ),
-                init: None,
-                location: loc(&format!("between tile centres; refit on {cols}x{rows} tiles instead of {}x{}", g.columns, g.rows)),
-            });
-        }
-    }
+    out.extend(field_candidate(data, current, a));
     out
+}
+
+/// A candidate's location text: `what`, the channels and where the residual is worst.
+fn location(data: &Data, a: &Analysis, what: &str) -> String {
+    format!("{what}; channels {}; {}", channel_list(data), where_text(a))
+}
+
+fn vignetting_candidate(data: &Data, c0: &Corrections, a: &Analysis) -> Candidate {
+    Candidate {
+        name: "vignetting",
+        corrections: Corrections { vignetting: Some(VignettingCorrection { k1: 0.0, k2: 0.0, k3: 0.0 }), ..c0.clone() },
+        evidence: format!("residual against radius: {}", curve_text(a, "radius")),
+        init: None,
+        location: location(data, a, "radial, centre to corners"),
+    }
+}
+
+fn gradient_candidate(data: &Data, c0: &Corrections, a: &Analysis) -> Candidate {
+    Candidate {
+        name: "illumination_gradient",
+        corrections: Corrections { illumination_gradient: Some(GradientCorrection { gx: 0.0, gy: 0.0 }), ..c0.clone() },
+        evidence: format!("planar trend of the residual: z ≈ {:+.3} {:+.3}·x̂ {:+.3}·ŷ", a.planar[0], a.planar[1], a.planar[2]),
+        init: None,
+        location: location(data, a, "planar across the field"),
+    }
+}
+
+fn black_level_candidate(data: &Data, c0: &Corrections, a: &Analysis) -> Candidate {
+    Candidate {
+        name: "black_level",
+        corrections: Corrections { black_level: Some(BlackLevelCorrection { offset: vec![0.0; data.open.channel_count()] }), ..c0.clone() },
+        evidence: format!("residual against intensity (an offset weighs most in the dark): {}", curve_text(a, "intensity")),
+        init: None,
+        location: location(data, a, "dark regions first"),
+    }
+}
+
+/// `tone_curve`, warm-started from a re-estimate on sRGB-decoded captures
+/// ([`linearised_estimate`]).
+fn tone_candidate(data: &Data, current: &Fit, a: &Analysis) -> Candidate {
+    let c0 = &current.model.corrections;
+    let lin: Vec<f64> = data.curves.iter().map(|c| super::noise::PoissonGaussian::fit(c, Transfer::Linear).misfit).collect();
+    let srgb: Vec<f64> = data.curves.iter().map(|c| super::noise::PoissonGaussian::fit(c, Transfer::Srgb).misfit).collect();
+    Candidate {
+        name: "tone_curve",
+        corrections: Corrections { tone_curve: Some(ToneCorrection { transfer: Transfer::Srgb }), ..c0.clone() },
+        evidence: format!(
+            "residual against intensity: {}; the noise curve misfits a linear Poisson–Gaussian law by {:.0}% and an sRGB-decoded one by {:.0}%",
+            curve_text(a, "intensity"),
+            100.0 * lin.iter().sum::<f64>() / lin.len().max(1) as f64,
+            100.0 * srgb.iter().sum::<f64>() / srgb.len().max(1) as f64
+        ),
+        init: linearised_estimate(data, current, Transfer::Srgb),
+        location: location(data, a, "all intensities, nonlinear"),
+    }
+}
+
+/// `veiling_glare` at the width [`glare_sigma`] finds.
+fn glare_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Candidate> {
+    let sigma = glare_sigma(data, current)?;
+    Some(Candidate {
+        name: "veiling_glare",
+        corrections: Corrections { veiling_glare: Some(GlareCorrection { fraction: 0.02, sigma_px: sigma }), ..current.model.corrections.clone() },
+        evidence: format!("residual against the large-scale brightness of the scene: {}", curve_text(a, "large_scale_brightness")),
+        init: None,
+        location: location(data, a, "beyond the kernel support, around bright regions"),
+    })
+}
+
+/// The glare width (px): screened over [`GLARE_SIGMAS`] with the kernels held fixed, then
+/// `ln σ` refined by golden section between the best value's neighbours.
+fn glare_sigma(data: &Data, current: &Fit) -> Option<f64> {
+    let c0 = &current.model.corrections;
+    let diag = ((data.open.width().pow(2) + data.open.height().pow(2)) as f64).sqrt();
+    // screen the width with the kernels held fixed
+    let screen = FitSettings { rounds: 1, kernel_iterations: 0 };
+    let eval = |sigma: f64| -> f64 {
+        let c = Corrections { veiling_glare: Some(GlareCorrection { fraction: 0.02, sigma_px: sigma }), ..c0.clone() };
+        fit(data, &c, &current.model, screen).chi2()
+    };
+    let mut best: Option<(f64, f64)> = None;
+    for frac in GLARE_SIGMAS {
+        let sigma = (frac * diag).max(2.0);
+        let v = eval(sigma);
+        if best.map_or(true, |b| v < b.1) {
+            best = Some((sigma, v));
+        }
+    }
+    // refine log σ between the neighbours of the best grid value (golden section)
+    if let Some((s0, _)) = best {
+        // a halo wider than a quarter of the diagonal is, over a target this size, an
+        // offset plus a gain (`black_level` and the exposure ratio): not searched
+        let (lo, hi) = ((s0 / 2.0).ln(), (s0 * 2.0).min(GLARE_SIGMAS[GLARE_SIGMAS.len() - 1] * diag).ln());
+        let (xb, fb) = lower(golden_section(lo, hi, 6, &|x| eval(x.exp())));
+        if best.map_or(true, |q| fb < q.1) {
+            best = Some(((xb.exp() * 10.0).round() / 10.0, fb));
+        }
+    }
+    best.map(|(sigma, _)| sigma)
+}
+
+/// `misregistration`: the similarity the kernels' centroids follow, refined
+/// ([`refine_similarity`]); proposed when it moves the corners by at least a quarter pixel.
+fn misregistration_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Candidate> {
+    let p0 = centroid_similarity(current)?;
+    let (info, init, corner) = similarity_model(current, &data.base_registration, refine_similarity(data, current, p0));
+    let (a11, a21) = (info.matrix[0], info.matrix[2]);
+    let rot = a21.atan2(a11).to_degrees();
+    let scale = (a11 * a11 + a21 * a21).sqrt() - 1.0;
+    if corner < 0.25 {
+        return None;
+    }
+    Some(Candidate {
+        name: "misregistration",
+        evidence: format!(
+            "the fitted kernels' centroids follow a similarity across the field: rotation {rot:+.3}°, scale {scale:+.5}, i.e. {corner:.2} px at the corners, which tile-wise kernels follow only at the tile centres; residual against position in tile: {}",
+            curve_text(a, "position_in_tile")
+        ),
+        corrections: Corrections { misregistration: Some(info), ..current.model.corrections.clone() },
+        location: location(data, a, "growing towards the corners"),
+        init: Some(init),
+    })
+}
+
+/// `saturation`, when any stored value of either capture reaches [`CLIP`].
+fn saturation_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Candidate> {
+    let clipped: usize = data.open.planes.iter().chain(&data.pinhole.planes).map(|p| p.data.iter().filter(|&&v| v >= CLIP).count()).sum();
+    if clipped == 0 {
+        return None;
+    }
+    let mut zc = (0.0f64, 0usize);
+    for c in 0..data.open.channel_count() {
+        for (i, &v) in data.open.planes[c].data.iter().enumerate() {
+            if v >= CLIP && current.eval[c][i] {
+                zc.0 += (current.normalized[c].data[i] as f64).powi(2);
+                zc.1 += 1;
+            }
+        }
+    }
+    Some(Candidate {
+        name: "saturation",
+        corrections: Corrections { saturation: Some(SaturationCorrection { clip_level: 1.0 }), ..current.model.corrections.clone() },
+        evidence: format!(
+            "{clipped} stored values at ≥ {CLIP} of full scale; mean z² on the clipped wide-open pixels {:.1}; residual against intensity: {}",
+            zc.0 / zc.1.max(1) as f64,
+            curve_text(a, "intensity")
+        ),
+        init: None,
+        location: location(data, a, "the brightest regions"),
+    })
+}
+
+/// `psf_field_variation`: a finer kernel grid, twice the tiles per axis, at most one tile per
+/// two kernel widths; proposed again while the grid can still grow.
+fn field_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Candidate> {
+    let g = &current.model.grid;
+    let (w, h) = (data.open.width(), data.open.height());
+    let (cmax, rmax) = ((w / (2 * g.kernel_size)).max(1), (h / (2 * g.kernel_size)).max(1));
+    let (cols, rows) = ((2 * g.columns).min(cmax).max(g.columns), (2 * g.rows).min(rmax).max(g.rows));
+    if cols <= g.columns && rows <= g.rows {
+        return None;
+    }
+    let spread = a.tiles.iter().map(|t| t.reduced_chi2).fold(0.0f64, f64::max) - a.tiles.iter().map(|t| t.reduced_chi2).fold(f64::INFINITY, f64::min);
+    Some(Candidate {
+        name: "psf_field_variation",
+        corrections: Corrections { psf_field_variation: Some(FieldCorrection { columns: cols, rows }), ..current.model.corrections.clone() },
+        evidence: format!("residual against position inside the tile: {}; per-tile reduced χ² spans {:.2}", curve_text(a, "position_in_tile"), spread),
+        init: None,
+        location: location(data, a, &format!("between tile centres; refit on {cols}x{rows} tiles instead of {}x{}", g.columns, g.rows)),
+    })
 }
 
 /// The fitted parameters of effect `name` as JSON.
@@ -383,11 +393,36 @@ const AIRY_RADII: [f64; 5] = [0.9, 1.3, 1.9, 2.8, 4.0];
 /// frequency band, noise power subtracted; the radius is screened over [`AIRY_RADII`] with the
 /// kernels refitted briefly, then refined by golden section on `ln r`.
 fn diffraction_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Candidate> {
-    let nch = data.open.channel_count();
+    let worst = worst_excess_detail(data, current);
+    if worst.1 <= 1.0 {
+        // every band within what a non-negative kernel can pass: nothing for this effect
+        return None;
+    }
+    let search = DiffractionSearch { data, current };
+    let (r, v) = search.radius();
+    let (best_r, best_sa) = search.aberration(r, v);
+    Some(Candidate {
+        name: "pinhole_diffraction",
+        corrections: Corrections { pinhole_diffraction: Some(search.correction(best_r, best_sa)), ..current.model.corrections.clone() },
+        evidence: format!(
+            "the wide-open capture has {:.2}× the power a non-negative kernel can pass from the reference at {:.2} cycles/px (noise removed; at most 1 without this effect); residual against image gradient: {}",
+            worst.1,
+            worst.0,
+            curve_text(a, "gradient")
+        ),
+        init: Some(search.init(best_r, best_sa)),
+        location: format!("fine detail everywhere (above {:.2} cycles/px); channels {}; {}", worst.0, channel_list(data), where_text(a)),
+    })
+}
+
+/// `(frequency, ratio)` of the band where the wide-open capture most exceeds the power a
+/// non-negative kernel can pass from the reference, over all channels
+/// ([`super::diffraction::excess_detail`]); ratio 0 when no band has any excess.
+fn worst_excess_detail(data: &Data, current: &Fit) -> (f64, f64) {
     let transfer = current.transfer;
     let open_lin: Vec<crate::image::Plane> = data.open.planes.iter().map(|p| p.map(|v| transfer.decode(v))).collect();
     let mut worst = (0.0f64, 0.0f64);
-    for c in 0..nch {
+    for c in 0..data.open.channel_count() {
         let s = current.model.exposure.get(c).copied().unwrap_or(1.0);
         let vo = data.curves[c].linear_variance(open_lin[c].mean() as f32, transfer) as f64;
         let vp = data.pinhole_variance_scale * data.curves[c].linear_variance(current.reference[c].mean() as f32, transfer) as f64;
@@ -397,13 +432,24 @@ fn diffraction_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Can
             }
         }
     }
-    if worst.1 <= 1.0 {
-        // every band within what a non-negative kernel can pass: nothing for this effect
-        return None;
-    }
-    let names: Vec<String> = data.open.channels.clone();
-    let correction = |r: f64, sa: f64| -> super::model::DiffractionCorrection {
-        let name = |c: usize| names.get(c).map_or("Y", |s| s.as_str());
+    worst
+}
+
+/// The search for the reference's PSF (Airy radius `r` in green, aberration blur `σ_a`) of
+/// the `pinhole_diffraction` candidate.
+struct DiffractionSearch<'a> {
+    data: &'a Data,
+    current: &'a Fit,
+}
+
+impl DiffractionSearch<'_> {
+    /// The correction for green Airy radius `r` (channels scaled by wavelength) and `σ_a`,
+    /// with each channel's Wiener regularisation from the reference's noise.
+    fn correction(&self, r: f64, sa: f64) -> super::model::DiffractionCorrection {
+        let (data, current) = (self.data, self.current);
+        let nch = data.open.channel_count();
+        let transfer = current.transfer;
+        let name = |c: usize| data.open.channels.get(c).map_or("Y", |s| s.as_str());
         let radii: Vec<f64> = (0..nch).map(|c| r * super::diffraction::channel_wavelength_um(name(c)) / 0.55).collect();
         let bandwidth: Vec<f64> = (0..nch).map(|c| super::diffraction::channel_bandwidth(name(c))).collect();
         let eps: Vec<f64> = (0..nch)
@@ -415,101 +461,95 @@ fn diffraction_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Can
             })
             .collect();
         super::model::DiffractionCorrection { airy_radius_px: radii, epsilon: eps, aberration_sigma_px: sa, bandwidth }
-    };
-    let make = |r: f64, sa: f64| -> Corrections { Corrections { pinhole_diffraction: Some(correction(r, sa)), ..current.model.corrections.clone() } };
-    // warm start: K ≈ K_current * D (module docs of `diffraction`)
-    let init = |r: f64, sa: f64| -> Model {
-        let d = correction(r, sa);
-        let mut m = current.model.clone();
+    }
+
+    /// The warm start: `K ≈ K_current * D` (module docs of `diffraction`).
+    fn init(&self, r: f64, sa: f64) -> Model {
+        let d = self.correction(r, sa);
+        let mut m = self.current.model.clone();
         for (c, ks) in m.grid.kernels.iter_mut().enumerate() {
             let psf = d.channel(c).0;
             ks.iter_mut().for_each(|k| *k = super::diffraction::blur_kernel(k, &psf));
         }
-        m.corrections = Corrections { pinhole_diffraction: Some(d), ..current.model.corrections.clone() };
+        m.corrections = Corrections { pinhole_diffraction: Some(d), ..self.current.model.corrections.clone() };
         m
-    };
-    let screen = FitSettings { rounds: 1, kernel_iterations: 30 };
-    let refine = FitSettings { rounds: 3, kernel_iterations: 150 };
-    let eval_with = |r: f64, sa: f64, settings: FitSettings| {
-        let m = init(r, sa);
-        fit(data, &m.corrections, &m, settings).chi2()
-    };
-    let eval2 = |r: f64, sa: f64| eval_with(r, sa, refine);
-    let eval = |r: f64| eval2(r, 0.0);
-    let scores: Vec<(f64, f64)> = AIRY_RADII.iter().map(|&r| (r, eval_with(r, 0.0, screen))).collect();
-    let mut best_r = scores.iter().copied().fold((AIRY_RADII[0], f64::INFINITY), |b, s| if s.1 < b.1 { s } else { b }).0;
-    // the screen's short fits only locate the basin (they favour too large a radius: the
-    // kernels have not yet shed the sharpening the unrestored reference forced on them); the
-    // refinement compares converged fits only
-    let mut best_v = f64::INFINITY;
-    let (mut lo, mut hi) = ((best_r / 1.5).ln(), (best_r * 1.5).ln());
-    let gr = 0.5 * (5f64.sqrt() - 1.0);
-    let (mut x1, mut x2) = (hi - gr * (hi - lo), lo + gr * (hi - lo));
-    let (mut f1, mut f2) = (eval(x1.exp()), eval(x2.exp()));
-    for _ in 0..3 {
-        if f1 < f2 {
-            (hi, x2, f2) = (x2, x1, f1);
-            x1 = hi - gr * (hi - lo);
-            f1 = eval(x1.exp());
-        } else {
-            (lo, x1, f1) = (x1, x2, f2);
-            x2 = lo + gr * (hi - lo);
-            f2 = eval(x2.exp());
-        }
     }
-    for (x, v) in [(x1, f1), (x2, f2)] {
-        if v < best_v {
-            (best_r, best_v) = (x.exp(), v);
-        }
+
+    /// χ² of a fit from the warm start at `(r, σ_a)`.
+    fn chi2(&self, r: f64, sa: f64, settings: FitSettings) -> f64 {
+        let m = self.init(r, sa);
+        fit(self.data, &m.corrections, &m, settings).chi2()
     }
-    // the residual aberrations: σ_a by golden section at the fitted radius, then the radius
-    // again (it shrinks once the Gaussian takes the aberrations' share); kept only if χ² falls
-    let mut best_sa = 0.0;
-    {
-        let golden = |lo: f64, hi: f64, f: &dyn Fn(f64) -> f64| -> (f64, f64) {
-            let (mut lo, mut hi) = (lo, hi);
-            let (mut x1, mut x2) = (hi - gr * (hi - lo), lo + gr * (hi - lo));
-            let (mut f1, mut f2) = (f(x1), f(x2));
-            for _ in 0..2 {
-                if f1 < f2 {
-                    (hi, x2, f2) = (x2, x1, f1);
-                    x1 = hi - gr * (hi - lo);
-                    f1 = f(x1);
-                } else {
-                    (lo, x1, f1) = (x1, x2, f2);
-                    x2 = lo + gr * (hi - lo);
-                    f2 = f(x2);
-                }
+
+    /// χ² of a converged fit at `(r, σ_a)`.
+    fn refined(&self, r: f64, sa: f64) -> f64 {
+        self.chi2(r, sa, FitSettings { rounds: 3, kernel_iterations: 150 })
+    }
+
+    /// The radius (with `σ_a = 0`) and its χ²: screened over [`AIRY_RADII`], then refined by
+    /// golden section on `ln r` within a factor 1.5.
+    fn radius(&self) -> (f64, f64) {
+        let screen = FitSettings { rounds: 1, kernel_iterations: 30 };
+        let scores: Vec<(f64, f64)> = AIRY_RADII.iter().map(|&r| (r, self.chi2(r, 0.0, screen))).collect();
+        let mut best_r = scores.iter().copied().fold((AIRY_RADII[0], f64::INFINITY), |b, s| if s.1 < b.1 { s } else { b }).0;
+        // the screen's short fits only locate the basin (they favour too large a radius: the
+        // kernels have not yet shed the sharpening the unrestored reference forced on them); the
+        // refinement compares converged fits only
+        let mut best_v = f64::INFINITY;
+        let points = golden_section((best_r / 1.5).ln(), (best_r * 1.5).ln(), 3, &|x| self.refined(x.exp(), 0.0));
+        for (x, v) in points {
+            if v < best_v {
+                (best_r, best_v) = (x.exp(), v);
             }
-            if f1 < f2 {
-                (x1, f1)
-            } else {
-                (x2, f2)
-            }
-        };
-        let r0 = best_r;
-        let (sa, v) = golden(0.1, ABERRATION_MAX_PX, &|sa| eval2(r0, sa));
+        }
+        (best_r, best_v)
+    }
+
+    /// The residual aberrations: `σ_a` by golden section at radius `r0`, then the radius again
+    /// (it shrinks once the Gaussian takes the aberrations' share); kept only if χ² falls
+    /// below `v0`. Returns `(r, σ_a)`.
+    fn aberration(&self, r0: f64, v0: f64) -> (f64, f64) {
+        let (mut best_r, mut best_v, mut best_sa) = (r0, v0, 0.0);
+        let (sa, v) = lower(golden_section(0.1, ABERRATION_MAX_PX, 2, &|sa| self.refined(r0, sa)));
         if v < best_v {
             (best_sa, best_v) = (sa, v);
-            let (lr, v2) = golden((r0 / 1.8).ln(), r0.ln(), &|x| eval2(x.exp(), sa));
+            let (lr, v2) = lower(golden_section((r0 / 1.8).ln(), r0.ln(), 2, &|x| self.refined(x.exp(), sa)));
             if v2 < best_v {
-                (best_r, best_v) = (lr.exp(), v2);
+                best_r = lr.exp();
             }
         }
+        (best_r, best_sa)
     }
-    let _ = best_v;
-    Some(Candidate {
-        name: "pinhole_diffraction",
-        corrections: make(best_r, best_sa),
-        evidence: format!(
-            "the wide-open capture has {:.2}× the power a non-negative kernel can pass from the reference at {:.2} cycles/px (noise removed; at most 1 without this effect); residual against image gradient: {}",
-            worst.1,
-            worst.0,
-            curve_text(a, "gradient")
-        ),
-        init: Some(init(best_r, best_sa)),
-        location: format!("fine detail everywhere (above {:.2} cycles/px); channels {}; {}", worst.0, channel_list(data), where_text(a)),
-    })
+}
+
+/// Golden-section search for a minimum of `f` on `[lo, hi]`: `iterations` shrinking steps,
+/// then the two interior points with their values.
+fn golden_section(lo: f64, hi: f64, iterations: usize, f: &dyn Fn(f64) -> f64) -> [(f64, f64); 2] {
+    let (mut a, mut b) = (lo, hi);
+    let gr = 0.5 * (5f64.sqrt() - 1.0);
+    let (mut x1, mut x2) = (b - gr * (b - a), a + gr * (b - a));
+    let (mut f1, mut f2) = (f(x1), f(x2));
+    for _ in 0..iterations {
+        if f1 < f2 {
+            (b, x2, f2) = (x2, x1, f1);
+            x1 = b - gr * (b - a);
+            f1 = f(x1);
+        } else {
+            (a, x1, f1) = (x1, x2, f2);
+            x2 = a + gr * (b - a);
+            f2 = f(x2);
+        }
+    }
+    [(x1, f1), (x2, f2)]
+}
+
+/// The lower of a golden section's two points (the second on a tie).
+fn lower(points: [(f64, f64); 2]) -> (f64, f64) {
+    if points[0].1 < points[1].1 {
+        points[0]
+    } else {
+        points[1]
+    }
 }
 
 /// The warm start of `tone_curve`: kernels and exposure ratios re-estimated ([`crate::estimate`])

@@ -440,16 +440,80 @@ pub fn fit(data: &Data, corrections: &Corrections, init: &Model, settings: FitSe
 
 /// [`fit`] with the data term restricted to pixels where `keep(x, y)` (for cross-validation;
 /// the figures still cover the whole evaluation set).
+///
+/// Stages: `Setup::new` (linear data and reference on the model's geometry, masks, kernel
+/// operators), `Setup::initial_params`, `settings.rounds` × `Setup::round` (kernels, then
+/// Gauss–Newton on the scalars), `Setup::final_model` and `Setup::figures`.
 pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings: FitSettings, keep: &dyn Fn(usize, usize) -> bool) -> Fit {
     let mut corr = corrections.clone();
-    let transfer = model_transfer(&corr, data.open.transfer);
-    let (w, h) = (data.open.width(), data.open.height());
-    let nch = data.open.channel_count();
-    let registration = corr.misregistration.clone().unwrap_or_else(|| data.base_registration.clone());
-    let mut reference = reference_planes(&data.pinhole, transfer, &registration);
-    if let Some(d) = &corr.pinhole_diffraction {
-        reference = reference.iter().enumerate().map(|(c, p)| d.restore(c, p)).collect();
+    let setup = Setup::new(data, &corr, init, keep);
+    let mut p = setup.initial_params(&corr, init);
+    let kset = KernelFitSettings { iterations: settings.kernel_iterations, rounds: 1 };
+    for _round in 0..settings.rounds {
+        setup.round(&mut corr, &mut p, kset);
     }
+    let (grid, exposure) = setup.final_model(&mut corr, &p);
+    let f = setup.figures(&corr, &p);
+    let (nch, k) = (setup.nch, setup.grid0.kernel_size);
+    let laws: Vec<super::noise::PoissonGaussian> = data.curves.iter().map(|c| super::noise::PoissonGaussian::fit(c, setup.transfer)).collect();
+    let params = nch * (grid.tile_count() * (k * k - 1) + 1) + correction_params(&corr, nch);
+    Fit {
+        model: Model { corrections: corr, grid, exposure },
+        transfer: setup.transfer,
+        predicted: f.predicted,
+        normalized: f.normalized,
+        variance: f.variance,
+        eval: f.eval,
+        chi2_channel: f.chi2_channel,
+        n_channel: f.n_channel,
+        sq_channel: f.sq_channel,
+        var_channel: f.var_channel,
+        params,
+        noise_chi2: laws.iter().map(|l| l.chi2).sum(),
+        noise_misfit: laws.iter().map(|l| l.misfit).fold(0.0, f64::max),
+        reference: setup.reference,
+        reference_highpass: f.reference_highpass,
+    }
+}
+
+/// The pixel sets of a fit: the evaluation set (a kernel radius inside the image), the clipped
+/// wide-open pixels and clipped reference footprints per channel, and the data term's pixels.
+struct Masks {
+    interior: Vec<bool>,
+    clipped_open: Vec<Vec<bool>>,
+    pin_clipped: Vec<Vec<bool>>,
+    fitmask: Vec<Vec<bool>>,
+    /// The model has a `saturation` correction.
+    saturation: bool,
+}
+
+impl Masks {
+    fn new(data: &Data, corr: &Corrections, registration: &RegistrationInfo, r: usize, keep: &dyn Fn(usize, usize) -> bool) -> Self {
+        let (w, h) = (data.open.width(), data.open.height());
+        let nch = data.open.channel_count();
+        let saturation = corr.saturation.is_some();
+        let interior: Vec<bool> = (0..w * h).map(|i| (i % w) >= r && (i % w) + r < w && (i / w) >= r && (i / w) + r < h).collect();
+        let clipped_open: Vec<Vec<bool>> = data.open.planes.iter().map(|p| p.data.iter().map(|&v| v >= CLIP).collect()).collect();
+        let pin_clipped: Vec<Vec<bool>> = data
+            .pinhole
+            .planes
+            .iter()
+            .map(|p| {
+                let m = Plane { width: w, height: h, data: p.data.iter().map(|&v| (v >= CLIP) as u8 as f32).collect() };
+                let reg = crate::estimate::register::apply(&m, registration);
+                dilate(&reg.data.iter().map(|&v| v > 0.0).collect::<Vec<_>>(), w, h, r)
+            })
+            .collect();
+        let fitmask: Vec<Vec<bool>> = (0..nch)
+            .map(|c| (0..w * h).map(|i| interior[i] && keep(i % w, i / w) && (!saturation || (!clipped_open[c][i] && !pin_clipped[c][i]))).collect())
+            .collect();
+        Self { interior, clipped_open, pin_clipped, fitmask, saturation }
+    }
+}
+
+/// The wide-open planes on the model's linear axis and, under `misregistration`, resampled onto
+/// the reference geometry, with the interpolation's effect on their noise variance.
+fn linear_open(data: &Data, corr: &Corrections, transfer: Transfer) -> (Vec<Plane>, Option<Plane>) {
     let mut open_lin: Vec<Plane> = data.open.planes.iter().map(|p| p.map(|v| transfer.decode(v))).collect();
     // misregistration: the (band-limited) data onto the reference geometry, with the
     // interpolation's effect on its noise variance
@@ -467,53 +531,108 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
             .collect();
         noise_factor = factor;
     }
-    let grid0 = match corr.psf_field_variation {
-        Some(f) if f.columns != init.grid.columns || f.rows != init.grid.rows => regrid(&init.grid, w, h, f.columns, f.rows),
-        _ => init.grid.clone(),
-    };
-    let k = grid0.kernel_size;
-    let r = k / 2;
-    let saturation = corr.saturation.is_some();
+    (open_lin, noise_factor)
+}
 
-    // masks
-    let interior: Vec<bool> = (0..w * h).map(|i| (i % w) >= r && (i % w) + r < w && (i / w) >= r && (i / w) + r < h).collect();
-    let clipped_open: Vec<Vec<bool>> = data.open.planes.iter().map(|p| p.data.iter().map(|&v| v >= CLIP).collect()).collect();
-    let pin_clipped: Vec<Vec<bool>> = data
-        .pinhole
-        .planes
-        .iter()
-        .map(|p| {
-            let m = Plane { width: w, height: h, data: p.data.iter().map(|&v| (v >= CLIP) as u8 as f32).collect() };
-            let reg = crate::estimate::register::apply(&m, &registration);
-            dilate(&reg.data.iter().map(|&v| v > 0.0).collect::<Vec<_>>(), w, h, r)
-        })
-        .collect();
-    let fitmask: Vec<Vec<bool>> = (0..nch)
-        .map(|c| (0..w * h).map(|i| interior[i] && keep(i % w, i / w) && (!saturation || (!clipped_open[c][i] && !pin_clipped[c][i]))).collect())
-        .collect();
+/// What a fit holds fixed while its parameters move.
+struct Setup<'a> {
+    data: &'a Data,
+    transfer: Transfer,
+    w: usize,
+    h: usize,
+    nch: usize,
+    /// The registered linear reference planes (restored under `pinhole_diffraction`).
+    reference: Vec<Plane>,
+    open_lin: Vec<Plane>,
+    /// Under `misregistration`, the resampling's factor on the wide-open noise variance.
+    noise_factor: Option<Plane>,
+    /// The initial grid (regridded under `psf_field_variation`).
+    grid0: PsfGrid,
+    masks: Masks,
+    /// Under `veiling_glare`, the reference blurred by the glare's Gaussian.
+    glare_planes: Option<Vec<Plane>>,
+    ops: Vec<KernelOperator>,
+    diffraction: Option<super::model::DiffractionCorrection>,
+}
 
-    let glare_planes: Option<Vec<Plane>> = corr.veiling_glare.map(|g| reference.iter().map(|p| gaussian_blur(p, g.sigma_px)).collect());
-    let ops: Vec<KernelOperator> = reference.iter().map(|p| KernelOperator::new(p, &grid0, usize::MAX)).collect();
+/// The free parameters of a fit while it runs (see the module doc's model).
+struct Params {
+    u: Vec<Vec<Plane>>,
+    glare_amp: Vec<f64>,
+    beta: Vec<f64>,
+    /// Per channel, `Σ_t w_t·(U_t * P̃)`.
+    a_parts: Vec<Plane>,
+    /// Per channel, the linear-axis variance the last kernel step weighted with.
+    variance_lin: Vec<Plane>,
+}
 
-    // free parameters
-    let mut u: Vec<Vec<Plane>> = (0..nch)
-        .map(|c| {
-            let f = corr.veiling_glare.map_or(0.0, |g| g.fraction);
-            let s = init.exposure.get(c).copied().unwrap_or(1.0) * (1.0 - f);
-            grid0.kernels[c].iter().map(|kk| kk.map(|v| v * s as f32)).collect()
-        })
-        .collect();
-    let mut glare_amp: Vec<f64> = (0..nch).map(|c| corr.veiling_glare.map_or(0.0, |g| g.fraction * init.exposure.get(c).copied().unwrap_or(1.0))).collect();
-    let mut beta: Vec<f64> = (0..nch).map(|c| corr.black_level.as_ref().and_then(|b| b.offset.get(c).copied()).unwrap_or(0.0)).collect();
+/// One channel's figures on the stored axis.
+struct ChannelFigures {
+    score: ChannelScore,
+    reference_highpass: Plane,
+}
 
-    // prediction pieces
-    let blur_part = |c: usize, u: &[Plane]| ops[c].apply_planes(u);
-    // Σ_t w_t(x)·ΣU_t², the gain of the pinhole's noise through the interpolated kernel
-    let diffraction = corr.pinhole_diffraction.clone();
-    let kernel_energy = |c: usize, u: &[Plane]| -> Plane {
+/// All channels' figures on the stored axis.
+#[derive(Default)]
+struct Figures {
+    predicted: Vec<Plane>,
+    normalized: Vec<Plane>,
+    variance: Vec<Plane>,
+    eval: Vec<Vec<bool>>,
+    chi2_channel: Vec<f64>,
+    n_channel: Vec<usize>,
+    sq_channel: Vec<f64>,
+    var_channel: Vec<f64>,
+    reference_highpass: Vec<Plane>,
+}
+
+impl<'a> Setup<'a> {
+    fn new(data: &'a Data, corr: &Corrections, init: &Model, keep: &dyn Fn(usize, usize) -> bool) -> Self {
+        let transfer = model_transfer(corr, data.open.transfer);
+        let (w, h) = (data.open.width(), data.open.height());
+        let nch = data.open.channel_count();
+        let registration = corr.misregistration.clone().unwrap_or_else(|| data.base_registration.clone());
+        let mut reference = reference_planes(&data.pinhole, transfer, &registration);
+        if let Some(d) = &corr.pinhole_diffraction {
+            reference = reference.iter().enumerate().map(|(c, p)| d.restore(c, p)).collect();
+        }
+        let (open_lin, noise_factor) = linear_open(data, corr, transfer);
+        let grid0 = match corr.psf_field_variation {
+            Some(f) if f.columns != init.grid.columns || f.rows != init.grid.rows => regrid(&init.grid, w, h, f.columns, f.rows),
+            _ => init.grid.clone(),
+        };
+        let masks = Masks::new(data, corr, &registration, grid0.kernel_size / 2, keep);
+        let glare_planes: Option<Vec<Plane>> = corr.veiling_glare.map(|g| reference.iter().map(|p| gaussian_blur(p, g.sigma_px)).collect());
+        let ops: Vec<KernelOperator> = reference.iter().map(|p| KernelOperator::new(p, &grid0, usize::MAX)).collect();
+        let diffraction = corr.pinhole_diffraction.clone();
+        Self { data, transfer, w, h, nch, reference, open_lin, noise_factor, grid0, masks, glare_planes, ops, diffraction }
+    }
+
+    /// The starting parameters: the initial kernels scaled by the exposure (less the glare's
+    /// share), the glare amplitude and the black-level offsets of `corr`.
+    fn initial_params(&self, corr: &Corrections, init: &Model) -> Params {
+        let u: Vec<Vec<Plane>> = (0..self.nch)
+            .map(|c| {
+                let f = corr.veiling_glare.map_or(0.0, |g| g.fraction);
+                let s = init.exposure.get(c).copied().unwrap_or(1.0) * (1.0 - f);
+                self.grid0.kernels[c].iter().map(|kk| kk.map(|v| v * s as f32)).collect()
+            })
+            .collect();
+        let glare_amp: Vec<f64> = (0..self.nch).map(|c| corr.veiling_glare.map_or(0.0, |g| g.fraction * init.exposure.get(c).copied().unwrap_or(1.0))).collect();
+        let beta: Vec<f64> = (0..self.nch).map(|c| corr.black_level.as_ref().and_then(|b| b.offset.get(c).copied()).unwrap_or(0.0)).collect();
+        let a_parts: Vec<Plane> = (0..self.nch).map(|c| self.blur_part(c, &u[c])).collect();
+        Params { u, glare_amp, beta, a_parts, variance_lin: vec![Plane::new(self.w, self.h); self.nch] }
+    }
+
+    fn blur_part(&self, c: usize, u: &[Plane]) -> Plane {
+        self.ops[c].apply_planes(u)
+    }
+
+    /// `Σ_t w_t(x)·ΣU_t²`, the gain of the pinhole's noise through the interpolated kernel.
+    fn kernel_energy(&self, c: usize, u: &[Plane]) -> Plane {
         let e: Vec<f32> = u
             .iter()
-            .map(|kk| match &diffraction {
+            .map(|kk| match &self.diffraction {
                 Some(d) => {
                     let (psf, eps) = d.channel(c);
                     super::diffraction::noise_gain(kk, &psf, eps)
@@ -521,120 +640,156 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
                 None => kk.data.iter().map(|v| v * v).sum::<f32>(),
             })
             .collect();
-        grid0.blend_scalars(&e, w, h)
-    };
+        self.grid0.blend_scalars(&e, self.w, self.h)
+    }
 
-    let mut variance_lin: Vec<Plane> = vec![Plane::new(w, h); nch];
-    let mut a_parts: Vec<Plane> = (0..nch).map(|c| blur_part(c, &u[c])).collect();
-    let lin_var = |curve: &NoiseCurve, v: f32| curve.linear_variance(v, transfer).max(1e-12);
-    let update_variance = |c: usize, a: &Plane, u: &[Plane], g: &Plane, glare_amp: f64, beta: f64| -> Plane {
-        let kq = kernel_energy(c, u);
+    fn lin_var(&self, curve: &NoiseCurve, v: f32) -> f32 {
+        curve.linear_variance(v, self.transfer).max(1e-12)
+    }
+
+    /// The linear-axis variance of channel `c`'s prediction: the wide-open noise at the model
+    /// plus the pinhole's noise through the kernels.
+    fn update_variance(&self, c: usize, a: &Plane, u: &[Plane], g: &Plane, glare_amp: f64, beta: f64) -> Plane {
+        let (w, h) = (self.w, self.h);
+        let data = self.data;
+        let kq = self.kernel_energy(c, u);
         let s = u.iter().map(|kk| kk.sum()).sum::<f64>() / u.len().max(1) as f64;
         Plane::from_fn(w, h, |x, y| {
             let i = y * w + x;
-            let b = a.data[i] + glare_amp as f32 * glare_planes.as_ref().map_or(0.0, |gp| gp[c].data[i]);
+            let b = a.data[i] + glare_amp as f32 * self.glare_planes.as_ref().map_or(0.0, |gp| gp[c].data[i]);
             let m = g.data[i] * b + beta as f32;
             let level = (a.data[i] as f64 / s.max(1e-12)) as f32;
-            let f = noise_factor.as_ref().map_or(1.0, |nf| nf.data[i]);
-            f * lin_var(&data.curves[c], m) + g.data[i] * g.data[i] * kq.data[i] * data.pinhole_variance_scale as f32 * lin_var(&data.curves[c], level)
+            let f = self.noise_factor.as_ref().map_or(1.0, |nf| nf.data[i]);
+            f * self.lin_var(&data.curves[c], m) + g.data[i] * g.data[i] * kq.data[i] * data.pinhole_variance_scale as f32 * self.lin_var(&data.curves[c], level)
         })
-    };
+    }
 
-    let kset = KernelFitSettings { iterations: settings.kernel_iterations, rounds: 1 };
-    for _round in 0..settings.rounds {
-        let g = gain_plane(&corr, w, h);
-        for c in 0..nch {
-            variance_lin[c] = update_variance(c, &a_parts[c], &u[c], &g, glare_amp[c], beta[c]);
-            // kernel step
-            let y = Plane::from_fn(w, h, |x, yy| {
-                let i = yy * w + x;
-                (open_lin[c].data[i] - beta[c] as f32) / g.data[i] - glare_amp[c] as f32 * glare_planes.as_ref().map_or(0.0, |gp| gp[c].data[i])
-            });
-            let wt: Vec<f32> = (0..w * h).map(|i| if fitmask[c][i] { g.data[i] * g.data[i] / variance_lin[c].data[i] } else { 0.0 }).collect();
-            if kset.iterations > 0 {
-                let (nu, _s) = fit_kernels(&ops[c], &y, &wt, &u[c], kset);
-                u[c] = nu;
-                a_parts[c] = blur_part(c, &u[c]);
-            }
-            // an additive smooth term takes the kernels' common floor (see
-            // [`remove_common_floor`]); the glare amplitude starts from its mass, the offset is
-            // refitted by the Gauss–Newton step below (linear in β and the sums)
-            if corr.veiling_glare.is_some() || corr.black_level.is_some() {
-                let moved = remove_common_floor(&mut u[c]);
-                if moved > 0.0 {
-                    if corr.veiling_glare.is_some() {
-                        glare_amp[c] += moved;
-                    }
-                    a_parts[c] = blur_part(c, &u[c]);
-                }
-            }
+    /// One round: per channel the new weights and a kernel step, then up to two Gauss–Newton
+    /// steps on the scalar parameters (shared ones couple the channels).
+    fn round(&self, corr: &mut Corrections, p: &mut Params, kset: KernelFitSettings) {
+        let g = gain_plane(corr, self.w, self.h);
+        for c in 0..self.nch {
+            self.kernel_step(c, corr, &g, p, kset);
         }
-        // Gauss–Newton on the scalar parameters (shared ones couple the channels)
         for _ in 0..2 {
-            let mut st = ScalarState { u: &mut u, a_parts: &mut a_parts, glare_amp: &mut glare_amp, beta: &mut beta };
-            if !gauss_newton_step(&mut corr, &open_lin, &variance_lin, &fitmask, glare_planes.as_deref(), &mut st) {
+            let mut st = ScalarState { u: &mut p.u, a_parts: &mut p.a_parts, glare_amp: &mut p.glare_amp, beta: &mut p.beta };
+            if !gauss_newton_step(corr, &self.open_lin, &p.variance_lin, &self.masks.fitmask, self.glare_planes.as_deref(), &mut st) {
                 break;
             }
         }
     }
 
-    // final parameters into the model
-    let g = gain_plane(&corr, w, h);
-    let mut kernels = Vec::with_capacity(nch);
-    let mut exposure = Vec::with_capacity(nch);
-    let mut fractions = Vec::new();
-    for c in 0..nch {
-        let s_k = u[c].iter().map(|kk| kk.sum()).sum::<f64>() / u[c].len().max(1) as f64;
-        kernels.push(u[c].iter().map(|kk| kk.map(|v| (v as f64 / s_k.max(1e-30)) as f32)).collect::<Vec<_>>());
-        exposure.push(s_k + glare_amp[c]);
-        fractions.push(glare_amp[c] / (s_k + glare_amp[c]).max(1e-30));
+    /// Channel `c`'s weights from the current prediction, then its kernels by projected FISTA
+    /// with the scalar parameters fixed.
+    fn kernel_step(&self, c: usize, corr: &Corrections, g: &Plane, p: &mut Params, kset: KernelFitSettings) {
+        let (w, h) = (self.w, self.h);
+        p.variance_lin[c] = self.update_variance(c, &p.a_parts[c], &p.u[c], g, p.glare_amp[c], p.beta[c]);
+        let (glare_amp, beta) = (p.glare_amp[c], p.beta[c]);
+        let y = Plane::from_fn(w, h, |x, yy| {
+            let i = yy * w + x;
+            (self.open_lin[c].data[i] - beta as f32) / g.data[i] - glare_amp as f32 * self.glare_planes.as_ref().map_or(0.0, |gp| gp[c].data[i])
+        });
+        let fitmask = &self.masks.fitmask[c];
+        let var = &p.variance_lin[c];
+        let wt: Vec<f32> = (0..w * h).map(|i| if fitmask[i] { g.data[i] * g.data[i] / var.data[i] } else { 0.0 }).collect();
+        if kset.iterations > 0 {
+            let (nu, _s) = fit_kernels(&self.ops[c], &y, &wt, &p.u[c], kset);
+            p.u[c] = nu;
+            p.a_parts[c] = self.blur_part(c, &p.u[c]);
+        }
+        // an additive smooth term takes the kernels' common floor (see
+        // [`remove_common_floor`]); the glare amplitude starts from its mass, the offset is
+        // refitted by the Gauss–Newton step (linear in β and the sums)
+        if corr.veiling_glare.is_some() || corr.black_level.is_some() {
+            let moved = remove_common_floor(&mut p.u[c]);
+            if moved > 0.0 {
+                if corr.veiling_glare.is_some() {
+                    p.glare_amp[c] += moved;
+                }
+                p.a_parts[c] = self.blur_part(c, &p.u[c]);
+            }
+        }
     }
-    if let Some(gc) = corr.veiling_glare.as_mut() {
-        *gc = GlareCorrection { fraction: fractions.iter().sum::<f64>() / nch as f64, sigma_px: gc.sigma_px };
-    }
-    if let Some(b) = corr.black_level.as_mut() {
-        b.offset = beta.clone();
-    }
-    if let Some(f) = corr.psf_field_variation.as_mut() {
-        f.columns = grid0.columns;
-        f.rows = grid0.rows;
-    }
-    let grid = PsfGrid { kernels, ..grid0.clone() };
 
-    // figures on the stored axis
-    let mut predicted = Vec::with_capacity(nch);
-    let mut normalized = Vec::with_capacity(nch);
-    let mut variance = Vec::with_capacity(nch);
-    let mut eval = Vec::with_capacity(nch);
-    let (mut chi2_channel, mut n_channel, mut sq_channel, mut var_channel) = (vec![], vec![], vec![], vec![]);
-    let clip = corr.saturation.map(|s| s.clip_level);
-    let back = corr.misregistration.as_ref().map(super::model::misregistration_map);
-    let mut reference_highpass = Vec::with_capacity(nch);
-    for c in 0..nch {
-        let mut vl = update_variance(c, &a_parts[c], &u[c], &g, glare_amp[c], beta[c]);
+    /// The final parameters into the model: kernels normalised to sum 1, the exposure per
+    /// channel, and the fitted glare fraction, offsets and grid into `corr`.
+    fn final_model(&self, corr: &mut Corrections, p: &Params) -> (PsfGrid, Vec<f64>) {
+        let nch = self.nch;
+        let mut kernels = Vec::with_capacity(nch);
+        let mut exposure = Vec::with_capacity(nch);
+        let mut fractions = Vec::new();
+        for c in 0..nch {
+            let s_k = p.u[c].iter().map(|kk| kk.sum()).sum::<f64>() / p.u[c].len().max(1) as f64;
+            kernels.push(p.u[c].iter().map(|kk| kk.map(|v| (v as f64 / s_k.max(1e-30)) as f32)).collect::<Vec<_>>());
+            exposure.push(s_k + p.glare_amp[c]);
+            fractions.push(p.glare_amp[c] / (s_k + p.glare_amp[c]).max(1e-30));
+        }
+        if let Some(gc) = corr.veiling_glare.as_mut() {
+            *gc = GlareCorrection { fraction: fractions.iter().sum::<f64>() / nch as f64, sigma_px: gc.sigma_px };
+        }
+        if let Some(b) = corr.black_level.as_mut() {
+            b.offset = p.beta.clone();
+        }
+        if let Some(f) = corr.psf_field_variation.as_mut() {
+            f.columns = self.grid0.columns;
+            f.rows = self.grid0.rows;
+        }
+        (PsfGrid { kernels, ..self.grid0.clone() }, exposure)
+    }
+
+    /// Every channel's figures on the stored axis (see [`Setup::channel_figures`]).
+    fn figures(&self, corr: &Corrections, p: &Params) -> Figures {
+        let g = gain_plane(corr, self.w, self.h);
+        let mut f = Figures::default();
+        for c in 0..self.nch {
+            let cf = self.channel_figures(c, corr, p, &g);
+            let sc = cf.score;
+            f.reference_highpass.push(cf.reference_highpass);
+            f.predicted.push(sc.predicted);
+            f.normalized.push(sc.normalized);
+            f.variance.push(sc.variance);
+            f.eval.push(self.masks.interior.clone());
+            f.chi2_channel.push(sc.chi2);
+            f.n_channel.push(sc.n);
+            f.sq_channel.push(sc.sq);
+            f.var_channel.push(sc.var_sum);
+        }
+        f
+    }
+
+    /// Channel `c`'s prediction, variance and χ² on the stored axis (back on the wide-open
+    /// geometry under `misregistration`), and the reference noise's share of the residual's
+    /// high-pass.
+    fn channel_figures(&self, c: usize, corr: &Corrections, p: &Params, g: &Plane) -> ChannelFigures {
+        let (w, h) = (self.w, self.h);
+        let data = self.data;
+        let clip = corr.saturation.map(|s| s.clip_level);
+        let back = corr.misregistration.as_ref().map(super::model::misregistration_map);
+        let (a, u, glare_amp, beta) = (&p.a_parts[c], &p.u[c], p.glare_amp[c], p.beta[c]);
+        let mut vl = self.update_variance(c, a, u, g, glare_amp, beta);
         let mut mlin = Plane::from_fn(w, h, |x, y| {
             let i = y * w + x;
-            let lp = glare_planes.as_ref().map_or(0.0, |gp| gp[c].data[i]);
-            g.data[i] * (a_parts[c].data[i] + glare_amp[c] as f32 * lp) + beta[c] as f32
+            let lp = self.glare_planes.as_ref().map_or(0.0, |gp| gp[c].data[i]);
+            g.data[i] * (a.data[i] + glare_amp as f32 * lp) + beta as f32
         });
         // the reference noise's share of the residual's high-pass, relative to the open noise
         let mut hp = {
-            let (psf, eps) = diffraction.as_ref().map(|d| d.channel(c)).unzip();
-            let e: Vec<f32> = u[c].iter().map(|kk| super::diffraction::propagated_energy(kk, psf.as_ref().zip(eps), true)).collect();
-            let eq = grid0.blend_scalars(&e, w, h);
-            let s = u[c].iter().map(|kk| kk.sum()).sum::<f64>() / u[c].len().max(1) as f64;
+            let (psf, eps) = self.diffraction.as_ref().map(|d| d.channel(c)).unzip();
+            let e: Vec<f32> = u.iter().map(|kk| super::diffraction::propagated_energy(kk, psf.as_ref().zip(eps), true)).collect();
+            let eq = self.grid0.blend_scalars(&e, w, h);
+            let s = u.iter().map(|kk| kk.sum()).sum::<f64>() / u.len().max(1) as f64;
             Plane::from_fn(w, h, |x, y| {
                 let i = y * w + x;
-                let level = (a_parts[c].data[i] as f64 / s.max(1e-12)) as f32;
-                g.data[i] * g.data[i] * eq.data[i] * data.pinhole_variance_scale as f32 * lin_var(&data.curves[c], level) / lin_var(&data.curves[c], mlin.data[i])
+                let level = (a.data[i] as f64 / s.max(1e-12)) as f32;
+                g.data[i] * g.data[i] * eq.data[i] * data.pinhole_variance_scale as f32 * self.lin_var(&data.curves[c], level) / self.lin_var(&data.curves[c], mlin.data[i])
             })
         };
         if let Some(m) = back {
             // onto the wide-open geometry; the open's own noise there is unscaled
-            if let Some(nf) = &noise_factor {
+            if let Some(nf) = &self.noise_factor {
                 vl = Plane::from_fn(w, h, |x, y| {
                     let i = y * w + x;
-                    let o = lin_var(&data.curves[c], mlin.data[i]);
+                    let o = self.lin_var(&data.curves[c], mlin.data[i]);
                     vl.data[i] - nf.data[i] * o + o
                 });
             }
@@ -642,36 +797,9 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
             vl = super::model::resample(&vl, m).0;
             hp = super::model::resample(&hp, m).0;
         }
-        let sat = saturation.then_some((&clipped_open[c][..], &pin_clipped[c][..]));
-        let sc = score_channel(&mlin, &vl, transfer, clip, &interior, &data.open.planes[c], sat);
-        let (pred, norm, var_s, chi2, n, sq, vs) = (sc.predicted, sc.normalized, sc.variance, sc.chi2, sc.n, sc.sq, sc.var_sum);
-        reference_highpass.push(hp);
-        predicted.push(pred);
-        normalized.push(norm);
-        variance.push(var_s);
-        eval.push(interior.clone());
-        chi2_channel.push(chi2);
-        n_channel.push(n);
-        sq_channel.push(sq);
-        var_channel.push(vs);
-    }
-    let laws: Vec<super::noise::PoissonGaussian> = data.curves.iter().map(|c| super::noise::PoissonGaussian::fit(c, transfer)).collect();
-    let params = nch * (grid.tile_count() * (k * k - 1) + 1) + correction_params(&corr, nch);
-    Fit {
-        model: Model { corrections: corr, grid, exposure },
-        transfer,
-        predicted,
-        normalized,
-        variance,
-        eval,
-        chi2_channel,
-        n_channel,
-        sq_channel,
-        var_channel,
-        params,
-        noise_chi2: laws.iter().map(|l| l.chi2).sum(),
-        noise_misfit: laws.iter().map(|l| l.misfit).fold(0.0, f64::max),
-        reference,
-        reference_highpass,
+        let m = &self.masks;
+        let sat = m.saturation.then_some((&m.clipped_open[c][..], &m.pin_clipped[c][..]));
+        let score = score_channel(&mlin, &vl, self.transfer, clip, &m.interior, &data.open.planes[c], sat);
+        ChannelFigures { score, reference_highpass: hp }
     }
 }

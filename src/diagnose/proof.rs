@@ -148,6 +148,17 @@ fn signed(r: &mut Rng, lo: f64, hi: f64) -> f64 {
     if r.uniform() < 0.5 { -v } else { v }
 }
 
+/// The two shots and sensors of a proof case, and what the concealed effect changed.
+struct Setup {
+    sensor: Sensor,
+    open_shot: Shot,
+    pin_shot: Shot,
+    pin_sensor: Sensor,
+    pinhole_frames: usize,
+    /// Under `misregistration`, the camera's move between the captures.
+    moved: Option<Similarity>,
+}
+
 /// Renders a proof case: `effect` (one of [`CONCEALED`]) or `None` for clean data.
 ///
 /// # Errors
@@ -169,47 +180,74 @@ pub fn render_case(effect: Option<&str>, seed: u64, spec: &CaseSpec) -> Result<C
     // floor even with the true similarity and kernels).
     let soft_sigma = if effect == Some("misregistration") { 1.0 } else { 0.0 };
     let sc: Vec<Plane> = vec![scene_moved_soft(w, h, seed, None, ppc, soft_sigma); lens.bands.len()];
-    let mut sensor = Sensor::default();
+    let sensor = Sensor::default();
+    let mut s = Setup {
+        pin_sensor: sensor.clone(),
+        sensor,
+        open_shot: Shot::lens(spec.f_number, 0.7, spec.grid.0, spec.grid.1, spec.kernel_size),
+        pin_shot: Shot::ideal(0.7),
+        pinhole_frames: 1,
+        moved: None,
+    };
+    let mut truth = conceal(effect, &mut rng, spec, &lens, &mut s)?;
+    // one camera records both captures: the reference shares the wide-open capture's encoding
+    // (`pin_sensor` is cloned before the effect is chosen, so `tone_curve` must reach it here)
+    s.pin_sensor.transfer = s.sensor.transfer;
+    let mut open = render(&sc, &lens, &s.open_shot, &s.sensor, &mut Rng::new(seed * 2 + 1));
+    let pin_scene: Vec<Plane> = match s.moved {
+        Some(m) => vec![scene_moved_soft(w, h, seed, Some(m), ppc, soft_sigma); lens.bands.len()],
+        None => sc.clone(),
+    };
+    let mut pinhole = render(&pin_scene, &lens, &s.pin_shot, &s.pin_sensor, &mut Rng::new(seed * 2 + 2));
+    if let (Some(pg), Some(t)) = (&pinhole.psfs, truth.as_object_mut()) {
+        // the rendered reference PSFs' MTF50, averaged over the tiles (first channel)
+        t.insert("mtf50_cycles_per_px".into(), json!(kernel_mtf50(&pg.kernels[0])));
+    }
+    // concealed: the files are declared linear whatever the sensor did
+    open.image.transfer = Transfer::Linear;
+    pinhole.image.transfer = Transfer::Linear;
+    let true_variance = true_variance(&open, &pinhole, &sc, &s, (w, h));
+    Ok(Case { open, pinhole, effect: effect.map(str::to_string), truth, true_variance, pinhole_frames: s.pinhole_frames })
+}
+
+/// Conceals `effect` in the shots and sensors of `s` at a magnitude drawn from `rng`; returns
+/// its parameters as rendered (the truth).
+fn conceal(effect: Option<&str>, rng: &mut Rng, spec: &CaseSpec, lens: &LensModel, s: &mut Setup) -> Result<serde_json::Value, UnknownEffect> {
     let k = spec.kernel_size;
-    let mut open_shot = Shot::lens(spec.f_number, 0.7, spec.grid.0, spec.grid.1, k);
-    let mut pin_shot = Shot::ideal(0.7);
-    let mut pin_sensor = sensor.clone();
-    let mut pinhole_frames = 1usize;
-    let mut moved = None;
-    let truth = match effect {
+    Ok(match effect {
         None => json!({}),
         Some("vignetting") => {
             let (k1, k2) = (-rng.range(0.15, 0.35), rng.range(0.0, 0.05));
-            open_shot.vignetting = Some([k1, k2, 0.0]);
+            s.open_shot.vignetting = Some([k1, k2, 0.0]);
             json!({"k1": k1, "k2": k2, "k3": 0.0})
         }
         Some("illumination_gradient") => {
-            let (gx, gy) = (signed(&mut rng, 0.04, 0.12), signed(&mut rng, 0.04, 0.12));
-            open_shot.illumination_gradient = Some([gx, gy]);
+            let (gx, gy) = (signed(rng, 0.04, 0.12), signed(rng, 0.04, 0.12));
+            s.open_shot.illumination_gradient = Some([gx, gy]);
             json!({"gx": gx, "gy": gy})
         }
         Some("tone_curve") => {
-            sensor.transfer = Transfer::Srgb;
+            s.sensor.transfer = Transfer::Srgb;
             json!({"transfer": "srgb"})
         }
         Some("black_level") => {
             let off: Vec<f32> = (0..lens.bands.len()).map(|_| rng.range(0.01, 0.04) as f32).collect();
-            open_shot.black_offset = Some(off.clone());
+            s.open_shot.black_offset = Some(off.clone());
             json!({"offset": off})
         }
         Some("veiling_glare") => {
-            let (f, s) = (rng.range(0.04, 0.10), rng.range(18.0, 36.0));
-            open_shot.veiling_glare = Some(Glare { fraction: f, sigma_px: s });
-            json!({"fraction": f, "sigma_px": s})
+            let (f, sigma) = (rng.range(0.04, 0.10), rng.range(18.0, 36.0));
+            s.open_shot.veiling_glare = Some(Glare { fraction: f, sigma_px: sigma });
+            json!({"fraction": f, "sigma_px": sigma})
         }
         Some("misregistration") => {
-            let m = Similarity { dx: signed(&mut rng, 0.3, 2.0), dy: signed(&mut rng, 0.3, 2.0), rotation_deg: signed(&mut rng, 0.25, 0.6), scale: signed(&mut rng, 0.002, 0.005) };
-            moved = Some(m);
+            let m = Similarity { dx: signed(rng, 0.3, 2.0), dy: signed(rng, 0.3, 2.0), rotation_deg: signed(rng, 0.25, 0.6), scale: signed(rng, 0.002, 0.005) };
+            s.moved = Some(m);
             json!({"dx": m.dx, "dy": m.dy, "rotation_deg": m.rotation_deg, "scale": m.scale})
         }
         Some("saturation") => {
             let e = rng.range(1.6, 2.2);
-            open_shot.exposure = e;
+            s.open_shot.exposure = e;
             json!({"open_exposure": e})
         }
         Some("pinhole_diffraction") => {
@@ -224,39 +262,26 @@ pub fn render_case(effect: Option<&str>, seed: u64, spec: &CaseSpec) -> Result<C
             // of its energy beyond), not on the wide-open kernel's support, which cuts the
             // tails and flattens the transfer function's low-frequency fall
             let pin_k = (2 * (10.0 * airy).ceil() as usize + 1).max(k);
-            pin_shot = Shot::lens(n, 0.7, spec.grid.0, spec.grid.1, pin_k);
-            pinhole_frames = 16;
-            pin_sensor.full_well_e *= pinhole_frames as f64;
-            pin_sensor.read_noise_e *= (pinhole_frames as f64).sqrt();
+            s.pin_shot = Shot::lens(n, 0.7, spec.grid.0, spec.grid.1, pin_k);
+            s.pinhole_frames = 16;
+            s.pin_sensor.full_well_e *= s.pinhole_frames as f64;
+            s.pin_sensor.read_noise_e *= (s.pinhole_frames as f64).sqrt();
             json!({"f_number": n, "airy_radius_px": airy})
         }
         Some("psf_field_variation") => {
-            open_shot.blur = Blur::Lens { f_number: spec.f_number, columns: 9, rows: 7, kernel_size: k };
+            s.open_shot.blur = Blur::Lens { f_number: spec.f_number, columns: 9, rows: 7, kernel_size: k };
             json!({"true_grid": [9, 7]})
         }
         Some(other) => return Err(UnknownEffect(other.to_string())),
-    };
-    // one camera records both captures: the reference shares the wide-open capture's encoding
-    // (`pin_sensor` is cloned before the effect is chosen, so `tone_curve` must reach it here)
-    pin_sensor.transfer = sensor.transfer;
-    let mut open = render(&sc, &lens, &open_shot, &sensor, &mut Rng::new(seed * 2 + 1));
-    let pin_scene: Vec<Plane> = match moved {
-        Some(m) => vec![scene_moved_soft(w, h, seed, Some(m), ppc, soft_sigma); lens.bands.len()],
-        None => sc.clone(),
-    };
-    let mut pinhole = render(&pin_scene, &lens, &pin_shot, &pin_sensor, &mut Rng::new(seed * 2 + 2));
-    let mut truth = truth;
-    if let (Some(pg), Some(t)) = (&pinhole.psfs, truth.as_object_mut()) {
-        // the rendered reference PSFs' MTF50, averaged over the tiles (first channel)
-        t.insert("mtf50_cycles_per_px".into(), json!(kernel_mtf50(&pg.kernels[0])));
-    }
-    // concealed: the files are declared linear whatever the sensor did
-    open.image.transfer = Transfer::Linear;
-    pinhole.image.transfer = Transfer::Linear;
-    // true noise floor of a perfect prediction
+    })
+}
+
+/// Per channel, the true noise floor of a perfect prediction on the stored axis (module doc,
+/// "Truth noise floor").
+fn true_variance(open: &Rendered, pinhole: &Rendered, sc: &[Plane], s: &Setup, (w, h): (usize, usize)) -> Vec<Plane> {
     let grid = open.psfs.clone().expect("the wide-open shot is blurred");
-    let s = open_shot.exposure / pin_shot.exposure;
-    let true_variance = (0..open.variance.len())
+    let ratio = s.open_shot.exposure / s.pin_shot.exposure;
+    (0..open.variance.len())
         .map(|c| {
             // the reference's noise through the wide-open kernel, `ΣK²`; with a blurred
             // reference, the error of the best prediction from it instead (see
@@ -264,7 +289,7 @@ pub fn render_case(effect: Option<&str>, seed: u64, spec: &CaseSpec) -> Result<C
             let e: Vec<f32> = match &pinhole.psfs {
                 Some(pg) => {
                     let nv = pinhole.variance[c].mean();
-                    let scene = sc[c.min(sc.len() - 1)].map(|v| v * pin_shot.exposure as f32);
+                    let scene = sc[c.min(sc.len() - 1)].map(|v| v * s.pin_shot.exposure as f32);
                     let psd = RadialPsd::of(&scene);
                     grid.kernels[c].iter().zip(&pg.kernels[c]).map(|(kk, dk)| wiener_error_gain(kk, dk, &psd, nv) as f32).collect()
                 }
@@ -274,8 +299,8 @@ pub fn render_case(effect: Option<&str>, seed: u64, spec: &CaseSpec) -> Result<C
             let kq_plane = grid.blend_scalars(&e, w, h);
             Plane::from_fn(w, h, |x, y| {
                 let kq = kq_plane.get(x, y);
-                let v = open.variance[c].get(x, y) + (s * s) as f32 * kq * pin_local.get(x, y);
-                match sensor.transfer {
+                let v = open.variance[c].get(x, y) + (ratio * ratio) as f32 * kq * pin_local.get(x, y);
+                match s.sensor.transfer {
                     Transfer::Linear => v,
                     Transfer::Srgb => {
                         let d = srgb_slope(open.clean[c].get(x, y).max(1e-4));
@@ -284,8 +309,7 @@ pub fn render_case(effect: Option<&str>, seed: u64, spec: &CaseSpec) -> Result<C
                 }
             })
         })
-        .collect();
-    Ok(Case { open, pinhole, effect: effect.map(str::to_string), truth, true_variance, pinhole_frames })
+        .collect()
 }
 
 /// MTF50 of a set of kernels along a pixel row: the frequency (cycles per pixel) at which

@@ -171,7 +171,7 @@ pub fn refusal_message(r: &ValueReport) -> String {
 /// (the message is [`refusal_message`]).
 #[derive(Debug, thiserror::Error)]
 #[error("{}", refusal_message(.0))]
-pub struct Refused(pub ValueReport);
+pub struct Refused(pub Box<ValueReport>);
 
 /// Scans `img` and applies `policy`.
 ///
@@ -185,7 +185,7 @@ pub fn check_values(img: &mut Image, policy: InvalidPixels) -> Result<ValueRepor
         return Ok(r);
     }
     match policy {
-        InvalidPixels::Refuse => Err(Refused(r)),
+        InvalidPixels::Refuse => Err(Refused(Box::new(r))),
         InvalidPixels::Mask => {
             for (c, p) in img.planes.iter_mut().enumerate() {
                 for (i, v) in p.data.iter_mut().enumerate().filter(|(_, v)| !v.is_finite()) {

@@ -104,7 +104,7 @@ pub fn slanted_edge_mtf(img: &Plane) -> Option<Vec<f64>> {
     Some(line_spread_mtf(&lsf, dc))
 }
 
-/// 1. The edge position per row `(y, x)`: the centroid of `|d/dx|` (rows without any
+/// Step 1: The edge position per row `(y, x)`: the centroid of `|d/dx|` (rows without any
 /// gradient are skipped).
 fn edge_points(img: &Plane) -> Vec<(f64, f64)> {
     let (w, h) = (img.width, img.height);
@@ -123,7 +123,7 @@ fn edge_points(img: &Plane) -> Vec<(f64, f64)> {
     pts
 }
 
-/// 2. The least-squares line `x = a + b·y` through the edge points; returns `(a, b)`.
+/// Step 2: The least-squares line `x = a + b·y` through the edge points; returns `(a, b)`.
 fn fit_edge_line(pts: &[(f64, f64)]) -> (f64, f64) {
     let n = pts.len() as f64;
     let (my, mx) = (pts.iter().map(|p| p.0).sum::<f64>() / n, pts.iter().map(|p| p.1).sum::<f64>() / n);
@@ -133,7 +133,7 @@ fn fit_edge_line(pts: &[(f64, f64)]) -> (f64, f64) {
     (mx - b * my, b)
 }
 
-/// 3. The edge-spread function: pixels projected onto the normal of the line `x = a + b·y`
+/// Step 3: The edge-spread function: pixels projected onto the normal of the line `x = a + b·y`
 /// (signed distance `d = (x − a − b·y)/√(1+b²)`) and averaged in bins of `1/OS` px over
 /// `|d| ≤ min(w/2, 32)`; empty bins are filled from their neighbours. `None` when every bin
 /// is empty.
@@ -171,7 +171,7 @@ fn edge_spread(img: &Plane, a: f64, b: f64) -> Option<Vec<f64>> {
     Some(esf)
 }
 
-/// 4. The line-spread function by central difference, Hamming-windowed about its peak, and its
+/// Step 4: The line-spread function by central difference, Hamming-windowed about its peak, and its
 /// sum (the DC term). `None` without a peak or with a vanishing DC term.
 fn windowed_line_spread(esf: &[f64]) -> Option<(Vec<f64>, f64)> {
     let nb = esf.len();
@@ -192,7 +192,7 @@ fn windowed_line_spread(esf: &[f64]) -> Option<(Vec<f64>, f64)> {
     Some((lsf, dc))
 }
 
-/// 5. The normalised DFT magnitude of the line-spread function at the curve frequencies
+/// Step 5: The normalised DFT magnitude of the line-spread function at the curve frequencies
 /// (cycles/px → cycles/bin = f/OS), divided by the central difference's own transfer.
 fn line_spread_mtf(lsf: &[f64], dc: f64) -> Vec<f64> {
     curve_frequencies()

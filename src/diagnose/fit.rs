@@ -441,9 +441,9 @@ pub fn fit(data: &Data, corrections: &Corrections, init: &Model, settings: FitSe
 /// [`fit`] with the data term restricted to pixels where `keep(x, y)` (for cross-validation;
 /// the figures still cover the whole evaluation set).
 ///
-/// Stages: [`Setup::new`] (linear data and reference on the model's geometry, masks, kernel
-/// operators), [`Setup::initial_params`], `settings.rounds` × [`Setup::round`] (kernels, then
-/// Gauss–Newton on the scalars), [`Setup::final_model`] and [`Setup::figures`].
+/// Stages: `Setup::new` (linear data and reference on the model's geometry, masks, kernel
+/// operators), `Setup::initial_params`, `settings.rounds` × `Setup::round` (kernels, then
+/// Gauss–Newton on the scalars), `Setup::final_model` and `Setup::figures`.
 pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings: FitSettings, keep: &dyn Fn(usize, usize) -> bool) -> Fit {
     let mut corr = corrections.clone();
     let setup = Setup::new(data, &corr, init, keep);

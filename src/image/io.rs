@@ -76,7 +76,7 @@ pub fn read_image_with(path: &Path, policy: InvalidPixels) -> Result<Loaded, Ima
         let bytes = std::fs::read(path).map_err(|source| ImageError::Io { path: path.into(), source })?;
         decode_image(path, &bytes)?
     };
-    let values = check_values(&mut image, policy).map_err(|message| ImageError::NonFinite { path: path.into(), message })?;
+    let values = check_values(&mut image, policy).map_err(|e| ImageError::NonFinite { path: path.into(), message: e.to_string() })?;
     Ok(Loaded { image, values })
 }
 

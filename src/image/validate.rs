@@ -167,16 +167,25 @@ pub fn refusal_message(r: &ValueReport) -> String {
     )
 }
 
-/// Scans `img` and applies `policy`: `Err(message)` (see [`refusal_message`]) when it holds
-/// non-finite samples under [`InvalidPixels::Refuse`]; under [`InvalidPixels::Mask`] those
-/// samples become [`MASKED_VALUE`] and [`ValueReport::masked`] counts them.
-pub fn check_values(img: &mut Image, policy: InvalidPixels) -> Result<ValueReport, String> {
+/// An image refused under [`InvalidPixels::Refuse`]: its scan, which holds non-finite samples
+/// (the message is [`refusal_message`]).
+#[derive(Debug, thiserror::Error)]
+#[error("{}", refusal_message(.0))]
+pub struct Refused(pub Box<ValueReport>);
+
+/// Scans `img` and applies `policy`.
+///
+/// # Errors
+/// [`Refused`] when it holds non-finite samples under [`InvalidPixels::Refuse`]; under
+/// [`InvalidPixels::Mask`] those samples become [`MASKED_VALUE`] and [`ValueReport::masked`]
+/// counts them.
+pub fn check_values(img: &mut Image, policy: InvalidPixels) -> Result<ValueReport, Refused> {
     let mut r = scan(img);
     if r.non_finite() == 0 {
         return Ok(r);
     }
     match policy {
-        InvalidPixels::Refuse => Err(refusal_message(&r)),
+        InvalidPixels::Refuse => Err(Refused(Box::new(r))),
         InvalidPixels::Mask => {
             for (c, p) in img.planes.iter_mut().enumerate() {
                 for (i, v) in p.data.iter_mut().enumerate().filter(|(_, v)| !v.is_finite()) {
@@ -219,7 +228,7 @@ mod tests {
     #[test]
     fn refuse_names_the_pixel_and_mask_replaces() {
         let mut im = img(&[0.1, 0.2, f32::NAN, 0.3]);
-        let e = check_values(&mut im.clone(), InvalidPixels::Refuse).unwrap_err();
+        let e = check_values(&mut im.clone(), InvalidPixels::Refuse).unwrap_err().to_string();
         assert!(e.contains("x=2, y=0") && e.contains("channel R") && e.contains("1 NaN") && e.contains("1 infinite"), "{e}");
         let r = check_values(&mut im, InvalidPixels::Mask).unwrap();
         assert_eq!(r.masked, 2);

@@ -174,18 +174,29 @@ fn invalid(path: &Path, message: impl Into<String>) -> ProfileError {
     ProfileError::Invalid { path: path.into(), message: message.into() }
 }
 
+/// Why one kernel is invalid (positions are `(x, y)` inside the kernel).
+#[derive(Debug, thiserror::Error)]
+enum KernelError {
+    #[error("kernel value {value} at (x={x}, y={y}) is not finite")]
+    NonFinite { value: f32, x: usize, y: usize },
+    #[error("kernel value {value} at (x={x}, y={y}) is negative")]
+    Negative { value: f32, x: usize, y: usize },
+    #[error("kernel sums to {sum:.6}, not 1 (tolerance {KERNEL_SUM_TOLERANCE})")]
+    Sum { sum: f64 },
+}
+
 /// Why one kernel is invalid, or `Ok`.
-fn check_kernel(k: &Plane) -> Result<(), String> {
+fn check_kernel(k: &Plane) -> Result<(), KernelError> {
     if let Some(i) = k.data.iter().position(|v| !v.is_finite()) {
-        return Err(format!("kernel value {} at (x={}, y={}) is not finite", k.data[i], i % k.width.max(1), i / k.width.max(1)));
+        return Err(KernelError::NonFinite { value: k.data[i], x: i % k.width.max(1), y: i / k.width.max(1) });
     }
     let peak = k.data.iter().fold(0.0f64, |a, &v| a.max((v as f64).abs()));
     if let Some(i) = k.data.iter().position(|&v| (v as f64) < -KERNEL_NEGATIVE_TOLERANCE * peak) {
-        return Err(format!("kernel value {} at (x={}, y={}) is negative", k.data[i], i % k.width.max(1), i / k.width.max(1)));
+        return Err(KernelError::Negative { value: k.data[i], x: i % k.width.max(1), y: i / k.width.max(1) });
     }
     let sum: f64 = k.data.iter().map(|&v| v as f64).sum();
     if (sum - 1.0).abs() > KERNEL_SUM_TOLERANCE {
-        return Err(format!("kernel sums to {sum:.6}, not 1 (tolerance {KERNEL_SUM_TOLERANCE})"));
+        return Err(KernelError::Sum { sum });
     }
     Ok(())
 }

@@ -81,6 +81,9 @@ pub fn diffraction_pixel_mtf(f: f64, lambda_um: f64, f_number: f64, pitch_um: f6
     diffraction_mtf(f / cutoff) * sinc.abs()
 }
 
+/// Oversampling of the edge-spread function: bins per pixel along the edge normal.
+const OS: f64 = 4.0;
+
 /// A slanted-edge MTF measurement (ISO 12233 style) on a near-vertical edge filling `img`:
 /// the edge is located row by row (centroid of the horizontal derivative), a line is fitted,
 /// pixels are projected onto the edge normal and binned at 1/4 px into an edge-spread function,
@@ -88,11 +91,23 @@ pub fn diffraction_pixel_mtf(f: f64, lambda_um: f64, f_number: f64, pitch_um: f6
 /// [`curve_frequencies`] (cycles/px along the edge normal), corrected for the finite-difference
 /// derivative. `None` when no edge is found.
 pub fn slanted_edge_mtf(img: &Plane) -> Option<Vec<f64>> {
-    let (w, h) = (img.width, img.height);
-    if w < 8 || h < 8 {
+    if img.width < 8 || img.height < 8 {
         return None;
     }
-    // 1. edge position per row: centroid of |d/dx|
+    let pts = edge_points(img);
+    if pts.len() < 4 {
+        return None;
+    }
+    let (a, b) = fit_edge_line(&pts);
+    let esf = edge_spread(img, a, b)?;
+    let (lsf, dc) = windowed_line_spread(&esf)?;
+    Some(line_spread_mtf(&lsf, dc))
+}
+
+/// Step 1: The edge position per row `(y, x)`: the centroid of `|d/dx|` (rows without any
+/// gradient are skipped).
+fn edge_points(img: &Plane) -> Vec<(f64, f64)> {
+    let (w, h) = (img.width, img.height);
     let mut pts: Vec<(f64, f64)> = Vec::with_capacity(h);
     for y in 0..h {
         let (mut s, mut sx) = (0.0f64, 0.0f64);
@@ -105,19 +120,26 @@ pub fn slanted_edge_mtf(img: &Plane) -> Option<Vec<f64>> {
             pts.push((y as f64, sx / s));
         }
     }
-    if pts.len() < 4 {
-        return None;
-    }
-    // 2. least-squares line x = a + b·y
+    pts
+}
+
+/// Step 2: The least-squares line `x = a + b·y` through the edge points; returns `(a, b)`.
+fn fit_edge_line(pts: &[(f64, f64)]) -> (f64, f64) {
     let n = pts.len() as f64;
     let (my, mx) = (pts.iter().map(|p| p.0).sum::<f64>() / n, pts.iter().map(|p| p.1).sum::<f64>() / n);
     let syy: f64 = pts.iter().map(|p| (p.0 - my).powi(2)).sum();
     let sxy: f64 = pts.iter().map(|p| (p.0 - my) * (p.1 - mx)).sum();
     let b = if syy > 0.0 { sxy / syy } else { 0.0 };
-    let a = mx - b * my;
-    // 3. project onto the normal: signed distance d = (x − a − b·y)/√(1+b²), bin at 1/4 px
+    (mx - b * my, b)
+}
+
+/// Step 3: The edge-spread function: pixels projected onto the normal of the line `x = a + b·y`
+/// (signed distance `d = (x − a − b·y)/√(1+b²)`) and averaged in bins of `1/OS` px over
+/// `|d| ≤ min(w/2, 32)`; empty bins are filled from their neighbours. `None` when every bin
+/// is empty.
+fn edge_spread(img: &Plane, a: f64, b: f64) -> Option<Vec<f64>> {
+    let (w, h) = (img.width, img.height);
     let norm = (1.0 + b * b).sqrt();
-    const OS: f64 = 4.0;
     let half = (w as f64 / 2.0).min(32.0);
     let nb = (2.0 * half * OS) as usize;
     let mut sum = vec![0.0f64; nb];
@@ -133,14 +155,7 @@ pub fn slanted_edge_mtf(img: &Plane) -> Option<Vec<f64>> {
         }
     }
     // fill empty bins from their neighbours
-    let mut esf: Vec<f64> = Vec::with_capacity(nb);
-    for i in 0..nb {
-        if cnt[i] > 0 {
-            esf.push(sum[i] / cnt[i] as f64);
-        } else {
-            esf.push(f64::NAN);
-        }
-    }
+    let mut esf: Vec<f64> = (0..nb).map(|i| if cnt[i] > 0 { sum[i] / cnt[i] as f64 } else { f64::NAN }).collect();
     for i in 0..nb {
         if esf[i].is_nan() {
             let l = (0..i).rev().find(|&j| cnt[j] > 0);
@@ -153,7 +168,13 @@ pub fn slanted_edge_mtf(img: &Plane) -> Option<Vec<f64>> {
             };
         }
     }
-    // 4. LSF by central difference, Hamming window centred on the LSF's peak
+    Some(esf)
+}
+
+/// Step 4: The line-spread function by central difference, Hamming-windowed about its peak, and its
+/// sum (the DC term). `None` without a peak or with a vanishing DC term.
+fn windowed_line_spread(esf: &[f64]) -> Option<(Vec<f64>, f64)> {
+    let nb = esf.len();
     let mut lsf = vec![0.0f64; nb];
     for i in 1..nb - 1 {
         lsf[i] = (esf[i + 1] - esf[i - 1]) / 2.0;
@@ -168,23 +189,26 @@ pub fn slanted_edge_mtf(img: &Plane) -> Option<Vec<f64>> {
     if dc.abs() < 1e-12 {
         return None;
     }
-    // 5. DFT at the curve frequencies (cycles/px → cycles/bin = f/OS), derivative correction
-    Some(
-        curve_frequencies()
-            .iter()
-            .map(|&f| {
-                let (mut re, mut im) = (0.0f64, 0.0f64);
-                for (i, &v) in lsf.iter().enumerate() {
-                    let ph = -2.0 * std::f64::consts::PI * f / OS * i as f64;
-                    re += v * ph.cos();
-                    im += v * ph.sin();
-                }
-                let x = 2.0 * std::f64::consts::PI * f / OS; // central difference over 2 bins
-                let corr = if x == 0.0 { 1.0 } else { x.sin() / x };
-                re.hypot(im) / dc.abs() / corr
-            })
-            .collect(),
-    )
+    Some((lsf, dc))
+}
+
+/// Step 5: The normalised DFT magnitude of the line-spread function at the curve frequencies
+/// (cycles/px → cycles/bin = f/OS), divided by the central difference's own transfer.
+fn line_spread_mtf(lsf: &[f64], dc: f64) -> Vec<f64> {
+    curve_frequencies()
+        .iter()
+        .map(|&f| {
+            let (mut re, mut im) = (0.0f64, 0.0f64);
+            for (i, &v) in lsf.iter().enumerate() {
+                let ph = -2.0 * std::f64::consts::PI * f / OS * i as f64;
+                re += v * ph.cos();
+                im += v * ph.sin();
+            }
+            let x = 2.0 * std::f64::consts::PI * f / OS; // central difference over 2 bins
+            let corr = if x == 0.0 { 1.0 } else { x.sin() / x };
+            re.hypot(im) / dc.abs() / corr
+        })
+        .collect()
 }
 
 #[cfg(test)]

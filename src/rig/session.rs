@@ -46,7 +46,7 @@ use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
 
-use super::camera::mock::{CameraFaults, MockCamera, MockOptics, PositionSource};
+use super::camera::mock::{CameraFaults, MockCamera, MockError, MockOptics, PositionSource};
 use super::camera::{Camera, CameraError, Frame};
 use super::config::{CameraKind, ControllerKind, RigConfig};
 use super::controller::sim::{spawn_pty, SimHandle, SimOptions};
@@ -100,8 +100,8 @@ pub enum SessionError {
         source: io::Error,
     },
     /// The mock camera's `[lens]`/`[target]` settings.
-    #[error("{0}")]
-    MockCamera(String),
+    #[error(transparent)]
+    MockCamera(MockError),
     #[error("camera.kind = \"v4l2\" needs lensrig built with `--features v4l2`")]
     NoV4l2,
     #[error("{axis} target {target} mm outside the configured range [{min}, {max}] mm")]

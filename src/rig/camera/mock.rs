@@ -91,22 +91,22 @@ impl MockOptics {
     ///
     /// # Errors
     /// A key with the wrong type or an impossible value.
-    pub fn from_config(cfg: &RigConfig) -> Result<Self, String> {
+    pub fn from_config(cfg: &RigConfig) -> Result<Self, MockError> {
         let empty = toml::Table::new();
         let t = cfg.lens.as_ref().unwrap_or(&empty);
-        let num = |k: &str, d: f64| -> Result<f64, String> {
+        let num = |k: &str, d: f64| -> Result<f64, MockError> {
             match t.get(k) {
                 None => Ok(d),
                 Some(toml::Value::Float(f)) => Ok(*f),
                 Some(toml::Value::Integer(i)) => Ok(*i as f64),
-                Some(v) => Err(format!("lens.{k}: expected a number, got {v}")),
+                Some(v) => Err(MockError::WrongType { key: k.to_string(), expected: "a number", got: v.to_string() }),
             }
         };
-        let s = |k: &str, d: &str| -> Result<String, String> {
+        let s = |k: &str, d: &str| -> Result<String, MockError> {
             match t.get(k) {
                 None => Ok(d.to_string()),
                 Some(toml::Value::String(s)) => Ok(s.clone()),
-                Some(v) => Err(format!("lens.{k}: expected a string, got {v}")),
+                Some(v) => Err(MockError::WrongType { key: k.to_string(), expected: "a string", got: v.to_string() }),
             }
         };
         const KNOWN: [&str; 13] = [
@@ -125,28 +125,28 @@ impl MockOptics {
             "timeout_after_captures",
         ];
         if let Some(k) = t.keys().find(|k| !KNOWN.contains(&k.as_str())) {
-            return Err(format!("lens.{k}: unknown key (known: {})", KNOWN.join(", ")));
+            return Err(MockError::UnknownKey { key: k.clone(), known: KNOWN.join(", ") });
         }
         let (w, h) = (cfg.camera.width as usize, cfg.camera.height as usize);
         let mut lens = LensModel::demo(w, h);
         match s("bands", "mono")?.as_str() {
             "mono" => lens.bands = mono_band(),
             "rgb" => {}
-            o => return Err(format!("lens.bands: expected \"mono\" or \"rgb\", got {o:?}")),
+            o => return Err(MockError::BadValue { key: "bands", problem: format!("expected \"mono\" or \"rgb\", got {o:?}") }),
         }
         let f_open = num("f_number_open", 2.8)?;
         let f_pin = num("f_number_pinhole", 22.0)?;
         if !(f_open > 0.0 && f_pin > f_open) {
-            return Err(format!("lens: need 0 < f_number_open < f_number_pinhole, got {f_open} and {f_pin}"));
+            return Err(MockError::FNumbers { open: f_open, pinhole: f_pin });
         }
         let pinhole = match s("pinhole", "f-number")?.as_str() {
             "ideal" => None,
             "f-number" => Some(f_pin),
-            o => return Err(format!("lens.pinhole: expected \"f-number\" or \"ideal\", got {o:?}")),
+            o => return Err(MockError::BadValue { key: "pinhole", problem: format!("expected \"f-number\" or \"ideal\", got {o:?}") }),
         };
         let ppc = num("pixels_per_cell", 1.6)?;
         if ppc <= 0.0 {
-            return Err("lens.pixels_per_cell: must be > 0".into());
+            return Err(MockError::BadValue { key: "pixels_per_cell", problem: "must be > 0".into() });
         }
         let sensor = Sensor { full_well_e: num("full_well_e", 20_000.0)?, read_noise_e: num("read_noise_e", 6.0)?, ..Sensor::default() };
         let kernel_size = lens.suggested_kernel_size(f_open);
@@ -186,6 +186,28 @@ impl MockOptics {
     }
 }
 
+/// Why a rig config cannot make a mock camera: its `[lens]` keys (see the module docs) or its
+/// `[target]`.
+#[derive(Debug, thiserror::Error)]
+pub enum MockError {
+    #[error("lens.{key}: expected {expected}, got {got}")]
+    WrongType { key: String, expected: &'static str, got: String },
+    #[error("lens.{key}: unknown key (known: {known})")]
+    UnknownKey { key: String, known: String },
+    #[error("lens.{key}: {problem}")]
+    BadValue { key: &'static str, problem: String },
+    #[error("lens: need 0 < f_number_open < f_number_pinhole, got {open} and {pinhole}")]
+    FNumbers { open: f64, pinhole: f64 },
+    #[error("a mock camera needs [target] path = \"…toml\"")]
+    NoTarget,
+    #[error("target {}: {source}", path.display())]
+    Target {
+        path: PathBuf,
+        #[source]
+        source: crate::target::TargetError,
+    },
+}
+
 /// The mock camera. See the module docs.
 pub struct MockCamera {
     optics: MockOptics,
@@ -206,10 +228,10 @@ pub struct MockCamera {
 impl MockCamera {
     /// # Errors
     /// Bad `[lens]` keys, a missing `[target]`, an unreadable target file.
-    pub fn new(cfg: &RigConfig, position: PositionSource) -> Result<Self, String> {
+    pub fn new(cfg: &RigConfig, position: PositionSource) -> Result<Self, MockError> {
         let optics = MockOptics::from_config(cfg)?;
-        let tpath = cfg.target.as_ref().ok_or("a mock camera needs [target] path = \"…toml\"")?;
-        let target = TargetSpec::load(&tpath.path).map_err(|e| format!("target {}: {e}", tpath.path.display()))?;
+        let tpath = cfg.target.as_ref().ok_or(MockError::NoTarget)?;
+        let target = TargetSpec::load(&tpath.path).map_err(|source| MockError::Target { path: tpath.path.clone(), source })?;
         let faults = Arc::new(CameraFaults::default());
         if let Some(v) = cfg.lens.as_ref().and_then(|t| t.get("timeout_after_captures")).and_then(toml::Value::as_integer) {
             faults.timeout_after_captures.store(v.max(0) as usize, Ordering::SeqCst);
@@ -380,16 +402,7 @@ impl Camera for MockCamera {
         self.captures += 1;
         Ok(Frame {
             image,
-            meta: FrameMeta {
-                time,
-                exposure_us: self.exposure_us,
-                gain: self.gain,
-                frames_averaged: frames,
-                frames_discarded: discarded,
-                transfer: Transfer::Linear,
-                fourcc: self.format.fourcc,
-                sequence: Some(self.captures as u32),
-            },
+            meta: FrameMeta::new(time, self.exposure_us, self.gain, (frames, discarded), Transfer::Linear, self.format.fourcc, Some(self.captures as u32)),
             temporal_variance: repeats.variance(),
         })
     }

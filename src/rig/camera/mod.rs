@@ -82,6 +82,13 @@ pub struct FrameMeta {
     pub sequence: Option<u32>,
 }
 
+impl FrameMeta {
+    /// The metadata of a capture that averaged `frames.0` frames after dropping `frames.1`.
+    pub fn new(time: SystemTime, exposure_us: u32, gain: f64, frames: (usize, usize), transfer: Transfer, fourcc: FourCc, sequence: Option<u32>) -> Self {
+        Self { time, exposure_us, gain, frames_averaged: frames.0, frames_discarded: frames.1, transfer, fourcc, sequence }
+    }
+}
+
 /// One capture: an image and its metadata.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Frame {
@@ -222,6 +229,13 @@ pub enum CameraError {
     },
     #[error("camera {device}: {what}")]
     InvalidArgument { device: PathBuf, what: String },
+    /// Frames averaged into one capture differ in size, channels or transfer.
+    #[error("camera {device}: {source}")]
+    FrameMismatch {
+        device: PathBuf,
+        #[source]
+        source: FrameMismatch,
+    },
     #[error("camera {device}: I/O error")]
     Io {
         device: PathBuf,
@@ -235,6 +249,35 @@ fn list(f: &[FourCc]) -> String {
         return "none".into();
     }
     f.iter().map(ToString::to_string).collect::<Vec<_>>().join(", ")
+}
+
+/// What frames averaged together must share: size, channel count and transfer curve.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FrameShape {
+    pub width: usize,
+    pub height: usize,
+    pub channels: usize,
+    pub transfer: Transfer,
+}
+
+impl FrameShape {
+    pub fn of(img: &Image) -> Self {
+        Self { width: img.width(), height: img.height(), channels: img.channel_count(), transfer: img.transfer }
+    }
+}
+
+impl std::fmt::Display for FrameShape {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}x{}x{} ({})", self.width, self.height, self.channels, self.transfer.name())
+    }
+}
+
+/// A frame that cannot be averaged with the first one ([`Averager::add`]).
+#[derive(Debug, thiserror::Error)]
+#[error("frame {got} differs from the first {first}")]
+pub struct FrameMismatch {
+    pub got: FrameShape,
+    pub first: FrameShape,
 }
 
 /// Averages frames on linear values and re-encodes the mean with the frames' transfer.
@@ -253,22 +296,13 @@ impl Averager {
     /// Adds one frame.
     ///
     /// # Errors
-    /// A frame whose size, channel count or transfer differs from the first (the message says
-    /// how).
-    pub fn add(&mut self, img: &Image) -> Result<(), String> {
+    /// A frame whose size, channel count or transfer differs from the first
+    /// ([`FrameMismatch`] says how).
+    pub fn add(&mut self, img: &Image) -> Result<(), FrameMismatch> {
         if let Some(t) = &self.template {
-            if t.width() != img.width() || t.height() != img.height() || t.channel_count() != img.channel_count() || t.transfer != img.transfer {
-                return Err(format!(
-                    "frame {}x{}x{} ({}) differs from the first {}x{}x{} ({})",
-                    img.width(),
-                    img.height(),
-                    img.channel_count(),
-                    img.transfer.name(),
-                    t.width(),
-                    t.height(),
-                    t.channel_count(),
-                    t.transfer.name()
-                ));
+            let (got, first) = (FrameShape::of(img), FrameShape::of(t));
+            if got != first {
+                return Err(FrameMismatch { got, first });
             }
         } else {
             self.sum = img.planes.iter().map(|p| vec![0.0; p.len()]).collect();
@@ -344,7 +378,7 @@ mod tests {
         assert_eq!(a.count(), 2);
         let mut wrong = Image::new(vec![Plane::filled(3, 1, 0.0)]);
         wrong.transfer = Transfer::Srgb;
-        assert!(a.add(&wrong).unwrap_err().contains("differs"));
+        assert!(a.add(&wrong).unwrap_err().to_string().contains("differs"));
         let out = a.finish().unwrap();
         assert_eq!(out.transfer, Transfer::Srgb);
         // Mean of linear 0 and 1 is 0.5 linear = 0.7354 encoded, not 0.5.

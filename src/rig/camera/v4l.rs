@@ -411,22 +411,13 @@ impl Camera for V4lCamera {
             }
             let img = decode::decode(f.fourcc, f.width as usize, f.height as usize, self.stride, &bytes, self.color)
                 .map_err(|source| CameraError::Decode { device: self.device.clone(), source })?;
-            avg.add(&img).map_err(|what| CameraError::InvalidArgument { device: self.device.clone(), what })?;
+            avg.add(&img).map_err(|source| CameraError::FrameMismatch { device: self.device.clone(), source })?;
             repeats.add(&img.planes);
         }
         let (time, seq) = first.unwrap_or((SystemTime::now(), 0));
         let image = avg.finish().ok_or_else(|| CameraError::InvalidArgument { device: self.device.clone(), what: "no frame averaged".into() })?;
         Ok(Frame {
-            meta: FrameMeta {
-                time,
-                exposure_us: self.exposure_us,
-                gain: self.gain,
-                frames_averaged: frames,
-                frames_discarded: discarded,
-                transfer: image.transfer,
-                fourcc: f.fourcc,
-                sequence: Some(seq),
-            },
+            meta: FrameMeta::new(time, self.exposure_us, self.gain, (frames, discarded), image.transfer, f.fourcc, Some(seq)),
             image,
             temporal_variance: repeats.variance(),
         })

@@ -73,6 +73,60 @@ const RESYNC_GRACE: Duration = Duration::from_millis(150);
 /// Least time between two `?` sent to re-poll after an unreadable report.
 const REPOLL: Duration = Duration::from_millis(50);
 
+/// A request waiting for its response (see [`GrblController::request`]).
+struct Pending<'a> {
+    line: &'a str,
+    timeout: Duration,
+    deadline: Instant,
+    /// Between `?` polls.
+    interval: Duration,
+    /// Poll `?` while waiting (for motion).
+    poll: bool,
+    wait: Wait,
+    next_poll: Instant,
+    /// Messages that arrived meanwhile (reports, pushed messages), in order.
+    pushes: Vec<Message>,
+    /// A non-critical alarm meanwhile: the line's own `ok`/`error` still follows.
+    alarm: Option<Alarm>,
+    /// The unreadable-line count when the request was sent.
+    noise_before: usize,
+    /// `Some(time of a clean report since the last unreadable line)` while resynchronising.
+    resync: Option<Option<Instant>>,
+}
+
+impl<'a> Pending<'a> {
+    fn new(line: &'a str, timeout: Duration, wait: Wait, interval: Duration, noise_before: usize) -> Self {
+        let start = Instant::now();
+        Self {
+            line,
+            timeout,
+            deadline: start + timeout,
+            interval,
+            poll: wait == Wait::Motion,
+            wait,
+            next_poll: start + interval,
+            pushes: Vec::new(),
+            alarm: None,
+            noise_before,
+            resync: None,
+        }
+    }
+
+    /// While resynchronising, a lost report is asked for again like a motion poll.
+    fn polling(&self) -> bool {
+        (self.poll || self.resync.is_some()) && self.alarm.is_none()
+    }
+
+    /// When to stop waiting for the next message.
+    fn wake(&self) -> Instant {
+        let mut wake = if self.polling() { self.next_poll.min(self.deadline) } else { self.deadline };
+        if let Some(Some(clean)) = self.resync {
+            wake = wake.min(clean + RESYNC_GRACE);
+        }
+        wake
+    }
+}
+
 impl SerialController {
     /// Opens `path` at `baud` (8N1, no flow control) and performs the banner handshake (and
     /// homing when `options.home_on_start`).
@@ -336,86 +390,90 @@ impl<T: Read + Write> GrblController<T> {
     /// whole, and discarding the buffer could throw away the response itself.
     fn request(&mut self, line: &str, timeout: Duration, wait: Wait) -> Result<Vec<Message>, ControllerError> {
         self.write(&frame(line))?;
-        let start = Instant::now();
-        let deadline = start + timeout;
-        let interval = self.opts.poll_interval.max(MIN_POLL);
-        let poll = wait == Wait::Motion;
-        let mut next_poll = start + interval;
-        let mut pushes = Vec::new();
-        let mut alarm: Option<Alarm> = None;
-        let noise_before = self.noise_total;
-        // Some(time of a clean report since the last unreadable line) while resynchronising
-        let mut resync: Option<Option<Instant>> = None;
+        let mut p = Pending::new(line, timeout, wait, self.opts.poll_interval.max(MIN_POLL), self.noise_total);
         loop {
-            // while resynchronising, a lost report is asked for again like a motion poll
-            let polling = (poll || resync.is_some()) && alarm.is_none();
-            let mut wake = if polling { next_poll.min(deadline) } else { deadline };
-            if let Some(Some(clean)) = resync {
-                wake = wake.min(clean + RESYNC_GRACE);
-            }
-            match self.next_message(wake)? {
-                Some(Message::Ok) => break,
-                Some(Message::Error(error)) => {
-                    return Err(ControllerError::Grbl { port: self.name.clone(), command: line.to_string(), error });
-                }
-                Some(Message::Alarm(a)) => {
-                    if a.is_critical() {
-                        // grbl answers nothing more until a reset.
-                        return Err(ControllerError::Alarm { port: self.name.clone(), alarm: a });
-                    }
-                    alarm = Some(a); // the line's own `ok`/`error` still follows
-                }
-                Some(Message::Banner { .. }) => {
-                    self.critical = None;
-                    return Err(ControllerError::Protocol {
-                        port: self.name.clone(),
-                        detail: format!("controller restarted while {line:?} was pending"),
-                    });
-                }
-                Some(Message::Unknown(_) | Message::MalformedStatus(_)) => {
-                    if wait != Wait::Homing && alarm.is_none() {
-                        if resync.is_none() {
-                            self.event("resync", format!("unreadable line while {line:?} was pending: sent '?', waiting for a clean report"));
-                        }
-                        resync = Some(None);
-                        self.write(&[Realtime::StatusQuery.byte()])?;
-                        next_poll = Instant::now() + interval;
-                    }
-                }
-                Some(Message::Status(r)) => {
-                    if let Some(clean) = resync.as_mut() {
-                        if !poll || r.state == MachineState::Idle {
-                            clean.get_or_insert_with(Instant::now);
-                        }
-                    }
-                    pushes.push(Message::Status(r));
-                }
-                Some(m) => pushes.push(m),
-                None => {
-                    let now = Instant::now();
-                    if let Some(Some(clean)) = resync {
-                        if now >= clean + RESYNC_GRACE || now >= deadline {
-                            self.event("response-assumed", format!("no response to {line:?} after a clean report: the unreadable line was taken as its `ok`"));
-                            break;
-                        }
-                    }
-                    if now >= deadline {
-                        if let Some(a) = alarm {
-                            return Err(ControllerError::Alarm { port: self.name.clone(), alarm: a });
-                        }
-                        return Err(self.nothing_parseable(noise_before, &format!("response to {line:?}"), timeout));
-                    }
-                    if polling && now >= next_poll {
-                        self.write(&[Realtime::StatusQuery.byte()])?;
-                        next_poll = now + interval;
-                    }
-                }
+            let done = match self.next_message(p.wake())? {
+                Some(m) => self.on_pending_message(&mut p, m)?,
+                None => self.on_pending_silence(&mut p)?,
+            };
+            if done {
+                break;
             }
         }
-        if let Some(a) = alarm {
+        if let Some(a) = p.alarm {
             return Err(ControllerError::Alarm { port: self.name.clone(), alarm: a });
         }
-        Ok(pushes)
+        Ok(p.pushes)
+    }
+
+    /// One message while `p` is pending (see [`GrblController::request`]): `true` when it
+    /// was the response (`ok`), an error for `error:N`, a critical alarm or a restart.
+    fn on_pending_message(&mut self, p: &mut Pending, m: Message) -> Result<bool, ControllerError> {
+        let line = p.line;
+        match m {
+            Message::Ok => return Ok(true),
+            Message::Error(error) => {
+                return Err(ControllerError::Grbl { port: self.name.clone(), command: line.to_string(), error });
+            }
+            Message::Alarm(a) => {
+                if a.is_critical() {
+                    // grbl answers nothing more until a reset.
+                    return Err(ControllerError::Alarm { port: self.name.clone(), alarm: a });
+                }
+                p.alarm = Some(a); // the line's own `ok`/`error` still follows
+            }
+            Message::Banner { .. } => {
+                self.critical = None;
+                return Err(ControllerError::Protocol {
+                    port: self.name.clone(),
+                    detail: format!("controller restarted while {line:?} was pending"),
+                });
+            }
+            Message::Unknown(_) | Message::MalformedStatus(_) => {
+                if p.wait != Wait::Homing && p.alarm.is_none() {
+                    if p.resync.is_none() {
+                        self.event("resync", format!("unreadable line while {line:?} was pending: sent '?', waiting for a clean report"));
+                    }
+                    p.resync = Some(None);
+                    self.write(&[Realtime::StatusQuery.byte()])?;
+                    p.next_poll = Instant::now() + p.interval;
+                }
+            }
+            Message::Status(r) => {
+                if let Some(clean) = p.resync.as_mut() {
+                    if !p.poll || r.state == MachineState::Idle {
+                        clean.get_or_insert_with(Instant::now);
+                    }
+                }
+                p.pushes.push(Message::Status(r));
+            }
+            m => p.pushes.push(m),
+        }
+        Ok(false)
+    }
+
+    /// Nothing arrived before `p`'s wake-up time: `true` when the response is taken as
+    /// given after a resync, an error at the deadline, else a poll when one is due.
+    fn on_pending_silence(&mut self, p: &mut Pending) -> Result<bool, ControllerError> {
+        let line = p.line;
+        let now = Instant::now();
+        if let Some(Some(clean)) = p.resync {
+            if now >= clean + RESYNC_GRACE || now >= p.deadline {
+                self.event("response-assumed", format!("no response to {line:?} after a clean report: the unreadable line was taken as its `ok`"));
+                return Ok(true);
+            }
+        }
+        if now >= p.deadline {
+            if let Some(a) = p.alarm {
+                return Err(ControllerError::Alarm { port: self.name.clone(), alarm: a });
+            }
+            return Err(self.nothing_parseable(p.noise_before, &format!("response to {line:?}"), p.timeout));
+        }
+        if p.polling() && now >= p.next_poll {
+            self.write(&[Realtime::StatusQuery.byte()])?;
+            p.next_poll = now + p.interval;
+        }
+        Ok(false)
     }
 
     /// Sends `?` and waits for a clean report. An unreadable report is answered with

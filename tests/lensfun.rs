@@ -5,6 +5,8 @@
 //! are compared with lensrig's own measurements. Without a C compiler or lensfun the round trip
 //! is skipped with a message (run with `--nocapture` to see it); the XML checks always run.
 
+mod common;
+
 use lensrig::export::lensfun::{tca_norm, vignetting_norm};
 use lensrig::fsutil::Overwrite;
 use lensrig::image::io::write_png16;
@@ -155,4 +157,56 @@ fn lensfun_reads_the_export_and_corrects_like_lensrig() {
     assert_eq!((n_tca, n_vig), (pts.len(), pts.len()), "{stdout}");
     assert!(tca_err < 0.02, "TCA: lensfun's correction differs from lensrig's by {tca_err} px");
     assert!(vig_err < 0.005, "vignetting: lensfun leaves {vig_err} of falloff");
+}
+
+/// `calibrate` on a mock rig with a flat step writes `lens.xml`; liblensfun loads it and its
+/// vignetting correction flattens the mock's true falloff (`[lens] vignetting`) within 0.5 %
+/// at the centre, the tile grid's corners and the image corners.
+#[test]
+fn calibrate_with_a_flat_step_exports_vignetting_lensfun_applies() {
+    let d = tempfile::tempdir().expect("tempdir");
+    let cfg = common::mock_config(d.path(), |t| t.replace("positions = [-20.0, -40.0, -60.0]", "positions = [-20.0]"));
+    let out = d.path().join("run");
+    lensrig(&["calibrate", "--rig", cfg.to_str().unwrap_or_default(), "--out", out.to_str().unwrap_or_default(), "--quiet"]);
+    let xml = out.join("lens.xml");
+    let text = std::fs::read_to_string(&xml).expect("lens.xml");
+    assert!(text.contains("<vignetting model=\"pa\" focal=\"16\" aperture=\"5.6\" distance=\"1000\""), "{text}");
+    let rig = lensrig::rig::config::load(&cfg).expect("config");
+    let truth = lensrig::rig::camera::mock::MockOptics::from_config(&rig).expect("optics").vignetting.expect("a stated vignetting");
+    let probe = match build_probe(d.path()) {
+        Ok(p) => p,
+        Err(why) => {
+            eprintln!("SKIPPED the lensfun round trip of calibrate's lens.xml: {why}");
+            println!("SKIPPED the lensfun round trip of calibrate's lens.xml: {why}");
+            return;
+        }
+    };
+    let crop = text.lines().find_map(|l| l.trim().strip_prefix("<cropfactor>")).and_then(|l| l.strip_suffix("</cropfactor>")).expect("cropfactor").to_string();
+    let pts = [(0.0, 0.0), (383.0, 287.0), (191.5, 143.5), (0.0, 143.5), (191.5, 0.0), (300.0, 50.0), (50.0, 250.0)];
+    let mut child = Command::new(&probe)
+        .args([xml.to_str().unwrap_or_default(), "lensrig", "Simple lens", &crop, "384", "288", "16", "5.6", "1000"])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("probe");
+    {
+        let mut stdin = child.stdin.take().expect("stdin");
+        for (x, y) in &pts {
+            writeln!(stdin, "{x} {y}").expect("write");
+        }
+    }
+    let o = child.wait_with_output().expect("probe output");
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success() && stdout.contains("vignetting=1"), "probe: {stdout} {}", String::from_utf8_lossy(&o.stderr));
+    let mut worst = 0.0f64;
+    let mut n = 0;
+    for line in stdout.lines().filter(|l| l.starts_with("vig ")) {
+        let v: Vec<f64> = line.split_whitespace().skip(1).filter_map(|s| s.parse().ok()).collect();
+        worst = worst.max((v[2] * truth.gain(v[0], v[1], 384, 288) - 1.0).abs());
+        n += 1;
+    }
+    println!("calibrate's lens.xml through liblensfun: max vignetting residual against the mock's truth {:.3} % at {n} points", worst * 100.0);
+    assert_eq!(n, pts.len(), "{stdout}");
+    assert!(worst < 0.005, "lensfun leaves {worst} of the mock's falloff");
 }

@@ -47,6 +47,20 @@ fn calibrate_on_the_mock_rig_recovers_the_true_psfs() {
         let meta = std::fs::read_to_string(out.join("session/pairs").join(&key).join("pinhole.toml")).unwrap();
         assert!(meta.contains("aperture_mm = -8.0") && meta.contains("frames_averaged = 16"), "{meta}");
     }
+    // the flat step: lens.xml carries pa vignetting that reproduces the mock's falloff
+    // (lensfun units, r = 1 at half the diagonal) within 0.005 of the centre's brightness
+    let xml = std::fs::read_to_string(out.join("lens.xml")).unwrap();
+    assert!(xml.contains("<tca model=\"poly3\"") && xml.contains("Measured: vignetting (pa) from the flat field") && xml.contains("minus its dark frame"), "{xml}");
+    let k = pa_of(&xml);
+    let truth = optics.vignetting.expect("mock.toml states a vignetting").k;
+    let v = |k: &[f64; 3], r: f64| 1.0 + k[0] * r * r + k[1] * r.powi(4) + k[2] * r.powi(6);
+    let worst = (0..=20).map(|i| i as f64 / 20.0).map(|r| (v(&k, r) - v(&truth, r)).abs()).fold(0.0, f64::max);
+    eprintln!("flat field: pa {k:?} vs truth {truth:?}, max |ΔV| {worst:.5}");
+    assert!(worst < 0.005, "pa {k:?} vs truth {truth:?}: {worst}");
+    let flat = std::fs::read_to_string(out.join("session/flat/flat.toml")).unwrap();
+    assert!(flat.contains("role = \"flat\"") && flat.contains("aperture_mm = -1.0") && flat.contains("stage_mm = -90.0") && flat.contains("frames_averaged = 16"), "{flat}");
+    let html = std::fs::read_to_string(out.join("index.html")).unwrap();
+    assert!(html.contains("Relative illumination from the flat field") && out.join("report/flat.png").is_file());
     // an existing session is never overwritten
     let e = fails(&["capture", "--rig", rig.to_str().unwrap(), "--out", out.join("session").to_str().unwrap()]);
     assert!(e.contains("already exists") && e.contains("--resume"), "{e}");
@@ -57,6 +71,45 @@ fn calibrate_on_the_mock_rig_recovers_the_true_psfs() {
     let e = fails(&["estimate", "--session", "s", "--open", "a.png", "--out", "x"]);
     assert!(e.contains("cannot be used with"), "{e}");
     let _ = std::fs::remove_dir_all(&out);
+}
+
+/// `k1 k2 k3` of the `<vignetting model="pa">` element of a lensfun file.
+fn pa_of(xml: &str) -> [f64; 3] {
+    let line = xml.lines().find(|l| l.contains("<vignetting model=\"pa\"")).expect("a vignetting block");
+    let attr = |n: &str| -> f64 {
+        let i = line.find(&format!(" {n}=\"")).unwrap_or_else(|| panic!("{n} in {line}")) + n.len() + 3;
+        line[i..].split('"').next().unwrap().parse().unwrap()
+    };
+    [attr("k1"), attr("k2"), attr("k3")]
+}
+
+/// The flat step is resumable like a pair: an unfinished one (`flat.partial/`) is redone,
+/// finished pairs are untouched; without `[plan.flat]` there is no flat field.
+#[test]
+fn flat_step_is_redone_on_resume_and_optional() {
+    let dir = tmp("flat-resume");
+    let cfg = config_variant(&dir, |t| t.replace("positions = [-20.0, -40.0, -60.0]", "positions = [-20.0]").replace("frames_to_average = 16", "frames_to_average = 2"));
+    let dry = ok(&["capture", "--rig", cfg.to_str().unwrap(), "--out", "/nonexistent/never", "--dry-run"]);
+    assert!(dry.contains("flat field: move stage X to -90.000 mm") && dry.contains("capture flat"), "{dry}");
+    let s = dir.join("session");
+    ok(&["capture", "--rig", cfg.to_str().unwrap(), "--out", s.to_str().unwrap(), "--quiet"]);
+    let rec = std::fs::read_to_string(s.join("session.toml")).unwrap();
+    assert!(rec.contains("[flat]") && rec.contains("flat = \"flat.png\""), "{rec}");
+    let pair = s.join("pairs/000-stage-X-20.000/open.png");
+    let before = std::fs::read(&pair).unwrap();
+    // as if killed inside the flat step
+    std::fs::rename(s.join("flat"), s.join("flat.partial")).unwrap();
+    ok(&["capture", "--rig", cfg.to_str().unwrap(), "--out", s.to_str().unwrap(), "--resume", "--quiet"]);
+    assert!(s.join("flat/flat.png").is_file() && s.join("flat/dark.toml").is_file() && !s.join("flat.partial").exists());
+    let rec = std::fs::read_to_string(s.join("session.toml")).unwrap();
+    assert!(rec.contains("status = \"complete\"") && rec.contains("[flat]"), "{rec}");
+    assert!(std::fs::read(&pair).unwrap() == before, "a finished pair changed on resume");
+    // no [plan.flat]: no flat step
+    let cfg2 = config_variant(&dir.join("noflat"), |t| t.replace("positions = [-20.0, -40.0, -60.0]", "positions = [-20.0]").replace("[plan.flat]\nstage_mm = -90.0", ""));
+    let s2 = dir.join("s2");
+    ok(&["capture", "--rig", cfg2.to_str().unwrap(), "--out", s2.to_str().unwrap(), "--quiet"]);
+    assert!(!s2.join("flat").exists() && !std::fs::read_to_string(s2.join("session.toml")).unwrap().contains("[flat]"));
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]

@@ -4,9 +4,18 @@
 //! arrows, longitudinal colour, sub-pixel encircled energy; files in `report/<key>/`) and
 //! previews of the captures. On a mock rig the kernels and their MTF50 are also compared with
 //! the simulator's truth (`summary.json`).
+//!
+//! When the rig's focal length and pixel pitch are known (a mock rig's lens, or `[lens]`
+//! `focal_length_mm` and `pixel_pitch_um`), `RUN_DIR/lens.xml` is the lensfun database file
+//! of the first stage position's profile ([`super::export::lensfun_export`]): TCA from an
+//! R, G, B profile, and `pa` vignetting from the session's flat field (`[plan.flat]`) minus its
+//! dark frame, at the open f-number and a stated focus distance of 1000 m (the flat field is
+//! taken at one focus). The report shows the measured relative illumination (against the
+//! mock's truth on a mock rig).
 
 use super::args::{EstimateArgs, RigArgs};
 use super::capture::capture_session;
+use super::export::{crop_factor, lensfun_export, FlatField};
 use super::report::{facts_of, RigFacts};
 use anyhow::{Context, Result};
 use clap::Args;
@@ -16,7 +25,9 @@ use lensrig::fsutil::{write_atomic, Overwrite};
 use lensrig::image::io::{read_image, write_png8};
 use lensrig::optics::psf_grid::PsfGrid;
 use lensrig::report::ProfileReport;
-use lensrig::rig::session::PairRecord;
+use lensrig::export::lensfun::LensInfo;
+use lensrig::rig::camera::mock::MockOptics;
+use lensrig::rig::session::{PairRecord, SessionRecord};
 use std::path::{Path, PathBuf};
 
 use std::time::Instant;
@@ -117,6 +128,96 @@ fn pair_section(out: &Path, session_dir: &Path, p: &PairRecord, est: &Estimate, 
     Ok(PairReport { html, json, truth })
 }
 
+/// Focus distance (m) written with the flat field's vignetting: the flat field is taken at one
+/// focus, stated rather than measured.
+const FLAT_DISTANCE_M: f64 = 1000.0;
+
+/// Radii (lensfun units: 1 = half the diagonal) the report tabulates relative illumination at.
+const FALLOFF_RADII: [f64; 5] = [0.0, 0.25, 0.5, 0.75, 1.0];
+
+/// Writes `lens.xml` (see the module docs) and returns its report section and `summary.json`
+/// entry (`null` when no file was written).
+fn lensfun_section(out: &Path, session_dir: &Path, rec: &SessionRecord, ests: &[(PairRecord, Estimate)], facts: &RigFacts, optics: Option<&MockOptics>) -> Result<(String, serde_json::Value)> {
+    let Some((p, est)) = ests.first() else { return Ok((String::new(), serde_json::Value::Null)) };
+    let prof = &est.profile;
+    let (w, h) = (prof.meta.source.width, prof.meta.source.height);
+    let mut html = String::from("<h2>Lens data for other tools</h2>");
+    let (Some(focal), Some(pitch)) = (facts.focal_length_mm, facts.pixel_pitch_um) else {
+        html.push_str("<p>No lensfun file: the rig config gives no focal length and pixel pitch (<code>[lens] focal_length_mm</code>, <code>pixel_pitch_um</code>).</p>");
+        return Ok((html, serde_json::Value::Null));
+    };
+    let flat = match &rec.flat {
+        Some(f) => {
+            let dir = session_dir.join(&f.dir);
+            let path = dir.join(&f.flat);
+            let image = read_image(&path).with_context(|| format!("cannot read the flat field {}", path.display()))?;
+            let dark = match &f.dark {
+                Some(d) => Some(read_image(&dir.join(d)).with_context(|| format!("cannot read the flat field's dark frame in {}", dir.display()))?),
+                None => None,
+            };
+            Some(FlatField { path, image, dark })
+        }
+        None => None,
+    };
+    let info = LensInfo {
+        maker: "lensrig".into(),
+        model: "Simple lens".into(),
+        mount: "Generic".into(),
+        focal_mm: focal,
+        crop_factor: crop_factor(pitch, w, h),
+        aperture: facts.f_number_open.unwrap_or(0.0),
+        distance_m: FLAT_DISTANCE_M,
+        width: w,
+        height: h,
+    };
+    let profile_dir = out.join("profiles").join(&p.key);
+    let e = lensfun_export(&profile_dir, prof, &info, flat.as_ref())?;
+    write_atomic(&out.join("lens.xml"), e.xml.as_bytes(), Overwrite::Replace)?;
+    let blocks: Vec<&str> = [e.tca.map(|_| "tca (poly3)"), e.vignetting.map(|_| "vignetting (pa)")].into_iter().flatten().collect();
+    html.push_str(&format!(
+        "<p><code>lens.xml</code>: a lensfun database file (lens \"lensrig / Simple lens\", focal {} mm, crop factor {}) with {} from <code>profiles/{}/</code>{}; copy it to <code>~/.local/share/lensfun/</code>.</p>",
+        lensrig::report::significant(focal, 3),
+        lensrig::report::significant(info.crop_factor, 3),
+        if blocks.is_empty() { "no calibration block".to_string() } else { blocks.join(" and ") },
+        p.key,
+        if e.vignetting.is_some() { " and the flat field <code>session/flat/</code>" } else { "" }
+    ));
+    let truth = optics.map(|o| o.vignetting.map_or([0.0; 3], |v| v.k));
+    let mut vig_json = serde_json::Value::Null;
+    if let (Some(v), Some(f)) = (&e.vignetting, &flat) {
+        let at = |k: &[f64; 3], r: f64| {
+            let r2 = r * r;
+            1.0 + r2 * (k[0] + r2 * (k[1] + r2 * k[2]))
+        };
+        html.push_str("<p>Relative illumination from the flat field (lensfun <code>pa</code>, r = 1 at half the diagonal):</p><table><tr><th>r</th><th>measured</th>");
+        if truth.is_some() {
+            html.push_str("<th>simulator's truth</th>");
+        }
+        html.push_str("</tr>");
+        let mut worst = 0.0f64;
+        for r in FALLOFF_RADII {
+            html.push_str(&format!("<tr><td>{r:.2}</td><td>{:.3}</td>", at(&v.k, r)));
+            if let Some(t) = &truth {
+                html.push_str(&format!("<td>{:.3}</td>", at(t, r)));
+                worst = worst.max((at(&v.k, r) - at(t, r)).abs());
+            }
+            html.push_str("</tr>");
+        }
+        html.push_str(&format!("</table><p>k1 {:.4}, k2 {:.4}, k3 {:.4}; RMS fit residual {:.2} % of the centre over {} blocks.</p>", v.k[0], v.k[1], v.k[2], v.residual * 100.0, v.samples));
+        let mx = f.image.planes.iter().flat_map(|q| q.data.iter().copied()).fold(1e-6f32, f32::max);
+        let mut prev = f.image.clone();
+        prev.planes.iter_mut().for_each(|q| q.data.iter_mut().for_each(|x| *x /= mx));
+        write_png8(&out.join("report/flat.png"), &prev, Overwrite::Replace)?;
+        html.push_str("<img class=capture src=\"report/flat.png\" title=\"flat field\" alt=\"flat-field capture\">");
+        vig_json = serde_json::json!({
+            "k": v.k, "residual": v.residual, "truth_k": truth,
+            "max_abs_difference_vs_truth": truth.map(|_| worst),
+        });
+    }
+    let json = serde_json::json!({ "file": "lens.xml", "profile": format!("profiles/{}", p.key), "tca": e.tca.map(|t| serde_json::json!({"red": t.red, "blue": t.blue})), "vignetting": vig_json });
+    Ok((html, json))
+}
+
 pub fn run(a: &CalibrateArgs) -> Result<()> {
     let t0 = Instant::now();
     let progress = !a.quiet;
@@ -150,9 +251,11 @@ pub fn run(a: &CalibrateArgs) -> Result<()> {
         pairs_json.push(r.json);
         medians.extend(r.truth.map(|t| t.0));
     }
+    let (lens_html, lens_json) = lensfun_section(&a.out, &session_dir, &rec, &ests, &facts, optics.as_ref())?;
+    html.push_str(&lens_html);
     let seconds = t0.elapsed().as_secs_f64();
     let summary = serde_json::json!({
-        "rig": a.rig.rig.display().to_string(), "session": "session", "pairs": pairs_json,
+        "rig": a.rig.rig.display().to_string(), "session": "session", "pairs": pairs_json, "lensfun": lens_json,
         "mock_f_number_open": optics.as_ref().map(|o| o.f_number_open),
         "mock_f_number_pinhole": optics.as_ref().map(|o| o.f_number_pinhole),
         "capture_seconds": t_capture, "seconds": seconds,

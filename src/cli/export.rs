@@ -5,11 +5,12 @@
 use super::report::rig_facts;
 use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
-use lensrig::export::lensfun::{fit_tca, fit_vignetting, lensfun_xml, LensInfo};
+use lensrig::export::lensfun::{fit_flat, fit_tca, lensfun_xml, LensInfo, Tca, Vignetting};
 use lensrig::fsutil::{write_atomic, Overwrite};
 use lensrig::image::io::read_image;
+use lensrig::image::Image;
 use lensrig::profile::Profile;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 #[derive(Subcommand, Debug)]
 pub enum ExportCommand {
@@ -28,6 +29,9 @@ pub struct LensfunArgs {
     /// Flat-field capture (wide open, uniform target or diffuser) for the vignetting block.
     #[arg(long)]
     pub flat: Option<PathBuf>,
+    /// Dark frame of the flat field (same exposure or shorter, no light), subtracted first.
+    #[arg(long, requires = "flat")]
+    pub flat_dark: Option<PathBuf>,
     /// Rig config for the focal length, crop factor (from the pixel pitch) and f-number.
     #[arg(long)]
     pub rig: Option<PathBuf>,
@@ -54,6 +58,71 @@ pub struct LensfunArgs {
     pub force: bool,
 }
 
+/// The crop factor of a `w × h` sensor of `pitch_um` pixels: 43.27 mm (the 35 mm format's
+/// diagonal) over the sensor diagonal.
+pub fn crop_factor(pitch_um: f64, w: usize, h: usize) -> f64 {
+    43.27 / (pitch_um / 1000.0 * ((w * w + h * h) as f64).sqrt())
+}
+
+/// A flat-field capture (wide open, uniform target or diffuser) and its dark frame.
+pub struct FlatField {
+    pub path: PathBuf,
+    pub image: Image,
+    pub dark: Option<Image>,
+}
+
+/// A lensfun file and what it holds.
+pub struct LensfunExport {
+    pub xml: String,
+    pub tca: Option<Tca>,
+    pub vignetting: Option<Vignetting>,
+}
+
+/// The lensfun database file for the profile `p` (loaded from `profile_dir`), lens `info` and
+/// an optional flat field, with the provenance header saying what was measured from what.
+///
+/// # Errors
+/// A flat field of another size than the profile's source, or too small or dark to fit.
+pub fn lensfun_export(profile_dir: &Path, p: &Profile, info: &LensInfo, flat: Option<&FlatField>) -> Result<LensfunExport> {
+    let (w, h) = (p.meta.source.width, p.meta.source.height);
+    let report = lensrig::report::analyse(&p.grid, w, h, None);
+    let tca = fit_tca(&report);
+    let mut prov = vec![
+        format!("Written by lensrig {} at {}.", env!("CARGO_PKG_VERSION"), lensrig::timestamp_utc()),
+        format!("Profile {} (created {}, {}x{} px, channels {}).", profile_dir.display(), p.meta.created, w, h, p.grid.channels.join(" ")),
+    ];
+    match &tca {
+        Some(t) => prov.push(format!("Measured: tca (poly3) from the R and B kernel centroids against G at {} tiles off axis; RMS radial residual {:.3} px.", t.tiles, t.residual_px)),
+        None => prov.push("Not measured: tca (needs an R, G, B profile with at least four tiles off axis).".into()),
+    }
+    let vig = match flat {
+        Some(f) => {
+            let img = &f.image;
+            if img.width() != w || img.height() != h {
+                bail!("{}: is {}x{} but the profile was measured on {}x{}", f.path.display(), img.width(), img.height(), w, h);
+            }
+            let v = fit_flat(img, f.dark.as_ref()).with_context(|| format!("{}: too small or dark for a vignetting fit (or its dark frame differs in size)", f.path.display()))?;
+            prov.push(format!(
+                "Measured: vignetting (pa) from the flat field {}{} at f/{}, focus distance {} m as given ({} blocks, RMS residual {:.2} % of the centre).",
+                f.path.display(),
+                if f.dark.is_some() { " minus its dark frame" } else { "" },
+                info.aperture,
+                info.distance_m,
+                v.samples,
+                v.residual * 100.0
+            ));
+            Some(v)
+        }
+        None => {
+            prov.push("Not measured: vignetting (no flat-field capture given; the open/pinhole exposure ratio is relative vignetting between two apertures and is not exported).".into());
+            None
+        }
+    };
+    prov.push("Not measured: distortion (registering the pinhole capture to the target file is not implemented).".into());
+    let xml = lensfun_xml(info, tca.as_ref(), vig.as_ref(), &prov);
+    Ok(LensfunExport { xml, tca, vignetting: vig })
+}
+
 pub fn run(c: &ExportCommand) -> Result<()> {
     match c {
         ExportCommand::Lensfun(a) => run_lensfun(a),
@@ -72,41 +141,27 @@ fn run_lensfun(a: &LensfunArgs) -> Result<()> {
         Some(c) => c,
         None => {
             let pitch = facts.and_then(|f| f.pixel_pitch_um).context("the crop factor is unknown: give --crop-factor, or --rig with a pixel pitch")?;
-            43.27 / (pitch / 1000.0 * ((w * w + h * h) as f64).sqrt())
+            crop_factor(pitch, w, h)
         }
     };
     let aperture = a.aperture.or(facts.and_then(|f| f.f_number_open));
     let info = LensInfo { maker: a.maker.clone(), model: a.model.clone(), mount: a.mount.clone(), focal_mm: focal, crop_factor: crop, aperture: aperture.unwrap_or(0.0), distance_m: a.distance_m, width: w, height: h };
-    let report = lensrig::report::analyse(&p.grid, w, h, None);
-    let tca = fit_tca(&report);
-    let mut prov = vec![
-        format!("Written by lensrig {} at {}.", env!("CARGO_PKG_VERSION"), lensrig::timestamp_utc()),
-        format!("Profile {} (created {}, {}x{} px, channels {}).", a.profile.display(), p.meta.created, w, h, p.grid.channels.join(" ")),
-    ];
-    match &tca {
-        Some(t) => prov.push(format!("Measured: tca (poly3) from the R and B kernel centroids against G at {} tiles off axis; RMS radial residual {:.3} px.", t.tiles, t.residual_px)),
-        None => prov.push("Not measured: tca (needs an R, G, B profile with at least four tiles off axis).".into()),
-    }
-    let vig = match &a.flat {
+    let flat = match &a.flat {
         Some(f) => {
             if aperture.is_none() {
                 bail!("the flat field's f-number is unknown: give --aperture or --rig");
             }
             let img = read_image(f).with_context(|| format!("cannot read flat field {}", f.display()))?;
-            if img.width() != w || img.height() != h {
-                bail!("{}: is {}x{} but the profile was measured on {}x{}", f.display(), img.width(), img.height(), w, h);
-            }
-            let v = fit_vignetting(&img).with_context(|| format!("{}: too small or dark for a vignetting fit", f.display()))?;
-            prov.push(format!("Measured: vignetting (pa) from the flat field {} at f/{} ({} blocks, RMS residual {:.2} % of the centre).", f.display(), info.aperture, v.samples, v.residual * 100.0));
-            Some(v)
+            let dark = match &a.flat_dark {
+                Some(d) => Some(read_image(d).with_context(|| format!("cannot read the flat field's dark frame {}", d.display()))?),
+                None => None,
+            };
+            Some(FlatField { path: f.clone(), image: img, dark })
         }
-        None => {
-            prov.push("Not measured: vignetting (no flat-field capture given; the open/pinhole exposure ratio is relative vignetting between two apertures and is not exported).".into());
-            None
-        }
+        None => None,
     };
-    prov.push("Not measured: distortion (registering the pinhole capture to the target file is not implemented).".into());
-    let xml = lensfun_xml(&info, tca.as_ref(), vig.as_ref(), &prov);
+    let e = lensfun_export(&a.profile, &p, &info, flat.as_ref())?;
+    let (xml, tca, vig) = (e.xml, e.tca, e.vignetting);
     write_atomic(&a.out, xml.as_bytes(), if a.force { Overwrite::Replace } else { Overwrite::Never }).with_context(|| format!("cannot write {}", a.out.display()))?;
     println!(
         "wrote {} ({}{}; crop factor {:.2}, focal {} mm)",

@@ -195,6 +195,23 @@ pub fn fit_vignetting(flat: &Image) -> Option<Vignetting> {
     Some(Vignetting { k: [p[1] / p[0], p[2] / p[0], p[3] / p[0]], residual: res, samples: rows.len() })
 }
 
+/// [`fit_vignetting`] on a flat field minus its dark frame (per pixel, per channel, clamped
+/// at 0), the black level a real sensor adds (it would otherwise read as less falloff).
+/// `None` as [`fit_vignetting`], or when the dark frame's size or channel count differs.
+pub fn fit_flat(flat: &Image, dark: Option<&Image>) -> Option<Vignetting> {
+    let Some(d) = dark else { return fit_vignetting(flat) };
+    if d.width() != flat.width() || d.height() != flat.height() || d.planes.len() != flat.planes.len() {
+        return None;
+    }
+    let mut f = flat.clone();
+    for (p, q) in f.planes.iter_mut().zip(&d.planes) {
+        for (v, b) in p.data.iter_mut().zip(&q.data) {
+            *v = (*v - *b).max(0.0);
+        }
+    }
+    fit_vignetting(&f)
+}
+
 impl Vignetting {
     /// Relative brightness (1 on axis) at pixel `(x, y)` of a `width × height` image.
     pub fn falloff(&self, x: f64, y: f64, width: usize, height: usize) -> f64 {
@@ -294,6 +311,19 @@ mod tests {
             assert!((a - b).abs() < 0.01, "{:?} vs {:?}", v.k, truth.k);
         }
         assert!(v.residual < 1e-3);
+    }
+
+    #[test]
+    fn dark_frame_is_subtracted_before_the_fit() {
+        let (w, h) = (160, 120);
+        let truth = Vignetting { k: [-0.2, 0.0, 0.0], residual: 0.0, samples: 0 };
+        let flat = Plane::from_fn(w, h, |x, y| (0.05 + 0.6 * truth.falloff(x as f64, y as f64, w, h)) as f32);
+        let dark = Plane::filled(w, h, 0.05);
+        let biased = fit_vignetting(&Image::new(vec![flat.clone()])).expect("fit");
+        assert!(biased.k[0] > -0.19, "the black level reads as less falloff: {:?}", biased.k);
+        let v = fit_flat(&Image::new(vec![flat.clone()]), Some(&Image::new(vec![dark]))).expect("fit");
+        assert!((v.k[0] + 0.2).abs() < 1e-3 && v.k[1].abs() < 1e-3, "{:?}", v.k);
+        assert!(fit_flat(&Image::new(vec![flat]), Some(&Image::new(vec![Plane::filled(8, 8, 0.0)]))).is_none());
     }
 
     #[test]

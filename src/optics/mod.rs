@@ -7,3 +7,4 @@ pub mod forward;
 pub mod kernel_operator;
 pub mod lens;
 pub mod psf_grid;
+pub mod vignetting;

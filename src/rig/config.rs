@@ -174,13 +174,31 @@ pub struct PlanConfig {
     /// Pinhole exposure = open exposure × this (> 0).
     #[serde(default = "d_scale")]
     pub pinhole_exposure_scale: f64,
+    /// The optional flat-field step (`[plan.flat]`), taken after the pairs.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub flat: Option<FlatStep>,
 }
 
 impl Default for PlanConfig {
     fn default() -> Self {
-        Self { settle_ms: d_settle(), dark_frames: 0, auto_bracket: false, pinhole_exposure_scale: d_scale() }
+        Self { settle_ms: d_settle(), dark_frames: 0, auto_bracket: false, pinhole_exposure_scale: d_scale(), flat: None }
     }
 }
+
+/// `[plan.flat]`: a flat-field capture for the lens's vignetting (lensfun's `pa` model):
+/// the stage moves to `stage_mm`, where a diffuser or a uniform white card fills the view,
+/// the aperture opens, and one frame is captured like an open frame (same averaging,
+/// auto-bracketing, drift check, dark frame). The session keeps it in `flat/`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FlatStep {
+    /// Stage position (mm, machine coordinates) of the uniform target; at least
+    /// [`FLAT_CLEARANCE_MM`] from every pair position.
+    pub stage_mm: f64,
+}
+
+/// Least distance (mm) between the flat step's stage position and a pair position.
+pub const FLAT_CLEARANCE_MM: f64 = 0.5;
 
 /// `[retry]`: what a capture does when a pair meets a fault it can get past (a camera
 /// timeout, a serial disconnect, a grbl alarm, an unreadable controller, illumination
@@ -395,6 +413,14 @@ impl RigConfig {
         if !(p.pinhole_exposure_scale.is_finite() && p.pinhole_exposure_scale > 0.0) {
             return bad("plan.pinhole_exposure_scale", format!("{} must be > 0", p.pinhole_exposure_scale));
         }
+        if let Some(f) = &p.flat {
+            if !(f.stage_mm >= s.min && f.stage_mm <= s.max) {
+                return bad("plan.flat.stage_mm", format!("{} mm is outside the stage range [{}, {}]", f.stage_mm, s.min, s.max));
+            }
+            if let Some(v) = s.positions.iter().find(|v| (**v - f.stage_mm).abs() < FLAT_CLEARANCE_MM) {
+                return bad("plan.flat.stage_mm", format!("{} mm is within {FLAT_CLEARANCE_MM} mm of the pair position {v} mm: the uniform target must sit elsewhere on the stage", f.stage_mm));
+            }
+        }
         if let Some(t) = &self.target {
             if t.path.as_os_str().is_empty() {
                 return bad("target.path", "is empty".into());
@@ -582,6 +608,24 @@ mod tests {
         assert!(e.contains("retry.max_tries") && e.contains("at least 1"), "{e}");
         let e = err(&MOCK.replacen("discard_after_change = 2", "discard_after_change = 2\nframe_timeout_ms = 0", 1));
         assert!(e.contains("camera.frame_timeout_ms"), "{e}");
+    }
+
+    /// `[plan.flat]` parses, refuses unknown keys with their dotted name, and must sit inside
+    /// the stage range and clear of every pair position.
+    #[test]
+    fn flat_step_is_checked() {
+        let m = parse(MOCK, Path::new("m.toml")).unwrap();
+        assert_eq!(m.plan.flat, Some(FlatStep { stage_mm: -90.0 }));
+        let text = MOCK.replacen("stage_mm = -90.0", "stage_mm = -90.0\nstage = 1", 1);
+        let line = text.lines().position(|l| l.starts_with("stage = 1")).unwrap() + 1;
+        let e = err(&text);
+        assert!(e.starts_with(&format!("rigs/bench.toml:{line}:")) && e.contains("plan.flat.stage") && e.contains("unknown field"), "{e}");
+        let e = err(&MOCK.replacen("stage_mm = -90.0", "stage_mm = -190.0", 1));
+        assert!(e.contains("plan.flat.stage_mm") && e.contains("outside the stage range"), "{e}");
+        let e = err(&MOCK.replacen("stage_mm = -90.0", "stage_mm = -40.2", 1));
+        assert!(e.contains("plan.flat.stage_mm") && e.contains("pair position -40 mm"), "{e}");
+        let none = parse(&MOCK.replacen("[plan.flat]", "[plan.flatx]", 1), Path::new("m.toml"));
+        assert!(none.is_err());
     }
 
     #[test]

@@ -13,6 +13,13 @@
 //! average of that many frames at the shortest exposure (1 µs), aperture at pinhole — the
 //! black level `estimate --session` subtracts. (A capped lens is not needed at 1 µs.)
 //!
+//! With `[plan.flat]` a **flat field** follows the pairs: the stage moves to
+//! `plan.flat.stage_mm` (a diffuser or uniform white card), the aperture opens, and the frame
+//! is taken like an open frame (auto-bracketed, `frames_to_average`, drift-checked against the
+//! session's first flat, plus a dark frame when the plan takes them). It is one more step of
+//! the plan with the pairs' guarantees: captured into `flat.partial/`, renamed when complete,
+//! retried after faults, redone on resume when unfinished, kept when finished.
+//!
 //! # Pause instead of fail
 //! A pair that meets a fault retrying can get past ([`SessionError::pause_cause`]: a camera
 //! timeout, a lost port, a grbl alarm, a silent or unreadable controller, illumination drift
@@ -30,6 +37,8 @@
 //! SESSION/events.jsonl                 pauses, retries, recoveries, unreadable lines (super::events)
 //! SESSION/pairs/000-stage-X-20.000/    one finished pair:
 //!     open.png open.toml pinhole.png pinhole.toml [dark.png dark.toml]
+//! SESSION/flat/                        the flat-field step ([plan.flat]):
+//!     flat.png flat.toml [dark.png dark.toml]
 //! ```
 //! Frames are lossless 16-bit PNGs, each with a TOML sidecar ([`FrameRecord`]). Every file
 //! is written atomically. A pair is captured into `NNN-….partial/` and renamed when both
@@ -369,6 +378,18 @@ pub fn dry_run(cfg: &RigConfig) -> Result<Vec<String>, SessionError> {
         }
         out.push(format!("  write pairs/{}/ (open, pinhole{})", p.key, if cfg.plan.dark_frames > 0 { ", dark" } else { "" }));
     }
+    if let Some(f) = &cfg.plan.flat {
+        check(s.axis, f.stage_mm, s.min, s.max)?;
+        out.push(format!("flat field: move stage {} to {:.3} mm (uniform target), aperture {} to {:.3} mm (open), settle {} ms", s.axis, f.stage_mm, a.axis, a.open, cfg.plan.settle_ms));
+        out.push(format!(
+            "  capture flat: exposure {} µs{}, average {} frame(s){}",
+            c.exposure_us,
+            if cfg.plan.auto_bracket { " (auto-bracketed)" } else { "" },
+            c.frames_to_average,
+            if cfg.plan.dark_frames > 0 { format!("; dark: 1 µs, {} frame(s)", cfg.plan.dark_frames) } else { String::new() }
+        ));
+        out.push(format!("  write {FLAT_DIR}/"));
+    }
     Ok(out)
 }
 
@@ -392,6 +413,27 @@ pub struct SessionRecord {
     pub resumed: Vec<String>,
     #[serde(default)]
     pub pairs: Vec<PairRecord>,
+    /// The flat-field step, once finished (`[plan.flat]`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub flat: Option<FlatRecord>,
+}
+
+/// The finished flat-field step.
+#[derive(Clone, Debug, Default, Serialize, Deserialize, PartialEq)]
+pub struct FlatRecord {
+    pub stage_mm: f64,
+    /// Relative to the session directory (`flat`).
+    pub dir: String,
+    pub flat: String,
+    pub dark: Option<String>,
+}
+
+/// Directory of the flat-field step in a session.
+pub const FLAT_DIR: &str = "flat";
+
+fn flat_record(cfg: &RigConfig) -> Option<FlatRecord> {
+    let f = cfg.plan.flat.as_ref()?;
+    Some(FlatRecord { stage_mm: f.stage_mm, dir: FLAT_DIR.into(), flat: "flat.png".into(), dark: (cfg.plan.dark_frames > 0).then(|| "dark.png".to_string()) })
 }
 
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
@@ -541,6 +583,15 @@ fn pair_files(cfg: &RigConfig) -> Vec<&'static str> {
     v
 }
 
+/// The files a finished flat-field directory holds under `cfg`.
+fn flat_files(cfg: &RigConfig) -> Vec<&'static str> {
+    let mut v = vec!["flat.png", "flat.toml"];
+    if cfg.plan.dark_frames > 0 {
+        v.extend(["dark.png", "dark.toml"]);
+    }
+    v
+}
+
 /// Checks that a finished pair directory holds every frame and sidecar, that the sidecars
 /// parse and that the PNGs decode to the session's frame size.
 ///
@@ -548,7 +599,19 @@ fn pair_files(cfg: &RigConfig) -> Vec<&'static str> {
 /// [`SessionError::Missing`], [`SessionError::Parse`], [`SessionError::UnreadableFrame`] or
 /// [`SessionError::EmptyFrame`] naming the first bad file.
 pub fn verify_pair(dir: &Path, cfg: &RigConfig) -> Result<(), SessionError> {
-    for f in pair_files(cfg) {
+    verify_files(dir, &pair_files(cfg))
+}
+
+/// As [`verify_pair`], for the flat-field directory.
+///
+/// # Errors
+/// As [`verify_pair`].
+pub fn verify_flat(dir: &Path, cfg: &RigConfig) -> Result<(), SessionError> {
+    verify_files(dir, &flat_files(cfg))
+}
+
+fn verify_files(dir: &Path, files: &[&str]) -> Result<(), SessionError> {
+    for &f in files {
         let p = dir.join(f);
         if !p.is_file() {
             return Err(SessionError::Missing(p));
@@ -616,6 +679,21 @@ fn recover(out: &Path, cfg: &RigConfig, pairs: &[PairPlan], rec: &mut SessionRec
     }
     rec.pairs.retain(|r| pairs_dir.join(&r.key).is_dir());
     rec.pairs.sort_by_key(|r| r.index);
+    let flat_dir = out.join(FLAT_DIR);
+    if cfg.plan.flat.is_some() && flat_dir.is_dir() {
+        if let Err(e) = verify_flat(&flat_dir, cfg) {
+            let aside = (0..).map(|n| out.join(format!("{FLAT_DIR}.damaged{}", if n == 0 { String::new() } else { format!("-{n}") }))).find(|d| !d.exists()).unwrap_or_else(|| out.join("flat.damaged"));
+            if progress {
+                eprintln!("the flat field is damaged ({e}); moved to {} and captured again", aside.display());
+            }
+            fs::rename(&flat_dir, &aside).map_err(io_err(&aside))?;
+        } else if rec.flat.is_none() {
+            rec.flat = flat_record(cfg);
+        }
+    }
+    if !flat_dir.is_dir() {
+        rec.flat = None;
+    }
     Ok(())
 }
 
@@ -646,7 +724,7 @@ fn run_pairs(rig: &mut Rig, cfg: &RigConfig, out: &Path, pairs: &[PairPlan], rec
             eprintln!("pair {}/{} {}: stage {} → {:.3} mm", p.index + 1, pairs.len(), p.key, cfg.axes.stage.axis, p.stage_mm);
         }
         let tmp = out.join("pairs").join(format!("{}.partial", p.key));
-        capture_with_retries(rig, cfg, p, &tmp, &mut light, o, log)?;
+        capture_with_retries(rig, cfg, &p.key, &tmp, log, o, |rig, tmp| capture_pair(rig, cfg, p, tmp, &mut light, o))?;
         fs::rename(&tmp, &final_dir).map_err(io_err(&final_dir))?;
         if let Ok(d) = fs::File::open(out.join("pairs")) {
             let _ = d.sync_all();
@@ -656,19 +734,70 @@ fn run_pairs(rig: &mut Rig, cfg: &RigConfig, out: &Path, pairs: &[PairPlan], rec
         rec.pairs.sort_by_key(|r| r.index);
         save_record(out, rec)?;
     }
+    let Some(flat) = &cfg.plan.flat else { return Ok(()) };
+    let final_dir = out.join(FLAT_DIR);
+    if final_dir.is_dir() {
+        if o.progress {
+            eprintln!("flat field: already captured");
+        }
+        return Ok(());
+    }
+    if o.progress {
+        eprintln!("flat field: stage {} → {:.3} mm (uniform target)", cfg.axes.stage.axis, flat.stage_mm);
+    }
+    let tmp = out.join(format!("{FLAT_DIR}.partial"));
+    capture_with_retries(rig, cfg, FLAT_DIR, &tmp, log, o, |rig, tmp| capture_flat(rig, cfg, flat.stage_mm, tmp, &mut light, o))?;
+    fs::rename(&tmp, &final_dir).map_err(io_err(&final_dir))?;
+    if let Ok(d) = fs::File::open(out) {
+        let _ = d.sync_all();
+    }
+    rec.flat = flat_record(cfg);
+    save_record(out, rec)
+}
+
+/// One try of the flat-field step: stage to the uniform target, aperture open, one
+/// auto-bracketed averaged frame, dark.
+fn capture_flat(rig: &mut Rig, cfg: &RigConfig, stage_mm: f64, tmp: &Path, light: &mut LightReference, o: &CaptureOptions) -> Result<(), SessionError> {
+    let (a, s) = (&cfg.axes.aperture, &cfg.axes.stage);
+    let n = cfg.camera.frames_to_average as usize;
+    rig.move_axis(s.axis, stage_mm)?;
+    rig.move_axis(a.axis, a.open)?;
+    std::thread::sleep(Duration::from_millis(cfg.plan.settle_ms));
+    open_exposure(rig, cfg, FLAT_DIR, o)?;
+    let f = rig.camera.capture(n)?;
+    light.check(FLAT_DIR, "flat", &f, cfg.retry.drift_tolerance)?;
+    write_frame(tmp, "flat", &f, rig, a, s)?;
+    if cfg.plan.dark_frames > 0 {
+        rig.camera.set_exposure(1)?;
+        let d = rig.camera.capture(cfg.plan.dark_frames as usize)?;
+        write_frame(tmp, "dark", &d, rig, a, s)?;
+    }
+    if o.progress {
+        eprintln!("  flat {} µs, {} frame(s): saved", f.meta.exposure_us, n);
+    }
     Ok(())
 }
 
-/// Captures one pair into `tmp`, pausing and retrying after faults (see [`RetryConfig`](super::config::RetryConfig)):
-/// each try starts from an empty `tmp` and the pair's first move, so a finished pair holds
+/// Captures one step (a pair, or the flat field; `key` names it) into `tmp` with `step`,
+/// pausing and retrying after faults (see [`RetryConfig`](super::config::RetryConfig)):
+/// each try starts from an empty `tmp` and the step's first move, so a finished step holds
 /// exactly one frame of each role, taken in one go.
-fn capture_with_retries(rig: &mut Rig, cfg: &RigConfig, p: &PairPlan, tmp: &Path, light: &mut LightReference, o: &CaptureOptions, log: &mut EventLog) -> Result<(), SessionError> {
+fn capture_with_retries(
+    rig: &mut Rig,
+    cfg: &RigConfig,
+    key: &str,
+    tmp: &Path,
+    log: &mut EventLog,
+    o: &CaptureOptions,
+    mut step: impl FnMut(&mut Rig, &Path) -> Result<(), SessionError>,
+) -> Result<(), SessionError> {
     let r = &cfg.retry;
     let pause = Duration::from_millis(r.pause_ms);
+    let label = if key == FLAT_DIR { "flat field".to_string() } else { format!("pair {key}") };
     let mut tries = 0;
     let give_up = |tries: u32, e: SessionError, log: &mut EventLog| {
-        let _ = log.record("gave-up", &format!("pair {}: {tries} tries: {e}", p.key));
-        if tries > 1 { SessionError::GaveUp { pair: p.key.clone(), tries, source: Box::new(e) } } else { e }
+        let _ = log.record("gave-up", &format!("{label}: {tries} tries: {e}"));
+        if tries > 1 { SessionError::GaveUp { pair: key.to_string(), tries, source: Box::new(e) } } else { e }
     };
     loop {
         tries += 1;
@@ -676,12 +805,12 @@ fn capture_with_retries(rig: &mut Rig, cfg: &RigConfig, p: &PairPlan, tmp: &Path
             fs::remove_dir_all(tmp).map_err(io_err(tmp))?;
         }
         fs::create_dir_all(tmp).map_err(io_err(tmp))?;
-        let result = capture_pair(rig, cfg, p, tmp, light, o);
+        let result = step(rig, tmp);
         rig.drain_events(log)?;
         let e = match result {
             Ok(()) => {
                 if tries > 1 {
-                    log.record("recovered", &format!("pair {}: complete on try {tries}", p.key))?;
+                    log.record("recovered", &format!("{label}: complete on try {tries}"))?;
                 }
                 return Ok(());
             }
@@ -691,7 +820,7 @@ fn capture_with_retries(rig: &mut Rig, cfg: &RigConfig, p: &PairPlan, tmp: &Path
         if tries >= r.max_tries {
             return Err(give_up(tries, e, log));
         }
-        log.record("pause", &format!("pair {}: {cause}: {e}; try {tries} of {} failed, waiting {} ms", p.key, r.max_tries, r.pause_ms))?;
+        log.record("pause", &format!("{label}: {cause}: {e}; try {tries} of {} failed, waiting {} ms", r.max_tries, r.pause_ms))?;
         if o.progress {
             eprintln!("  {cause}: {e}; pausing {} ms, then try {} of {}", r.pause_ms, tries + 1, r.max_tries);
         }
@@ -701,14 +830,14 @@ fn capture_with_retries(rig: &mut Rig, cfg: &RigConfig, p: &PairPlan, tmp: &Path
         while let Err(re) = rig.recover(cause, log) {
             tries += 1;
             if tries >= r.max_tries || re.pause_cause().is_none() {
-                log.record("recovery-failed", &format!("pair {}: {re}", p.key))?;
+                log.record("recovery-failed", &format!("{label}: {re}"))?;
                 // the fault is the cause to name; the failed recovery is in the log
                 return Err(give_up(tries, e, log));
             }
-            log.record("pause", &format!("pair {}: recovery from {cause} failed: {re}; waiting {} ms", p.key, r.pause_ms))?;
+            log.record("pause", &format!("{label}: recovery from {cause} failed: {re}; waiting {} ms", r.pause_ms))?;
             std::thread::sleep(pause);
         }
-        log.record("retry", &format!("pair {}: try {} of {}", p.key, tries + 1, r.max_tries))?;
+        log.record("retry", &format!("{label}: try {} of {}", tries + 1, r.max_tries))?;
     }
 }
 
@@ -751,7 +880,7 @@ fn capture_pair(rig: &mut Rig, cfg: &RigConfig, p: &PairPlan, tmp: &Path, light:
     // open
     rig.move_axis(a.axis, a.open)?;
     std::thread::sleep(settle);
-    let exp = open_exposure(rig, cfg, p, o)?;
+    let exp = open_exposure(rig, cfg, &p.key, o)?;
     let open = rig.camera.capture(n)?;
     light.check(&p.key, "open", &open, tol)?;
     write_frame(tmp, "open", &open, rig, a, s)?;
@@ -776,7 +905,7 @@ fn capture_pair(rig: &mut Rig, cfg: &RigConfig, p: &PairPlan, tmp: &Path, light:
 
 /// Sets the open frame's exposure: `camera.exposure_us`, auto-bracketed down when the plan
 /// asks. Returns the exposure applied.
-fn open_exposure(rig: &mut Rig, cfg: &RigConfig, p: &PairPlan, o: &CaptureOptions) -> Result<u32, SessionError> {
+fn open_exposure(rig: &mut Rig, cfg: &RigConfig, key: &str, o: &CaptureOptions) -> Result<u32, SessionError> {
     let mut exp = rig.camera.set_exposure(cfg.camera.exposure_us)?;
     if !cfg.plan.auto_bracket {
         return Ok(exp);
@@ -788,7 +917,7 @@ fn open_exposure(rig: &mut Rig, cfg: &RigConfig, p: &PairPlan, o: &CaptureOption
             break;
         }
         if attempt == MAX_BRACKET_STEPS || exp <= 1 {
-            return Err(SessionError::Saturated { pair: p.key.clone(), exposure_us: exp, p999 });
+            return Err(SessionError::Saturated { pair: key.to_string(), exposure_us: exp, p999 });
         }
         let factor = if p999 >= 0.999 { 0.5 } else { 0.9 / p999 as f64 };
         exp = ((exp as f64 * factor) as u32).max(1);

@@ -16,12 +16,18 @@
 //! `[lens]` keys (all optional): `f_number_open` (2.8), `f_number_pinhole` (22),
 //! `pinhole` (`"f-number"` or `"ideal"`), `pixels_per_cell` (1.6), `cells_per_mm` (1.0),
 //! `brightness` (300, full-scale per second at f/1), `full_well_e` (20000), `read_noise_e` (6),
-//! `bands` (`"rgb"` or `"mono"`, default `"mono"`), `seed` (1), and the fault
+//! `bands` (`"rgb"` or `"mono"`, default `"mono"`), `seed` (1), `vignetting` (`[k1, k2, k3]`,
+//! lensfun's `pa` relative illumination applied to every frame, see
+//! [`crate::optics::vignetting`]; default none), and the fault
 //! `timeout_after_captures` (a capture after that many returns [`CameraError::Timeout`]
 //! after `camera.frame_timeout_ms`,
 //! for resume tests; the environment variable `LENSRIG_MOCK_TIMEOUT_AFTER_CAPTURES` does the
 //! same without changing the config; `LENSRIG_MOCK_PANIC_AFTER_CAPTURES` makes the capture after
 //! that many *panic*, for the panic-consistency test). `focal_length_mm`, `pixel_pitch_um` are accepted and informational.
+//!
+//! The flat field: at the stage position of the plan's `[plan.flat]` step a diffuser fills the
+//! view, so the camera sees a uniform white (reflectance 1) field, unblurred (a uniform field
+//! is unchanged by any PSF), through the vignetting.
 //!
 //! Clean images are cached per (f-number, stage position), so repeated frames only redraw noise.
 
@@ -35,6 +41,7 @@ use super::{Camera, CameraError, FourCc, Frame, FrameFormat, FrameMeta};
 use crate::image::{Image, Plane, SampleFormat, Transfer};
 use crate::optics::capture::{render, Sensor, Shot};
 use crate::optics::lens::{mono_band, LensModel};
+use crate::optics::vignetting::PaVignetting;
 use crate::rig::config::RigConfig;
 use crate::rig::controller::{Axis, Position};
 use crate::rng::Rng;
@@ -84,6 +91,10 @@ pub struct MockOptics {
     pub psf_columns: usize,
     pub psf_rows: usize,
     pub kernel_size: usize,
+    /// `[lens] vignetting`: the lens's relative illumination (`None`: none).
+    pub vignetting: Option<PaVignetting>,
+    /// Stage position of the diffuser (`[plan.flat] stage_mm`).
+    pub flat_stage_mm: Option<f64>,
 }
 
 impl MockOptics {
@@ -109,7 +120,7 @@ impl MockOptics {
                 Some(v) => Err(MockError::WrongType { key: k.to_string(), expected: "a string", got: v.to_string() }),
             }
         };
-        const KNOWN: [&str; 13] = [
+        const KNOWN: [&str; 14] = [
             "focal_length_mm",
             "pixel_pitch_um",
             "f_number_open",
@@ -123,6 +134,7 @@ impl MockOptics {
             "bands",
             "seed",
             "timeout_after_captures",
+            "vignetting",
         ];
         if let Some(k) = t.keys().find(|k| !KNOWN.contains(&k.as_str())) {
             return Err(MockError::UnknownKey { key: k.clone(), known: KNOWN.join(", ") });
@@ -150,6 +162,19 @@ impl MockOptics {
         }
         let sensor = Sensor { full_well_e: num("full_well_e", 20_000.0)?, read_noise_e: num("read_noise_e", 6.0)?, ..Sensor::default() };
         let kernel_size = lens.suggested_kernel_size(f_open);
+        let vignetting = match t.get("vignetting") {
+            None => None,
+            Some(toml::Value::Array(a)) if (1..=3).contains(&a.len()) => {
+                let mut k = [0.0; 3];
+                for (d, v) in k.iter_mut().zip(a) {
+                    *d = v.as_float().or_else(|| v.as_integer().map(|i| i as f64)).ok_or_else(|| format!("lens.vignetting: expected numbers, got {v}"))?;
+                }
+                let v = PaVignetting { k };
+                v.check().map_err(|e| format!("lens.vignetting: {e}"))?;
+                Some(v)
+            }
+            Some(v) => return Err(format!("lens.vignetting: expected [k1, k2, k3] (lensfun pa), got {v}")),
+        };
         Ok(Self {
             f_number_open: f_open,
             f_number_pinhole: pinhole,
@@ -165,6 +190,8 @@ impl MockOptics {
             psf_columns: 9,
             psf_rows: 7,
             kernel_size,
+            vignetting,
+            flat_stage_mm: cfg.plan.flat.as_ref().map(|f| f.stage_mm),
             lens,
         })
     }
@@ -280,18 +307,27 @@ impl MockCamera {
             return c.clone();
         }
         let (w, h) = (self.format.width as usize, self.format.height as usize);
-        let u0 = 7.0 - stage * self.optics.cells_per_mm;
-        let scene = render_noise_scene(&self.target, w, h, self.optics.pixels_per_cell, u0, 5.0);
-        let scene = vec![scene; self.optics.lens.bands.len()];
-        let mut shot = match n {
-            Some(n) => Shot::lens(n, 1.0, self.optics.psf_columns, self.optics.psf_rows, self.optics.kernel_size),
-            None => Shot::ideal(1.0),
+        let bands = self.optics.lens.bands.len();
+        let diffuser = self.optics.flat_stage_mm.is_some_and(|f| (f - stage).abs() < 1e-3);
+        let mut clean = if diffuser {
+            vec![Plane::filled(w, h, 1.0); bands]
+        } else {
+            let u0 = 7.0 - stage * self.optics.cells_per_mm;
+            let scene = render_noise_scene(&self.target, w, h, self.optics.pixels_per_cell, u0, 5.0);
+            let scene = vec![scene; bands];
+            let mut shot = match n {
+                Some(n) => Shot::lens(n, 1.0, self.optics.psf_columns, self.optics.psf_rows, self.optics.kernel_size),
+                None => Shot::ideal(1.0),
+            };
+            shot.clip = false;
+            let sensor = Sensor { noise: false, ..self.optics.sensor.clone() };
+            render(&scene, &self.optics.lens, &shot, &sensor, &mut Rng::new(1)).clean
         };
-        shot.clip = false;
-        let sensor = Sensor { noise: false, ..self.optics.sensor.clone() };
-        let r = render(&scene, &self.optics.lens, &shot, &sensor, &mut Rng::new(1));
-        self.cache.insert(key, r.clean.clone());
-        r.clean
+        if let Some(v) = &self.optics.vignetting {
+            clean.iter_mut().for_each(|p| v.apply(p));
+        }
+        self.cache.insert(key, clean.clone());
+        clean
     }
 
     fn white_level(&self) -> f64 {
@@ -495,6 +531,35 @@ mod tests {
             let want = g * level / fw + (rd * g / fw).powi(2);
             assert!(n > 100.0 && (v / want - 1.0).abs() < 0.12, "level {level:.3}: variance {v:.3e} vs law {want:.3e} ({n} px)");
         }
+    }
+
+    /// At the flat step's stage position the camera sees a uniform field through the
+    /// configured `pa` vignetting: the frame's centre-to-corner ratio is `V(1)`.
+    #[test]
+    fn the_diffuser_renders_the_vignetting() {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("rig-configs");
+        let text = std::fs::read_to_string(dir.join("mock.toml")).unwrap().replace("vignetting = [-0.3, 0.05, 0.0]", "vignetting = [-0.3, 0.05]");
+        assert!(text.contains("vignetting = [-0.3, 0.05]\n"));
+        let mut cfg = config::parse(&text, &dir.join("mock.toml")).unwrap();
+        cfg.target.as_mut().unwrap().path = dir.join("../targets/a4-noise-300dpi.toml");
+        cfg.camera.width = 96;
+        cfg.camera.height = 72;
+        let pos = Arc::new(Mutex::new(Position::ZERO));
+        let mut c = MockCamera::new(&cfg, pos.clone()).unwrap();
+        let o = c.optics().clone();
+        assert_eq!(o.vignetting, Some(PaVignetting { k: [-0.3, 0.05, 0.0] }));
+        pos.lock().unwrap().set(o.aperture_axis, o.aperture_open);
+        pos.lock().unwrap().set(o.stage_axis, cfg.plan.flat.as_ref().unwrap().stage_mm);
+        c.set_exposure(20_000).unwrap();
+        let f = c.capture(16).unwrap();
+        let p = &f.image.planes[1];
+        let block = |x0: usize, y0: usize| (y0..y0 + 4).flat_map(|y| (x0..x0 + 4).map(move |x| (x, y))).map(|(x, y)| p.get(x, y) as f64 / o.vignetting.unwrap().gain(x as f64, y as f64, 96, 72)).sum::<f64>() / 16.0;
+        // divided by V, every block is the same white level
+        let (centre, corner) = (block(46, 34), block(0, 0));
+        assert!(centre > 0.15 && (corner / centre - 1.0).abs() < 0.01, "{centre} {corner}");
+        assert!(((p.get(0, 0) / p.get(48, 36)) as f64 - 0.75).abs() < 0.03);
+        let e = config::parse(&text.replace("[-0.3, 0.05]", "[-1.5]"), &dir.join("mock.toml")).map(|c| MockOptics::from_config(&c));
+        assert!(matches!(e, Ok(Err(m)) if m.contains("lens.vignetting")));
     }
 
     #[test]

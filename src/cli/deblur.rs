@@ -58,6 +58,12 @@ pub struct DeblurArgs {
     /// refuse the image); needs a saturation level ≤ 1.
     #[arg(long)]
     pub mask_invalid: bool,
+    /// Noise of the input on the linear axis: `profile` (the profile's stored law, or an
+    /// estimate when it has none), `estimate` (from the photo, white Gaussian), a σ, or
+    /// `gain=G,read=R` (Var = G·x + R², full-scale units; `:`-separated values per channel) for
+    /// photos taken at another ISO or exposure than the calibration.
+    #[arg(long, default_value = "profile")]
+    pub noise: lensrig::deconv::noise::NoiseSource,
     /// Largest tile core in pixels (default: from the kernel size and the PSF grid).
     #[arg(long)]
     pub tile: Option<usize>,
@@ -77,6 +83,7 @@ impl DeblurArgs {
             max_iterations: self.iterations,
             saturation: (self.saturation <= 1.0).then_some(self.saturation),
             tile_core: self.tile,
+            noise: self.noise.clone(),
             ..DeconvOptions::default()
         }
     }
@@ -102,6 +109,9 @@ pub fn run(args: &DeblurArgs) -> Result<()> {
     let Restored { report, notes } = restore_file(&job, &args.options())?;
     for note in notes {
         eprintln!("lensrig: note: {note}");
+    }
+    for w in &report.warnings {
+        eprintln!("lensrig: warning: {w}");
     }
     if !args.quiet {
         eprintln!(

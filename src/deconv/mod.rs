@@ -103,9 +103,11 @@
 pub mod capture;
 pub mod denoise;
 pub mod filters;
+pub mod noharm;
 pub mod noise;
 pub mod problem;
 pub mod pyramid;
+pub mod spectrum;
 pub mod synth;
 pub mod tiles;
 
@@ -231,6 +233,8 @@ pub struct DeconvOptions {
     /// `λ_c = κ (g_c x̄ + r_c²)` uses the tile's mean linear value `x̄` of the channel, and the
     /// channel's `σ_c = √(g_c · mean(x) + r_c²)` replaces Donoho's estimate everywhere else.
     pub noise: noise::NoiseSource,
+    /// The no-harm rule ([`noharm`]): flat regions never come out noisier than the input.
+    pub no_harm: noharm::NoHarmOptions,
 }
 
 impl Default for DeconvOptions {
@@ -268,6 +272,7 @@ impl Default for DeconvOptions {
             denoise_lambda_per_variance: 2.5,
             denoiser: denoise::DenoiseOptions::default(),
             noise: noise::NoiseSource::Profile,
+            no_harm: noharm::NoHarmOptions::default(),
         }
     }
 }
@@ -283,9 +288,13 @@ pub struct DeconvReport {
     pub noise_law: Option<crate::profile::noise::NoiseLaw>,
     /// Things the user should know (a photo that disagrees with the law, …).
     pub warnings: Vec<String>,
+    /// Where the no-harm rule fell back towards the input.
+    pub no_harm: noharm::NoHarmReport,
     pub lambda: Vec<f32>,
     /// Channel indices in restoration order.
     pub order: Vec<usize>,
+    /// Channel names (the grid's).
+    pub channels: Vec<String>,
     pub tiles: usize,
     pub window: [usize; 2],
     pub levels: usize,
@@ -431,11 +440,22 @@ pub fn deblur(
         };
         out = denoise::denoise(&out, &d);
     }
+    let no_harm = if opts.no_harm.enabled {
+        let variance = |c: usize, x: f32| match &law {
+            Some(l) => l.variance(c, x),
+            None => noise[c] * noise[c],
+        };
+        noharm::apply(planes, &mut out, &variance, &opts.no_harm)
+    } else {
+        noharm::NoHarmReport::default()
+    };
     let report = DeconvReport {
         noise_sigma: noise,
         estimated_sigma: estimated,
         noise_law: law,
         warnings,
+        no_harm,
+        channels: grid.channels.clone(),
         lambda,
         order,
         tiles: total,

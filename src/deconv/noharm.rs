@@ -37,7 +37,7 @@ pub struct NoHarmOptions {
 
 impl Default for NoHarmOptions {
     fn default() -> Self {
-        Self { enabled: true, flat: 2.0, detail: 6.0, smooth: 8.0 }
+        Self { enabled: true, flat: 1.0, detail: 6.0, smooth: 8.0 }
     }
 }
 

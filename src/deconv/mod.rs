@@ -2,6 +2,10 @@
 //! docs/method.md §1–§5): the restoration behind `lensrig deblur`.
 //!
 //! # Pipeline
+//! 0. Noise ([`DeconvOptions::noise`], docs/method.md §9): with a Poisson–Gaussian law
+//!    (`Var = g_c x + r_c²`, from the profile or `--noise`) `σ_c² = g_c mean(x) + r_c²` and each
+//!    tile's `λ` uses the tile's mean level; the photo's own estimate is checked against it
+//!    (warning beyond 2×). Without a law, as below.
 //! 1. Per channel, the noise level `σ_c` of the (linear) input is estimated ([`noise`]) and the
 //!    prior weight defaults to `λ_c = κ σ_c²` (MAP scaling of an ℓ2² data term against a
 //!    Laplacian gradient prior; κ = 7). When the result is delivered gamma-encoded
@@ -88,6 +92,9 @@
 //!    The stage runs in strips of rows with a halo, a few
 //!    strips at a time, so it holds one extra image (the result) besides the strip buffers
 //!    (12 MP: peak RSS 1.04 GB against 0.93 GB without the stage).
+//!
+//! 8. No-harm rule ([`noharm`], on by default): flat regions where the result is noisier than
+//!    the input fall back towards the input; [`DeconvReport::no_harm`] says where.
 //!
 //! # Conventions
 //! Planes are **linear** values on the full-scale axis ([`crate::image`]); decoding and

@@ -58,6 +58,16 @@ pub struct DeblurArgs {
     /// refuse the image); needs a saturation level ≤ 1.
     #[arg(long)]
     pub mask_invalid: bool,
+    /// Noise of the input on the linear axis: `profile` (the profile's stored law, or an
+    /// estimate when it has none), `estimate` (from the photo, white Gaussian), a σ, or
+    /// `gain=G,read=R` (Var = G·x + R², full-scale units; `:`-separated values per channel) for
+    /// photos taken at another ISO or exposure than the calibration.
+    #[arg(long, default_value = "profile")]
+    pub noise: lensrig::deconv::noise::NoiseSource,
+    /// Turn off the no-harm rule (flat regions falling back towards the input where the
+    /// restoration is noisier than it).
+    #[arg(long)]
+    pub no_harm_off: bool,
     /// Largest tile core in pixels (default: from the kernel size and the PSF grid).
     #[arg(long)]
     pub tile: Option<usize>,
@@ -77,6 +87,8 @@ impl DeblurArgs {
             max_iterations: self.iterations,
             saturation: (self.saturation <= 1.0).then_some(self.saturation),
             tile_core: self.tile,
+            noise: self.noise.clone(),
+            no_harm: lensrig::deconv::noharm::NoHarmOptions { enabled: !self.no_harm_off, ..Default::default() },
             ..DeconvOptions::default()
         }
     }
@@ -102,6 +114,12 @@ pub fn run(args: &DeblurArgs) -> Result<()> {
     let Restored { report, notes } = restore_file(&job, &args.options())?;
     for note in notes {
         eprintln!("lensrig: note: {note}");
+    }
+    for line in report.no_harm.describe(&report.channels) {
+        eprintln!("lensrig: note: {line}");
+    }
+    for w in &report.warnings {
+        eprintln!("lensrig: warning: {w}");
     }
     if !args.quiet {
         eprintln!(

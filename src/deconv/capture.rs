@@ -123,6 +123,13 @@ pub fn restore_file(job: &RestoreFile, opts: &DeconvOptions) -> Result<Restored,
         }
     }
     let mut opts = opts.clone();
+    // the profile's noise law unless the caller chose (the law is on the black-subtracted axis)
+    if opts.noise == super::noise::NoiseSource::Profile {
+        opts.noise = match &profile.meta.noise {
+            Some(law) => super::noise::NoiseSource::Law(law.clone()),
+            None => super::noise::NoiseSource::Estimate,
+        };
+    }
     // the result is re-encoded with `transfer`: weigh the prior as the encoded image will show it
     opts.output_transfer = Some(transfer);
     let bar = if job.progress { indicatif::ProgressBar::new(0) } else { indicatif::ProgressBar::hidden() };

@@ -2,6 +2,10 @@
 //! docs/method.md §1–§5): the restoration behind `lensrig deblur`.
 //!
 //! # Pipeline
+//! 0. Noise ([`DeconvOptions::noise`], docs/method.md §9): with a Poisson–Gaussian law
+//!    (`Var = g_c x + r_c²`, from the profile or `--noise`) `σ_c² = g_c mean(x) + r_c²` and each
+//!    tile's `λ` uses the tile's mean level; the photo's own estimate is checked against it
+//!    (warning beyond 2×). Without a law, as below.
 //! 1. Per channel, the noise level `σ_c` of the (linear) input is estimated ([`noise`]) and the
 //!    prior weight defaults to `λ_c = κ σ_c²` (MAP scaling of an ℓ2² data term against a
 //!    Laplacian gradient prior; κ = 7). When the result is delivered gamma-encoded
@@ -89,6 +93,9 @@
 //!    strips at a time, so it holds one extra image (the result) besides the strip buffers
 //!    (12 MP: peak RSS 1.04 GB against 0.93 GB without the stage).
 //!
+//! 8. No-harm rule ([`noharm`], on by default): flat regions where the result is noisier than
+//!    the input fall back towards the input; [`DeconvReport::no_harm`] says where.
+//!
 //! # Conventions
 //! Planes are **linear** values on the full-scale axis ([`crate::image`]); decoding and
 //! re-encoding is the caller's job ([`cli`]). PSFs follow [`crate::solve::conv`]. Outputs are not
@@ -103,9 +110,11 @@
 pub mod capture;
 pub mod denoise;
 pub mod filters;
+pub mod noharm;
 pub mod noise;
 pub mod problem;
 pub mod pyramid;
+pub mod spectrum;
 pub mod synth;
 pub mod tiles;
 
@@ -227,6 +236,12 @@ pub struct DeconvOptions {
     /// The denoiser's block, threshold, matching and noise-model settings ([`denoise`]); its
     /// `sigma`, `transfer` and `parallel` are set by [`deblur`].
     pub denoiser: denoise::DenoiseOptions,
+    /// Where the noise level comes from ([`noise::NoiseSource`]). With a law, a tile's
+    /// `λ_c = κ (g_c x̄ + r_c²)` uses the tile's mean linear value `x̄` of the channel, and the
+    /// channel's `σ_c = √(g_c · mean(x) + r_c²)` replaces Donoho's estimate everywhere else.
+    pub noise: noise::NoiseSource,
+    /// The no-harm rule ([`noharm`]): flat regions never come out noisier than the input.
+    pub no_harm: noharm::NoHarmOptions,
 }
 
 impl Default for DeconvOptions {
@@ -263,6 +278,8 @@ impl Default for DeconvOptions {
             denoise: 7.0,
             denoise_lambda_per_variance: 2.5,
             denoiser: denoise::DenoiseOptions::default(),
+            noise: noise::NoiseSource::Profile,
+            no_harm: noharm::NoHarmOptions::default(),
         }
     }
 }
@@ -270,10 +287,21 @@ impl Default for DeconvOptions {
 /// What a restoration did.
 #[derive(Clone, Debug, Default, serde::Serialize)]
 pub struct DeconvReport {
+    /// `σ_c` used (from the law, or Donoho's estimate).
     pub noise_sigma: Vec<f32>,
+    /// Donoho's estimate on the input, per channel (the check against a law).
+    pub estimated_sigma: Vec<f32>,
+    /// The noise law used, if any.
+    pub noise_law: Option<crate::profile::noise::NoiseLaw>,
+    /// Things the user should know (a photo that disagrees with the law, …).
+    pub warnings: Vec<String>,
+    /// Where the no-harm rule fell back towards the input.
+    pub no_harm: noharm::NoHarmReport,
     pub lambda: Vec<f32>,
     /// Channel indices in restoration order.
     pub order: Vec<usize>,
+    /// Channel names (the grid's).
+    pub channels: Vec<String>,
     pub tiles: usize,
     pub window: [usize; 2],
     pub levels: usize,
@@ -343,14 +371,22 @@ pub fn deblur(
     check_inputs(planes, grid, opts)?;
     let nch = planes.len();
     let (w, h) = (planes[0].width, planes[0].height);
-    let noise: Vec<f32> = planes.iter().map(noise::estimate_sigma).collect();
+    let estimated: Vec<f32> = planes.iter().map(noise::estimate_sigma).collect();
+    let law = match &opts.noise {
+        noise::NoiseSource::Law(l) => Some(l.for_channels(nch).map_err(|e| DeconvError::Option(e.to_string()))?),
+        _ => None,
+    };
+    let noise: Vec<f32> = match &law {
+        Some(l) => planes.iter().enumerate().map(|(c, p)| noise::law_sigma(l, c, &p.data)).collect(),
+        None => estimated.clone(),
+    };
+    let warnings = law.as_ref().map(|l| noise::check_law(l, planes, &estimated, &grid.channels)).unwrap_or_default();
     let kappa = if opts.denoise > 0.0 { opts.denoise_lambda_per_variance } else { opts.lambda_per_variance };
-    let lambda: Vec<f32> = (0..nch)
-        .map(|c| match &opts.lambda {
-            Some(l) => l[if l.len() == 1 { 0 } else { c }],
-            None => (kappa * noise[c] * noise[c]).max(opts.lambda_min),
-        })
-        .collect();
+    let lambda_of = |c: usize, variance: f32| match &opts.lambda {
+        Some(l) => l[if l.len() == 1 { 0 } else { c }],
+        None => (kappa * variance).max(opts.lambda_min),
+    };
+    let lambda: Vec<f32> = (0..nch).map(|c| lambda_of(c, noise[c] * noise[c])).collect();
     let order = restoration_order(grid);
 
     // tile layout
@@ -378,7 +414,12 @@ pub fn deblur(
         let (cx, cy) = ((sx.core0 + sx.core1) as f64 / 2.0 - 0.5, (sy.core0 + sy.core1) as f64 / 2.0 - 0.5);
         let kernels: Vec<Plane> = (0..nch).map(|c| grid.kernel_at(c, cx, cy)).collect();
         let field = FieldWindow { grid, x0: sx.window0, y0: sy.window0, image_width: w, image_height: h };
-        let setup = TileSetup { width: pw, height: ph, lambda: &lambda, order: &order, opts, field: Some(field) };
+        // with a noise law, λ follows the tile's own signal level
+        let tile_lambda: Vec<f32> = match &law {
+            Some(l) => (0..nch).map(|c| lambda_of(c, noise::law_sigma(l, c, &windows[c]).powi(2))).collect(),
+            None => lambda.clone(),
+        };
+        let setup = TileSetup { width: pw, height: ph, lambda: &tile_lambda, order: &order, opts, field: Some(field) };
         let (restored, st) = restore_tile(&windows, &kernels, &setup);
         blend_tile(&mut out.lock().unwrap_or_else(|e| e.into_inner()), &restored, sx, sy, pw);
         {
@@ -406,8 +447,22 @@ pub fn deblur(
         };
         out = denoise::denoise(&out, &d);
     }
+    let no_harm = if opts.no_harm.enabled {
+        let variance = |c: usize, x: f32| match &law {
+            Some(l) => l.variance(c, x),
+            None => noise[c] * noise[c],
+        };
+        noharm::apply(planes, &mut out, &variance, &opts.no_harm)
+    } else {
+        noharm::NoHarmReport::default()
+    };
     let report = DeconvReport {
         noise_sigma: noise,
+        estimated_sigma: estimated,
+        noise_law: law,
+        warnings,
+        no_harm,
+        channels: grid.channels.clone(),
         lambda,
         order,
         tiles: total,

@@ -389,3 +389,75 @@ fn probe() {
         rep
     );
 }
+
+/// A red-dominant scene (textured left, flat right) behind a far-defocused red channel, with
+/// Poisson–Gaussian noise (15 000 e⁻ / 4 e⁻), restored with the true law.
+fn defocused_red_case() -> (Vec<Plane>, Vec<Plane>, PsfGrid, crate::profile::noise::NoiseLaw) {
+    use crate::image::filter::pixel_gaussian;
+    let (w, h, k) = (192usize, 128usize, 31usize);
+    let disc = {
+        let mut p = Plane::from_fn(k, k, |x, y| {
+            let (dx, dy) = (x as f32 - 15.0, y as f32 - 15.0);
+            if dx * dx + dy * dy <= 13.0 * 13.0 { 1.0 } else { 0.0 }
+        });
+        let s = p.sum() as f32;
+        p.scale(1.0 / s);
+        p
+    };
+    let grid = PsfGrid {
+        kernel_size: k,
+        columns: 1,
+        rows: 1,
+        centers: PsfGrid::regular_centers(w, h, 1, 1),
+        channels: vec!["R".into(), "G".into(), "B".into()],
+        kernels: vec![vec![disc], vec![pixel_gaussian(k, 1.0, 0.0, 0.0)], vec![pixel_gaussian(k, 2.5, 0.0, 0.0)]],
+    };
+    let base = [0.6f32, 0.12, 0.08];
+    let tex = textured_scene(w, h, 5);
+    let sharp: Vec<Plane> = (0..3).map(|c| Plane::from_fn(w, h, |x, y| if x < w / 2 { base[c] * (0.5 + tex[c].get(x, y)) } else { base[c] })).collect();
+    let (fw, read_e) = (15_000.0f64, 4.0f64);
+    let mut rng = crate::rng::Rng::new(12);
+    let blurred: Vec<Plane> = (0..3)
+        .map(|c| {
+            let b = blur_channel(&sharp[c], &grid, c);
+            Plane::from_fn(w, h, |x, y| ((rng.poisson(b.get(x, y).max(0.0) as f64 * fw) + read_e * rng.normal()) / fw) as f32)
+        })
+        .collect();
+    let law = crate::profile::noise::NoiseLaw::new(vec![1.0 / fw; 3], vec![read_e / fw; 3], "given");
+    (sharp, blurred, grid, law)
+}
+
+fn region_std(p: &Plane, x0: usize, x1: usize, y0: usize, y1: usize) -> f64 {
+    let v: Vec<f64> = (y0..y1).flat_map(|y| (x0..x1).map(move |x| (x, y))).map(|(x, y)| p.get(x, y) as f64).collect();
+    let m = v.iter().sum::<f64>() / v.len() as f64;
+    (v.iter().map(|a| (a - m).powi(2)).sum::<f64>() / v.len() as f64).sqrt()
+}
+
+/// The no-harm rule: behind a strongly defocused channel the flat half comes out no noisier
+/// than the input in any channel (without the rule the red channel is noisier), and the report
+/// says where it fell back.
+#[test]
+fn flat_patch_behind_a_defocused_channel_is_not_made_noisier() {
+    let (_sharp, blurred, grid, law) = defocused_red_case();
+    let run = |enabled: bool| {
+        let opts = DeconvOptions {
+            noise: noise::NoiseSource::Law(law.clone()),
+            no_harm: noharm::NoHarmOptions { enabled, ..Default::default() },
+            parallel: false,
+            ..DeconvOptions::default()
+        };
+        deblur(&blurred, &grid, &opts, &|_, _| {}).unwrap()
+    };
+    // the flat half, away from the texture's blur and the image edge
+    let (x0, x1, y0, y1) = (130, 180, 16, 112);
+    let (off, _) = run(false);
+    let (on, rep) = run(true);
+    for c in 0..3 {
+        let (si, s_off, s_on) = (region_std(&blurred[c], x0, x1, y0, y1), region_std(&off[c], x0, x1, y0, y1), region_std(&on[c], x0, x1, y0, y1));
+        eprintln!("channel {c}: input {si:.2e}, without rule {s_off:.2e}, with {s_on:.2e}");
+        assert!(s_on <= si, "channel {c}: {s_on:.3e} > input {si:.3e}");
+    }
+    assert!(region_std(&off[0], x0, x1, y0, y1) > region_std(&blurred[0], x0, x1, y0, y1), "the case must harm without the rule");
+    let lines = rep.no_harm.describe(&rep.channels);
+    assert!(lines.iter().any(|l| l.contains("channel R")), "{lines:?}");
+}

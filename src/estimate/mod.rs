@@ -239,7 +239,9 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
         .collect();
     info.noise_sigma = noise.clone();
     info.seconds = t0.elapsed().as_secs_f64();
-    let profile = assemble_profile(open, &layout, kernels, data.ratio, reg.info, info, opts);
+    let mut profile = assemble_profile(open, &layout, kernels, data.ratio, reg.info, info, opts);
+    // the sensor's noise law from the wide-open capture (issue 12; crate::profile::noise)
+    profile.meta.noise = crate::profile::noise::NoiseLaw::fit_image(&open_lin, opts.saturation).ok();
     Ok(Estimate { profile, noise_sigma: noise, valid_masks: data.valid_masks, pinhole_registered: pin_reg, open_linear: open_lin })
 }
 

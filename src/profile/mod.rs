@@ -26,6 +26,7 @@ use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
+pub mod noise;
 pub mod set;
 
 /// The format version this build writes and reads.
@@ -161,6 +162,10 @@ pub struct ProfileToml {
     /// and the levels taken from the file. Optional; absent for PNG/TIFF sources.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub raw: Option<crate::image::raw::RawLayout>,
+    /// The sensor's noise law on the linear axis ([`noise::NoiseLaw`]), fitted from the
+    /// calibration captures by `estimate`; `deblur` uses it. Optional (older profiles have none).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub noise: Option<noise::NoiseLaw>,
 }
 
 /// A profile in memory.
@@ -322,6 +327,12 @@ impl Profile {
                 return Err(invalid(&toml_path, format!("channel {ch}: exposure_ratio {r} must be finite and positive")));
             }
         }
+        if let Some(law) = &m.noise {
+            law.check().map_err(|e| invalid(&toml_path, e.to_string()))?;
+            if law.channels() != m.source.channels.len() {
+                return Err(invalid(&toml_path, format!("noise law has {} channel(s), the source {}", law.channels(), m.source.channels.len())));
+            }
+        }
         let (w, h) = (m.source.width as f64, m.source.height as f64);
         for (t, c) in g.centers.iter().enumerate() {
             let inside = c[0].is_finite() && c[1].is_finite() && c[0] >= -0.5 && c[0] <= w - 0.5 && c[1] >= -0.5 && c[1] <= h - 0.5;
@@ -366,6 +377,7 @@ impl Profile {
             psf,
             corrections: BTreeMap::new(),
             raw: None,
+            noise: None,
         }
     }
 }

@@ -11,22 +11,42 @@
 //! [`lensrig::estimate::joint::JOINT_DATA_PIXELS`]). `--kernel` and `--tile` replace a case's
 //! 63-pixel kernel and its tile side. The criterion benches (`benches/`) time the kernels
 //! underneath.
+//!
+//! `--testbed DIR` runs the estimation test bed instead (issue 16, docs/benchmarks.md): the
+//! truth lenses in DIR and the simulator's singlet at two chromatic strengths, rendered at
+//! 1024×768 RGB with Poisson–Gaussian noise (full well 15 000 e⁻, read 4 e⁻) and estimated with
+//! the default options; kernel errors (relative L2, per cent) per lens and channel against the
+//! truth blended at each estimated centre ([`lensrig::estimate::testbed`]), cross-validation
+//! (residual RMS ÷ true noise RMS on an independent pair), wall and CPU seconds of `estimate`.
 use super::args::EstimateArgs;
-use anyhow::Result;
+use anyhow::{Context, Result};
 use clap::Args;
-use lensrig::estimate::{estimate, kernel_errors, median_max};
+use lensrig::diagnose::simulate::predict;
+use lensrig::estimate::testbed::{errors_against_truth, quantile};
+use lensrig::estimate::{estimate, kernel_errors, median_max, EstimateOptions};
 use lensrig::image::{Image, Plane};
-use lensrig::optics::capture::{render, Blur, Sensor, Shot};
+use lensrig::optics::capture::{render, Blur, Rendered, Sensor, Shot};
 use lensrig::optics::lens::LensModel;
 use lensrig::optics::psf_grid::PsfGrid;
 use lensrig::rng::Rng;
+use lensrig::profile::Profile;
 use lensrig::target::{render_noise_scene, TargetSpec};
+use std::path::{Path, PathBuf};
 
 #[derive(Args, Debug)]
 pub struct BenchArgs {
-    /// Also run the 12-megapixel case (several minutes).
+    /// Also run the 12-megapixel case (several minutes); with `--testbed`, the simulator's
+    /// singlet at 4000x3000.
     #[arg(long)]
     pub large: bool,
+    /// Run the estimation test bed instead: every truth lens in DIR (e.g.
+    /// ../shared/data/lenses) and the simulator's singlet at two chromatic strengths, with the
+    /// default settings unless estimation flags change them.
+    #[arg(long, value_name = "DIR")]
+    pub testbed: Option<PathBuf>,
+    /// With `--testbed`: only the lenses whose name contains this text.
+    #[arg(long, requires = "testbed")]
+    pub only: Option<String>,
     #[command(flatten)]
     pub estimation: EstimateArgs,
 }
@@ -73,6 +93,9 @@ fn time_row(a: &BenchArgs, c: &Case, open: &Image, pin: &Image, truth: &PsfGrid,
 }
 
 pub fn run(a: &BenchArgs) -> Result<()> {
+    if let Some(dir) = &a.testbed {
+        return run_testbed(a, dir);
+    }
     let mut cases = vec![Case { name: "1024x768 RGB, 63 px, 12 tiles", width: 1024, height: 768, kernel: 63, columns: 4, rows: 3 }];
     if a.large {
         cases.push(Case { name: "4000x3000 RGB, 63 px, 48 tiles", width: 4000, height: 3000, kernel: 63, columns: 8, rows: 6 });
@@ -86,6 +109,186 @@ pub fn run(a: &BenchArgs) -> Result<()> {
         let joint_runs: Vec<usize> = if joint > 0 { vec![0, joint] } else { vec![0] };
         for j in joint_runs {
             time_row(a, &c, &open, &pin, &truth, j)?;
+        }
+    }
+    Ok(())
+}
+
+// ---------------------------------------------------------------------------------------------
+// The estimation test bed (issue 16): lenses lensrig did not make, default settings.
+// ---------------------------------------------------------------------------------------------
+
+/// Sensor of the test bed's captures: Poisson–Gaussian noise, full well 15 000 e⁻, read noise
+/// 4 e⁻, 16-bit linear.
+pub const TESTBED_SENSOR: Sensor = Sensor { full_well_e: 15_000.0, read_noise_e: 4.0, bits: 16, transfer: lensrig::image::Transfer::Linear, noise: true };
+
+/// Exposure of a white scene point on the full-scale axis (as the demo).
+const TESTBED_EXPOSURE: f64 = 0.75;
+
+/// Whether a test-bed lens may be used to tune the estimator or is held out.
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+pub enum Split {
+    Tuning,
+    HeldOut,
+}
+
+impl Split {
+    fn name(self) -> &'static str {
+        match self {
+            Split::Tuning => "tuning",
+            Split::HeldOut => "held out",
+        }
+    }
+}
+
+/// The truth lenses (directories of `--testbed`) and their split. The simulator's own singlets
+/// and the achromat are the tuning subset; the two real singlet designs are held out.
+const TRUTH_LENSES: [(&str, Split); 3] = [("achromat-f4", Split::Tuning), ("sf11-singlet-25mm-f5.6", Split::HeldOut), ("lac9-singlet-stop-behind-f6.3", Split::HeldOut)];
+
+/// One lens of the test bed: its name, split, and true PSF grid with the sensor size.
+struct TestLens {
+    name: String,
+    split: Split,
+    width: usize,
+    height: usize,
+    truth: PsfGrid,
+}
+
+/// The simulator's chromatic singlet ([`LensModel::demo`]) on the truth lenses' 3.45 µm pixels
+/// at f/4, with the glass's Abbe number divided by `strength` (1: N-BK7; 2: twice the
+/// chromatic focal shift), its PSFs on a 9 × 7 grid at the simulator's suggested kernel size.
+fn simulator_lens(strength: f64, width: usize, height: usize) -> TestLens {
+    let mut lens = LensModel::demo(width, height);
+    lens.pixel_pitch_um = 3.45;
+    lens.glass = Some(lensrig::optics::lens::Glass { n_d: 1.5168, abbe: 64.17 / strength });
+    let k = lens.suggested_kernel_size(4.0);
+    let truth = lens.psf_grid(4.0, 9, 7, k);
+    TestLens { name: format!("simulator singlet, chromatic ×{strength}{}", if width > 1024 { format!(", {width}x{height}") } else { String::new() }), split: Split::Tuning, width, height, truth }
+}
+
+/// The test bed's lenses: the truth profiles found under `dir`, then the simulator's singlet at
+/// two chromatic strengths; `only` keeps the lenses whose name contains it.
+fn testbed_lenses(dir: &Path, only: Option<&str>, large: bool) -> Result<Vec<TestLens>> {
+    let keep = |n: &str| only.map_or(true, |o| n.contains(o));
+    let mut out = Vec::new();
+    for (name, split) in TRUTH_LENSES {
+        if !keep(name) {
+            continue;
+        }
+        let p = Profile::load(&dir.join(name)).with_context(|| format!("test-bed lens {name} in {}", dir.display()))?;
+        out.push(TestLens { name: name.to_string(), split, width: p.meta.source.width, height: p.meta.source.height, truth: p.grid });
+    }
+    for strength in [1.0, 2.0] {
+        let l = simulator_lens(strength, 1024, 768);
+        if keep(&l.name) {
+            out.push(l);
+        }
+    }
+    if large {
+        out.push(simulator_lens(1.0, 4000, 3000));
+    }
+    Ok(out)
+}
+
+/// A calibration pair through `truth` (wide open: the noise target blurred by the truth grid
+/// the way `simulate` blends it; pinhole: the sharp target), both with the test bed's noise;
+/// `seed` picks the target pattern and the noise.
+fn testbed_pair(l: &TestLens, seed: u64) -> Result<(Rendered, Rendered)> {
+    let spec = TargetSpec::new("A4", 300, 4, seed)?;
+    let scene = render_noise_scene(&spec, l.width, l.height, 1.6, 7.0, 5.0);
+    let mut lens = LensModel::demo(l.width, l.height);
+    lens.bands.retain(|b| l.truth.channels.contains(&b.name));
+    let scene: Vec<Plane> = vec![scene; lens.bands.len()];
+    let open = render(&scene, &lens, &Shot { blur: Blur::Grid(l.truth.clone()), ..Shot::ideal(TESTBED_EXPOSURE) }, &TESTBED_SENSOR, &mut Rng::new(seed * 2 + 1));
+    let pin = render(&scene, &lens, &Shot::ideal(TESTBED_EXPOSURE), &TESTBED_SENSOR, &mut Rng::new(seed * 2 + 2));
+    Ok((open, pin))
+}
+
+/// CPU seconds of this process so far (user + system, all threads; Linux `/proc/self/stat`,
+/// USER_HZ = 100), or `None` elsewhere.
+fn cpu_seconds() -> Option<f64> {
+    let s = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // fields after the command name (which may hold spaces) start at the state, field 3
+    let rest = &s[s.rfind(')')? + 2..];
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let ticks: f64 = f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?;
+    Some(ticks / 100.0)
+}
+
+/// RMS of `pred − recorded` and of the recorded image's true noise, per channel, over the
+/// interior (`margin` px from every edge).
+fn residual_vs_noise(pred: &Image, recorded: &Rendered, margin: usize) -> Vec<(f64, f64)> {
+    let (w, h) = (pred.width(), pred.height());
+    (0..pred.channel_count())
+        .map(|c| {
+            let (mut res2, mut var, mut n) = (0.0f64, 0.0f64, 0usize);
+            for y in margin..h.saturating_sub(margin) {
+                for x in margin..w.saturating_sub(margin) {
+                    let d = (pred.planes[c].get(x, y) - recorded.image.planes[c].get(x, y)) as f64;
+                    res2 += d * d;
+                    var += recorded.variance[c].get(x, y) as f64;
+                    n += 1;
+                }
+            }
+            ((res2 / n.max(1) as f64).sqrt(), (var / n.max(1) as f64).sqrt())
+        })
+        .collect()
+}
+
+/// Cross-validation of `profile` on an independent pair: residual RMS / true noise RMS, all
+/// channels pooled (as `lensrig demo`).
+fn cross_validation(profile: &Profile, pair2: &(Rendered, Rendered), margin: usize) -> Result<f64> {
+    let pred = predict(profile, &pair2.1.image)?;
+    let rn = residual_vs_noise(&pred, &pair2.0, margin);
+    let res2: f64 = rn.iter().map(|r| r.0 * r.0).sum();
+    let var: f64 = rn.iter().map(|r| r.1 * r.1).sum();
+    Ok((res2 / var.max(1e-300)).sqrt())
+}
+
+fn pct(v: Option<f64>) -> String {
+    v.map_or("–".into(), |e| format!("{:.1}%", e * 100.0))
+}
+
+/// Runs the test bed: for each lens, a pair, `estimate` with the options of `a.estimation`
+/// (the defaults unless flags change them), the kernel errors against the truth per channel,
+/// the cross-validation on an independent pair, and the time.
+fn run_testbed(a: &BenchArgs, dir: &Path) -> Result<()> {
+    let lenses = testbed_lenses(dir, a.only.as_deref(), a.large)?;
+    println!("machine: {} logical cores (rayon), {}; noise: full well {} e-, read {} e-", rayon::current_num_threads(), std::env::consts::ARCH, TESTBED_SENSOR.full_well_e, TESTBED_SENSOR.read_noise_e);
+    println!("| lens | split | channel | kernel est / true | grid | median | p90 | max | cross-validation (÷ noise; true kernels) | seconds wall / CPU |");
+    println!("| --- | --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: |");
+    for l in &lenses {
+        let pair = testbed_pair(l, 1)?;
+        let pair2 = testbed_pair(l, 2)?;
+        let opts = EstimateOptions { progress: false, ..a.estimation.options() };
+        let (t0, c0) = (std::time::Instant::now(), cpu_seconds());
+        let est = estimate(&pair.0.image, &pair.1.image, &opts)?;
+        let wall = t0.elapsed().as_secs_f64();
+        let cpu = cpu_seconds().zip(c0).map(|(b, a)| b - a);
+        let g = &est.profile.grid;
+        let errors = errors_against_truth(g, &l.truth);
+        let margin = g.kernel_size.max(l.truth.kernel_size) / 2;
+        let cv = cross_validation(&est.profile, &pair2, margin)?;
+        let truth_profile = Profile { meta: est.profile.meta.clone(), grid: l.truth.clone() };
+        let cv_truth = cross_validation(&truth_profile, &pair2, margin)?;
+        let all: Vec<f64> = errors.iter().flatten().copied().collect();
+        let rows = g.channels.iter().map(String::as_str).zip(errors.iter().map(Vec::as_slice)).chain([("all", all.as_slice())]);
+        for (ch, e) in rows {
+            let last = ch == "all";
+            println!(
+                "| {} | {} | {ch} | {} / {} | {}×{} | {} | {} | {} | {} | {} |",
+                l.name,
+                l.split.name(),
+                g.kernel_size,
+                l.truth.kernel_size,
+                g.columns,
+                g.rows,
+                pct(quantile(e, 0.5)),
+                pct(quantile(e, 0.9)),
+                pct(quantile(e, 1.0)),
+                if last { format!("{cv:.3} ({cv_truth:.3})") } else { String::new() },
+                if last { format!("{wall:.1} / {}", cpu.map_or("–".into(), |c| format!("{c:.1}"))) } else { String::new() },
+            );
         }
     }
     Ok(())

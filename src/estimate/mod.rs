@@ -25,6 +25,7 @@ pub mod joint;
 pub mod register;
 pub mod session;
 pub mod solver;
+pub mod testbed;
 
 use crate::image::{Image, Plane};
 use crate::optics::psf_grid::PsfGrid;
@@ -561,14 +562,15 @@ pub fn relative_error(a: &Plane, b: &Plane) -> f64 {
     (num / den.max(1e-300)).sqrt()
 }
 
-/// Relative L2 errors ([`relative_error`]) of every kernel of `g` against `truth`'s kernel
-/// interpolated at the same tile centre, channel by channel, tiles in grid order.
+/// Relative L2 errors ([`testbed::relative_error_centered`]: kernels of different sizes compare
+/// about their centres) of every kernel of `g` against `truth`'s kernel interpolated at the same
+/// tile centre, channel by channel, tiles in grid order.
 pub fn kernel_errors(g: &PsfGrid, truth: &PsfGrid) -> Vec<f64> {
     let mut e = Vec::with_capacity(g.channels.len() * g.tile_count());
     for c in 0..g.channels.len() {
         for t in 0..g.tile_count() {
             let [x, y] = g.centers[t];
-            e.push(relative_error(&g.kernels[c][t], &truth.kernel_at(c, x, y)));
+            e.push(testbed::relative_error_centered(&g.kernels[c][t], &truth.kernel_at(c, x, y)));
         }
     }
     e

@@ -45,17 +45,26 @@ impl PaVignetting {
     /// flat field through it is a physical irradiance.
     ///
     /// # Errors
-    /// A message naming the radius where `V` leaves `(0, 1.5]`.
-    pub fn check(&self) -> Result<(), String> {
+    /// [`VignettingOutOfRange`], naming the radius where `V` leaves `(0, 1.5]`.
+    pub fn check(&self) -> Result<(), VignettingOutOfRange> {
         for i in 0..=100 {
             let r2 = (i as f64 / 100.0).powi(2);
             let v = 1.0 + r2 * (self.k[0] + r2 * (self.k[1] + r2 * self.k[2]));
             if !(v.is_finite() && v > 0.0 && v <= 1.5) {
-                return Err(format!("pa vignetting {:?} gives {v:.3} at r = {:.2} (must stay in (0, 1.5])", self.k, r2.sqrt()));
+                return Err(VignettingOutOfRange { k: self.k, value: v, radius: r2.sqrt() });
             }
         }
         Ok(())
     }
+}
+
+/// A `pa` polynomial whose `V` leaves `(0, 1.5]` somewhere on `r ∈ [0, 1]`.
+#[derive(Debug, thiserror::Error)]
+#[error("pa vignetting {k:?} gives {value:.3} at r = {radius:.2} (must stay in (0, 1.5])")]
+pub struct VignettingOutOfRange {
+    pub k: [f64; 3],
+    pub value: f64,
+    pub radius: f64,
 }
 
 #[cfg(test)]

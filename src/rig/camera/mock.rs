@@ -167,13 +167,13 @@ impl MockOptics {
             Some(toml::Value::Array(a)) if (1..=3).contains(&a.len()) => {
                 let mut k = [0.0; 3];
                 for (d, v) in k.iter_mut().zip(a) {
-                    *d = v.as_float().or_else(|| v.as_integer().map(|i| i as f64)).ok_or_else(|| format!("lens.vignetting: expected numbers, got {v}"))?;
+                    *d = v.as_float().or_else(|| v.as_integer().map(|i| i as f64)).ok_or_else(|| MockError::WrongType { key: "vignetting".into(), expected: "numbers", got: v.to_string() })?;
                 }
                 let v = PaVignetting { k };
-                v.check().map_err(|e| format!("lens.vignetting: {e}"))?;
+                v.check().map_err(|e| MockError::BadValue { key: "vignetting", problem: e.to_string() })?;
                 Some(v)
             }
-            Some(v) => return Err(format!("lens.vignetting: expected [k1, k2, k3] (lensfun pa), got {v}")),
+            Some(v) => return Err(MockError::WrongType { key: "vignetting".into(), expected: "[k1, k2, k3] (lensfun pa)", got: v.to_string() }),
         };
         Ok(Self {
             f_number_open: f_open,
@@ -559,7 +559,7 @@ mod tests {
         assert!(centre > 0.15 && (corner / centre - 1.0).abs() < 0.01, "{centre} {corner}");
         assert!(((p.get(0, 0) / p.get(48, 36)) as f64 - 0.75).abs() < 0.03);
         let e = config::parse(&text.replace("[-0.3, 0.05]", "[-1.5]"), &dir.join("mock.toml")).map(|c| MockOptics::from_config(&c));
-        assert!(matches!(e, Ok(Err(m)) if m.contains("lens.vignetting")));
+        assert!(matches!(e, Ok(Err(m)) if m.to_string().contains("lens.vignetting")));
     }
 
     #[test]

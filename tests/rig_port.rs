@@ -49,11 +49,12 @@ fn capture_drives_the_firmware_on_the_given_port() {
     assert!(st.homed, "the capture homed the board on the port");
     let lines = &st.received_lines;
     assert!(lines.iter().any(|l| l == "$H"), "{lines:?}");
-    for want in ["G53G0X-20.000", "G53G0X-35.000", "G53G0Z-1.000", "G53G0Z-8.000"] {
+    // the two pairs, then mock.toml's flat step: the diffuser at X = -90, aperture open (Z = -1)
+    for want in ["G53G0X-20.000", "G53G0X-35.000", "G53G0Z-1.000", "G53G0Z-8.000", "G53G0X-90.000"] {
         assert!(lines.iter().any(|l| l == want), "{want} not received: {lines:?}");
     }
-    assert_eq!(st.mpos.get(Axis::X), -35.0);
-    assert_eq!(st.mpos.get(Axis::Z), -8.0);
+    assert_eq!(st.mpos.get(Axis::X), -90.0);
+    assert_eq!(st.mpos.get(Axis::Z), -1.0);
     drop(st);
     // the frames record the positions this board reported
     let m = session::load_frame_record(&out.join("pairs/001-stage-X-35.000/pinhole.toml")).unwrap();

@@ -97,6 +97,42 @@ pub struct MockOptics {
     pub flat_stage_mm: Option<f64>,
 }
 
+/// The keys `[lens]` may hold (see the module docs).
+const KNOWN: [&str; 14] = [
+    "focal_length_mm",
+    "pixel_pitch_um",
+    "f_number_open",
+    "f_number_pinhole",
+    "pinhole",
+    "pixels_per_cell",
+    "cells_per_mm",
+    "brightness",
+    "full_well_e",
+    "read_noise_e",
+    "bands",
+    "seed",
+    "timeout_after_captures",
+    "vignetting",
+];
+
+/// `[lens] vignetting = [k1, k2, k3]` (lensfun `pa`; fewer than three = trailing zeros), checked
+/// to keep `V` in `(0, 1.5]`.
+fn parse_vignetting(t: &toml::Table) -> Result<Option<PaVignetting>, MockError> {
+    Ok(match t.get("vignetting") {
+        None => None,
+        Some(toml::Value::Array(a)) if (1..=3).contains(&a.len()) => {
+            let mut k = [0.0; 3];
+            for (d, v) in k.iter_mut().zip(a) {
+                *d = v.as_float().or_else(|| v.as_integer().map(|i| i as f64)).ok_or_else(|| MockError::WrongType { key: "vignetting".into(), expected: "numbers", got: v.to_string() })?;
+            }
+            let v = PaVignetting { k };
+            v.check().map_err(|e| MockError::BadValue { key: "vignetting", problem: e.to_string() })?;
+            Some(v)
+        }
+        Some(v) => return Err(MockError::WrongType { key: "vignetting".into(), expected: "[k1, k2, k3] (lensfun pa)", got: v.to_string() }),
+    })
+}
+
 impl MockOptics {
     /// Reads `[lens]` (see the module docs).
     ///
@@ -120,22 +156,6 @@ impl MockOptics {
                 Some(v) => Err(MockError::WrongType { key: k.to_string(), expected: "a string", got: v.to_string() }),
             }
         };
-        const KNOWN: [&str; 14] = [
-            "focal_length_mm",
-            "pixel_pitch_um",
-            "f_number_open",
-            "f_number_pinhole",
-            "pinhole",
-            "pixels_per_cell",
-            "cells_per_mm",
-            "brightness",
-            "full_well_e",
-            "read_noise_e",
-            "bands",
-            "seed",
-            "timeout_after_captures",
-            "vignetting",
-        ];
         if let Some(k) = t.keys().find(|k| !KNOWN.contains(&k.as_str())) {
             return Err(MockError::UnknownKey { key: k.clone(), known: KNOWN.join(", ") });
         }
@@ -162,19 +182,7 @@ impl MockOptics {
         }
         let sensor = Sensor { full_well_e: num("full_well_e", 20_000.0)?, read_noise_e: num("read_noise_e", 6.0)?, ..Sensor::default() };
         let kernel_size = lens.suggested_kernel_size(f_open);
-        let vignetting = match t.get("vignetting") {
-            None => None,
-            Some(toml::Value::Array(a)) if (1..=3).contains(&a.len()) => {
-                let mut k = [0.0; 3];
-                for (d, v) in k.iter_mut().zip(a) {
-                    *d = v.as_float().or_else(|| v.as_integer().map(|i| i as f64)).ok_or_else(|| MockError::WrongType { key: "vignetting".into(), expected: "numbers", got: v.to_string() })?;
-                }
-                let v = PaVignetting { k };
-                v.check().map_err(|e| MockError::BadValue { key: "vignetting", problem: e.to_string() })?;
-                Some(v)
-            }
-            Some(v) => return Err(MockError::WrongType { key: "vignetting".into(), expected: "[k1, k2, k3] (lensfun pa)", got: v.to_string() }),
-        };
+        let vignetting = parse_vignetting(t)?;
         Ok(Self {
             f_number_open: f_open,
             f_number_pinhole: pinhole,

@@ -8,25 +8,14 @@
 use super::analysis::{residual_image, Analysis, Curve};
 use super::{Diagnosis, Figures};
 use crate::fsutil::{write_atomic, Overwrite};
-use crate::image::io::{write_png16, write_png8, ImageError};
+use crate::image::io::{write_png16, write_png8};
 use crate::image::Image;
-use crate::profile::ProfileError;
 use serde_json::json;
 use std::fmt::Write as _;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
-/// Why the report could not be written.
-#[derive(Debug, thiserror::Error)]
-pub enum ReportError {
-    #[error("cannot write {path}: {source}")]
-    Io { path: PathBuf, #[source] source: std::io::Error },
-    #[error(transparent)]
-    Image(#[from] ImageError),
-    #[error(transparent)]
-    Profile(#[from] ProfileError),
-    #[error("cannot serialise the report: {0}")]
-    Json(#[from] serde_json::Error),
-}
+/// Why the report could not be written: the calibration report's error type, shared.
+pub use crate::report::ReportError;
 
 /// Where the inputs came from (for the report's header).
 #[derive(Clone, Debug, Default)]

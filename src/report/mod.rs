@@ -33,13 +33,17 @@ use crate::profile::Profile;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
-/// Why a report could not be written.
+/// Why a report (the calibration report, or the diagnosis's) could not be written.
 #[derive(Debug, thiserror::Error)]
 pub enum ReportError {
     #[error("cannot write {path}: {source}")]
     Io { path: PathBuf, #[source] source: std::io::Error },
     #[error(transparent)]
     Image(#[from] ImageError),
+    #[error(transparent)]
+    Profile(#[from] crate::profile::ProfileError),
+    #[error("cannot serialise the report: {0}")]
+    Json(#[from] serde_json::Error),
 }
 
 /// Figures of one tile, per channel (index = channel).

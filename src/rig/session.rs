@@ -767,11 +767,7 @@ fn capture_flat(rig: &mut Rig, cfg: &RigConfig, stage_mm: f64, tmp: &Path, light
     let f = rig.camera.capture(n)?;
     light.check(FLAT_DIR, "flat", &f, cfg.retry.drift_tolerance)?;
     write_frame(tmp, "flat", &f, rig, a, s)?;
-    if cfg.plan.dark_frames > 0 {
-        rig.camera.set_exposure(1)?;
-        let d = rig.camera.capture(cfg.plan.dark_frames as usize)?;
-        write_frame(tmp, "dark", &d, rig, a, s)?;
-    }
+    capture_dark(rig, cfg, tmp, a, s)?;
     if o.progress {
         eprintln!("  flat {} µs, {} frame(s): saved", f.meta.exposure_us, n);
     }
@@ -892,11 +888,7 @@ fn capture_pair(rig: &mut Rig, cfg: &RigConfig, p: &PairPlan, tmp: &Path, light:
     let pin = rig.camera.capture(n)?;
     light.check(&p.key, "pinhole", &pin, tol)?;
     write_frame(tmp, "pinhole", &pin, rig, a, s)?;
-    if cfg.plan.dark_frames > 0 {
-        rig.camera.set_exposure(1)?;
-        let d = rig.camera.capture(cfg.plan.dark_frames as usize)?;
-        write_frame(tmp, "dark", &d, rig, a, s)?;
-    }
+    capture_dark(rig, cfg, tmp, a, s)?;
     if o.progress {
         eprintln!("  open {} µs, pinhole {} µs, {} frame(s) each: saved", open.meta.exposure_us, pin.meta.exposure_us, n);
     }
@@ -934,6 +926,17 @@ fn percentile(f: &Frame, q: f64) -> f32 {
     v.sort_by(f32::total_cmp);
     // an empty frame cannot clip
     v.get((v.len().saturating_sub(1) as f64 * q) as usize).copied().unwrap_or(0.0)
+}
+
+/// The dark frame (`[plan] dark_frames` frames averaged at the shortest exposure) next to a
+/// capture, when the plan asks for one.
+fn capture_dark(rig: &mut Rig, cfg: &RigConfig, dir: &Path, a: &super::config::ApertureAxis, s: &super::config::StageAxis) -> Result<(), SessionError> {
+    if cfg.plan.dark_frames > 0 {
+        rig.camera.set_exposure(1)?;
+        let d = rig.camera.capture(cfg.plan.dark_frames as usize)?;
+        write_frame(dir, "dark", &d, rig, a, s)?;
+    }
+    Ok(())
 }
 
 fn write_frame(dir: &Path, role: &str, f: &Frame, rig: &Rig, a: &super::config::ApertureAxis, s: &super::config::StageAxis) -> Result<(), SessionError> {

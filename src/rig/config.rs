@@ -343,6 +343,14 @@ impl RigConfig {
     /// # Errors
     /// The first inconsistency found.
     pub fn validate(&self) -> Result<(), (String, String)> {
+        self.check_camera()?;
+        self.check_retry_and_controller()?;
+        self.check_axes()?;
+        self.check_plan_and_target()
+    }
+
+    /// Camera stage of [`Self::validate`]: device, pixel format, size, exposure, gain, frames.
+    fn check_camera(&self) -> Result<(), (String, String)> {
         let bad = |k: &str, m: String| Err((k.to_string(), m));
         let c = &self.camera;
         if c.kind == CameraKind::V4l2 && c.device.is_none() {
@@ -366,6 +374,12 @@ impl RigConfig {
         if c.frame_timeout_ms == 0 {
             return bad("camera.frame_timeout_ms", "must be positive".into());
         }
+        Ok(())
+    }
+
+    /// Retry and controller stage of [`Self::validate`]: tries, drift tolerance, port, baud, timeouts.
+    fn check_retry_and_controller(&self) -> Result<(), (String, String)> {
+        let bad = |k: &str, m: String| Err((k.to_string(), m));
         let r = &self.retry;
         if r.max_tries == 0 {
             return bad("retry.max_tries", "must be at least 1 (1 = no retry)".into());
@@ -386,6 +400,12 @@ impl RigConfig {
                 return bad(&format!("controller.timeouts.{name}"), "must be positive".into());
             }
         }
+        Ok(())
+    }
+
+    /// Axes stage of [`Self::validate`]: distinct axes, ranges, aperture pair, stage positions.
+    fn check_axes(&self) -> Result<(), (String, String)> {
+        let bad = |k: &str, m: String| Err((k.to_string(), m));
         let (a, s) = (&self.axes.aperture, &self.axes.stage);
         if a.axis == s.axis {
             return bad("axes.stage.axis", format!("aperture and stage both use axis {}", a.axis));
@@ -409,6 +429,13 @@ impl RigConfig {
         if let Some(v) = s.positions.iter().find(|v| !(**v >= s.min && **v <= s.max)) {
             return bad("axes.stage.positions", format!("{v} mm is outside [{}, {}]", s.min, s.max));
         }
+        Ok(())
+    }
+
+    /// Plan and target stage of [`Self::validate`]: exposure scale, flat-field position, target path.
+    fn check_plan_and_target(&self) -> Result<(), (String, String)> {
+        let bad = |k: &str, m: String| Err((k.to_string(), m));
+        let s = &self.axes.stage;
         let p = &self.plan;
         if !(p.pinhole_exposure_scale.is_finite() && p.pinhole_exposure_scale > 0.0) {
             return bad("plan.pinhole_exposure_scale", format!("{} must be > 0", p.pinhole_exposure_scale));

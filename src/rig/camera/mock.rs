@@ -120,25 +120,7 @@ impl MockOptics {
                 Some(v) => Err(MockError::WrongType { key: k.to_string(), expected: "a string", got: v.to_string() }),
             }
         };
-        const KNOWN: [&str; 14] = [
-            "focal_length_mm",
-            "pixel_pitch_um",
-            "f_number_open",
-            "f_number_pinhole",
-            "pinhole",
-            "pixels_per_cell",
-            "cells_per_mm",
-            "brightness",
-            "full_well_e",
-            "read_noise_e",
-            "bands",
-            "seed",
-            "timeout_after_captures",
-            "vignetting",
-        ];
-        if let Some(k) = t.keys().find(|k| !KNOWN.contains(&k.as_str())) {
-            return Err(MockError::UnknownKey { key: k.clone(), known: KNOWN.join(", ") });
-        }
+        check_lens_keys(t)?;
         let (w, h) = (cfg.camera.width as usize, cfg.camera.height as usize);
         let mut lens = LensModel::demo(w, h);
         match s("bands", "mono")?.as_str() {
@@ -162,19 +144,7 @@ impl MockOptics {
         }
         let sensor = Sensor { full_well_e: num("full_well_e", 20_000.0)?, read_noise_e: num("read_noise_e", 6.0)?, ..Sensor::default() };
         let kernel_size = lens.suggested_kernel_size(f_open);
-        let vignetting = match t.get("vignetting") {
-            None => None,
-            Some(toml::Value::Array(a)) if (1..=3).contains(&a.len()) => {
-                let mut k = [0.0; 3];
-                for (d, v) in k.iter_mut().zip(a) {
-                    *d = v.as_float().or_else(|| v.as_integer().map(|i| i as f64)).ok_or_else(|| MockError::WrongType { key: "vignetting".into(), expected: "numbers", got: v.to_string() })?;
-                }
-                let v = PaVignetting { k };
-                v.check().map_err(|e| MockError::BadValue { key: "vignetting", problem: e.to_string() })?;
-                Some(v)
-            }
-            Some(v) => return Err(MockError::WrongType { key: "vignetting".into(), expected: "[k1, k2, k3] (lensfun pa)", got: v.to_string() }),
-        };
+        let vignetting = lens_vignetting(t)?;
         Ok(Self {
             f_number_open: f_open,
             f_number_pinhole: pinhole,
@@ -211,6 +181,48 @@ impl MockOptics {
     pub fn truth_grid(&self, f_number: f64) -> crate::optics::psf_grid::PsfGrid {
         self.lens.psf_grid(f_number, self.psf_columns, self.psf_rows, self.kernel_size)
     }
+}
+
+/// Key-check stage of [`MockOptics::from_config`]: rejects unknown `[lens]` keys.
+fn check_lens_keys(t: &toml::Table) -> Result<(), MockError> {
+    const KNOWN: [&str; 14] = [
+        "focal_length_mm",
+        "pixel_pitch_um",
+        "f_number_open",
+        "f_number_pinhole",
+        "pinhole",
+        "pixels_per_cell",
+        "cells_per_mm",
+        "brightness",
+        "full_well_e",
+        "read_noise_e",
+        "bands",
+        "seed",
+        "timeout_after_captures",
+        "vignetting",
+    ];
+    if let Some(k) = t.keys().find(|k| !KNOWN.contains(&k.as_str())) {
+        return Err(MockError::UnknownKey { key: k.clone(), known: KNOWN.join(", ") });
+    }
+    Ok(())
+}
+
+/// Vignetting stage of [`MockOptics::from_config`]: `[lens] vignetting = [k1, k2, k3]` (lensfun pa).
+fn lens_vignetting(t: &toml::Table) -> Result<Option<PaVignetting>, MockError> {
+    let vignetting = match t.get("vignetting") {
+        None => None,
+        Some(toml::Value::Array(a)) if (1..=3).contains(&a.len()) => {
+            let mut k = [0.0; 3];
+            for (d, v) in k.iter_mut().zip(a) {
+                *d = v.as_float().or_else(|| v.as_integer().map(|i| i as f64)).ok_or_else(|| MockError::WrongType { key: "vignetting".into(), expected: "numbers", got: v.to_string() })?;
+            }
+            let v = PaVignetting { k };
+            v.check().map_err(|e| MockError::BadValue { key: "vignetting", problem: e.to_string() })?;
+            Some(v)
+        }
+        Some(v) => return Err(MockError::WrongType { key: "vignetting".into(), expected: "[k1, k2, k3] (lensfun pa)", got: v.to_string() }),
+    };
+    Ok(vignetting)
 }
 
 /// Why a rig config cannot make a mock camera: its `[lens]` keys (see the module docs) or its

@@ -86,27 +86,10 @@ pub fn restore_file(job: &RestoreFile, opts: &DeconvOptions) -> Result<Restored,
         return Err(RestoreError::MaskWithoutSaturation { input: job.input.into() });
     }
     notes.extend(loaded.values.notes(job.input));
-    let mut img = loaded.image;
     let grid = &profile.grid;
     let src = &profile.meta.source;
-    // camera raw input: CFA planes, or bilinear RGB for a profile of demosaiced channels; the
-    // result is a linear 16-bit TIFF (crate::image::raw)
-    let raw_in = img.raw.is_some();
-    if raw_in && img.channels != grid.channels {
-        img = crate::image::raw::demosaic_bilinear(&img, job.input)?;
-    }
-    if raw_in && !job.out.extension().is_some_and(|e| e.eq_ignore_ascii_case("tif") || e.eq_ignore_ascii_case("tiff")) {
-        return Err(RestoreError::RawOutput { out: job.out.into() });
-    }
-    if img.channel_count() != grid.channels.len() {
-        return Err(RestoreError::Channels { input: job.input.into(), profile: job.profile.into(), got: img.channel_count(), expected: grid.channels.len(), names: grid.channels.join(",") });
-    }
-    if img.width() != src.width || img.height() != src.height {
-        return Err(RestoreError::Size { input: job.input.into(), profile: job.profile.into(), got_width: img.width(), got_height: img.height(), width: src.width, height: src.height });
-    }
-    if !raw_in && !matches!(img.channel_count(), 1 | 3) {
-        return Err(RestoreError::PngChannels { input: job.input.into(), got: img.channel_count() });
-    }
+    let raw_in = loaded.image.raw.is_some();
+    let mut img = matching_input(loaded.image, job, &profile)?;
     let transfer = job.transfer.unwrap_or(src.transfer);
     img.transfer = transfer;
     let mut lin = img.to_linear();
@@ -122,16 +105,7 @@ pub fn restore_file(job: &RestoreFile, opts: &DeconvOptions) -> Result<Restored,
             lin.planes[c].data[i] = MASKED_VALUE.max(sat);
         }
     }
-    let mut opts = opts.clone();
-    // the profile's noise law unless the caller chose (the law is on the black-subtracted axis)
-    if opts.noise == super::noise::NoiseSource::Profile {
-        opts.noise = match &profile.meta.noise {
-            Some(law) => super::noise::NoiseSource::Law(law.clone()),
-            None => super::noise::NoiseSource::Estimate,
-        };
-    }
-    // the result is re-encoded with `transfer`: weigh the prior as the encoded image will show it
-    opts.output_transfer = Some(transfer);
+    let opts = solver_options(opts, &profile, transfer);
     let bar = if job.progress { indicatif::ProgressBar::new(0) } else { indicatif::ProgressBar::hidden() };
     bar.set_style(
         indicatif::ProgressStyle::with_template("deblur {bar:40} {pos}/{len} tiles {elapsed_precise} (eta {eta})")
@@ -157,6 +131,48 @@ pub fn restore_file(job: &RestoreFile, opts: &DeconvOptions) -> Result<Restored,
         write_png16(job.out, &out, job.overwrite)?;
     }
     Ok(Restored { report, notes })
+}
+
+/// Input-check stage of [`restore_file`]: demosaics a camera raw input if the profile wants
+/// RGB, then checks the output format, channel count and size against the profile.
+fn matching_input(mut img: crate::image::Image, job: &RestoreFile, profile: &crate::profile::Profile) -> Result<crate::image::Image, RestoreError> {
+    let grid = &profile.grid;
+    let src = &profile.meta.source;
+    // camera raw input: CFA planes, or bilinear RGB for a profile of demosaiced channels; the
+    // result is a linear 16-bit TIFF (crate::image::raw)
+    let raw_in = img.raw.is_some();
+    if raw_in && img.channels != grid.channels {
+        img = crate::image::raw::demosaic_bilinear(&img, job.input)?;
+    }
+    if raw_in && !job.out.extension().is_some_and(|e| e.eq_ignore_ascii_case("tif") || e.eq_ignore_ascii_case("tiff")) {
+        return Err(RestoreError::RawOutput { out: job.out.into() });
+    }
+    if img.channel_count() != grid.channels.len() {
+        return Err(RestoreError::Channels { input: job.input.into(), profile: job.profile.into(), got: img.channel_count(), expected: grid.channels.len(), names: grid.channels.join(",") });
+    }
+    if img.width() != src.width || img.height() != src.height {
+        return Err(RestoreError::Size { input: job.input.into(), profile: job.profile.into(), got_width: img.width(), got_height: img.height(), width: src.width, height: src.height });
+    }
+    if !raw_in && !matches!(img.channel_count(), 1 | 3) {
+        return Err(RestoreError::PngChannels { input: job.input.into(), got: img.channel_count() });
+    }
+    Ok(img)
+}
+
+/// Solver-options stage of [`restore_file`]: the profile's noise law (unless the caller chose)
+/// and the output transfer the prior is weighed for.
+fn solver_options(opts: &DeconvOptions, profile: &crate::profile::Profile, transfer: Transfer) -> DeconvOptions {
+    let mut opts = opts.clone();
+    // the profile's noise law unless the caller chose (the law is on the black-subtracted axis)
+    if opts.noise == super::noise::NoiseSource::Profile {
+        opts.noise = match &profile.meta.noise {
+            Some(law) => super::noise::NoiseSource::Law(law.clone()),
+            None => super::noise::NoiseSource::Estimate,
+        };
+    }
+    // the result is re-encoded with `transfer`: weigh the prior as the encoded image will show it
+    opts.output_transfer = Some(transfer);
+    opts
 }
 
 #[cfg(test)]

@@ -369,27 +369,80 @@ pub fn deblur(
     progress: &(dyn Fn(usize, usize) + Sync),
 ) -> Result<(Vec<Plane>, DeconvReport), DeconvError> {
     check_inputs(planes, grid, opts)?;
+    let noise = noise_stage(planes, grid, opts)?;
+    let order = restoration_order(grid);
+    let layout = tile_layout(planes[0].width, planes[0].height, grid, opts);
+    let (out, st) = restore_tiles(planes, grid, opts, &layout, &noise, &order, progress);
+    let (out, no_harm) = finish(planes, out, &noise, opts);
+    let report = DeconvReport {
+        noise_sigma: noise.sigma,
+        estimated_sigma: noise.estimated,
+        noise_law: noise.law,
+        warnings: noise.warnings,
+        no_harm,
+        channels: grid.channels.clone(),
+        lambda: noise.lambda,
+        order,
+        tiles: layout.xs.len() * layout.ys.len(),
+        window: [layout.pw, layout.ph],
+        levels: st.levels,
+        cp_iterations: st.cp_iterations,
+        cg_iterations: st.cg_iterations,
+        saturated_pixels: st.saturated,
+    };
+    Ok((out, report))
+}
+
+/// Noise and prior weights of [`deblur`]'s input, per channel.
+struct NoiseStage {
+    /// The photo's own σ estimate.
+    estimated: Vec<f32>,
+    /// The noise law, if one is given.
+    law: Option<crate::profile::noise::NoiseLaw>,
+    /// The σ used (from the law, else the estimate).
+    sigma: Vec<f32>,
+    /// Disagreements between the law and the estimate.
+    warnings: Vec<String>,
+    /// The image-wide prior weight λ.
+    lambda: Vec<f32>,
+}
+
+/// Noise stage of [`deblur`]: estimates σ, resolves the noise law and the image-wide λ.
+fn noise_stage(planes: &[Plane], grid: &PsfGrid, opts: &DeconvOptions) -> Result<NoiseStage, DeconvError> {
     let nch = planes.len();
-    let (w, h) = (planes[0].width, planes[0].height);
     let estimated: Vec<f32> = planes.iter().map(noise::estimate_sigma).collect();
     let law = match &opts.noise {
         noise::NoiseSource::Law(l) => Some(l.for_channels(nch).map_err(|e| DeconvError::Option(e.to_string()))?),
         _ => None,
     };
-    let noise: Vec<f32> = match &law {
+    let sigma: Vec<f32> = match &law {
         Some(l) => planes.iter().enumerate().map(|(c, p)| noise::law_sigma(l, c, &p.data)).collect(),
         None => estimated.clone(),
     };
     let warnings = law.as_ref().map(|l| noise::check_law(l, planes, &estimated, &grid.channels)).unwrap_or_default();
+    let lambda: Vec<f32> = (0..nch).map(|c| lambda_for(opts, c, sigma[c] * sigma[c])).collect();
+    Ok(NoiseStage { estimated, law, sigma, warnings, lambda })
+}
+
+/// Prior-weight stage of [`deblur`]: λ of channel `c` at noise `variance` (or the given λ).
+fn lambda_for(opts: &DeconvOptions, c: usize, variance: f32) -> f32 {
     let kappa = if opts.denoise > 0.0 { opts.denoise_lambda_per_variance } else { opts.lambda_per_variance };
-    let lambda_of = |c: usize, variance: f32| match &opts.lambda {
+    match &opts.lambda {
         Some(l) => l[if l.len() == 1 { 0 } else { c }],
         None => (kappa * variance).max(opts.lambda_min),
-    };
-    let lambda: Vec<f32> = (0..nch).map(|c| lambda_of(c, noise[c] * noise[c])).collect();
-    let order = restoration_order(grid);
+    }
+}
 
-    // tile layout
+/// The tiles of [`deblur`]: spans along x and y and the FFT window size.
+struct TileLayout {
+    xs: Vec<tiles::Span>,
+    ys: Vec<tiles::Span>,
+    pw: usize,
+    ph: usize,
+}
+
+/// Tile-layout stage of [`deblur`]: margin, core size, spans and FFT-sized windows.
+fn tile_layout(w: usize, h: usize, grid: &PsfGrid, opts: &DeconvOptions) -> TileLayout {
     let k = grid.kernel_size;
     // the unknown-boundary data term needs no mirrored margin to absorb ringing: the estimate
     // extends past the used data by the kernel radius
@@ -402,12 +455,29 @@ pub fn deblur(
     let ph = fft_size(tiles::max_keep(&ys) + 2 * margin, levels);
     tiles::place_windows(&mut xs, pw);
     tiles::place_windows(&mut ys, ph);
+    TileLayout { xs, ys, pw, ph }
+}
+
+/// Tile stage of [`deblur`]: restores and blends every tile (in parallel if asked); returns
+/// the blended planes and the summed tile counters (`levels`: the maximum).
+fn restore_tiles(
+    planes: &[Plane],
+    grid: &PsfGrid,
+    opts: &DeconvOptions,
+    layout: &TileLayout,
+    noise: &NoiseStage,
+    order: &[usize],
+    progress: &(dyn Fn(usize, usize) + Sync),
+) -> (Vec<Plane>, TileStats) {
+    let nch = planes.len();
+    let (w, h) = (planes[0].width, planes[0].height);
+    let TileLayout { xs, ys, pw, ph } = layout;
+    let (pw, ph) = (*pw, *ph);
     let tile_list: Vec<(usize, usize)> = (0..ys.len()).flat_map(|j| (0..xs.len()).map(move |i| (i, j))).collect();
     let total = tile_list.len();
-
     let out = Mutex::new(vec![Plane::new(w, h); nch]);
     let done = AtomicUsize::new(0);
-    let counters = Mutex::new((0usize, 0usize, 0usize, 0usize));
+    let counters = Mutex::new(TileStats::default());
     let run = |&(i, j): &(usize, usize)| {
         let (sx, sy) = (&xs[i], &ys[j]);
         let windows: Vec<Vec<f32>> = planes.iter().map(|p| p.window_reflect(sx.window0, sy.window0, pw, ph).data).collect();
@@ -415,19 +485,19 @@ pub fn deblur(
         let kernels: Vec<Plane> = (0..nch).map(|c| grid.kernel_at(c, cx, cy)).collect();
         let field = FieldWindow { grid, x0: sx.window0, y0: sy.window0, image_width: w, image_height: h };
         // with a noise law, λ follows the tile's own signal level
-        let tile_lambda: Vec<f32> = match &law {
-            Some(l) => (0..nch).map(|c| lambda_of(c, noise::law_sigma(l, c, &windows[c]).powi(2))).collect(),
-            None => lambda.clone(),
+        let tile_lambda: Vec<f32> = match &noise.law {
+            Some(l) => (0..nch).map(|c| lambda_for(opts, c, noise::law_sigma(l, c, &windows[c]).powi(2))).collect(),
+            None => noise.lambda.clone(),
         };
-        let setup = TileSetup { width: pw, height: ph, lambda: &tile_lambda, order: &order, opts, field: Some(field) };
+        let setup = TileSetup { width: pw, height: ph, lambda: &tile_lambda, order, opts, field: Some(field) };
         let (restored, st) = restore_tile(&windows, &kernels, &setup);
         blend_tile(&mut out.lock().unwrap_or_else(|e| e.into_inner()), &restored, sx, sy, pw);
         {
             let mut c = counters.lock().unwrap_or_else(|e| e.into_inner());
-            c.0 += st.cp_iterations;
-            c.1 += st.cg_iterations;
-            c.2 = c.2.max(st.levels);
-            c.3 += st.saturated;
+            c.cp_iterations += st.cp_iterations;
+            c.cg_iterations += st.cg_iterations;
+            c.levels = c.levels.max(st.levels);
+            c.saturated += st.saturated;
         }
         progress(done.fetch_add(1, Ordering::SeqCst) + 1, total);
     };
@@ -436,11 +506,15 @@ pub fn deblur(
     } else {
         tile_list.iter().for_each(run);
     }
-    let (cp, cg, lv, sat) = counters.into_inner().unwrap_or_else(|e| e.into_inner());
-    let mut out = out.into_inner().unwrap_or_else(|e| e.into_inner());
+    let stats = counters.into_inner().unwrap_or_else(|e| e.into_inner());
+    (out.into_inner().unwrap_or_else(|e| e.into_inner()), stats)
+}
+
+/// Finishing stage of [`deblur`]: the optional denoiser, then the no-harm rule.
+fn finish(planes: &[Plane], mut out: Vec<Plane>, noise: &NoiseStage, opts: &DeconvOptions) -> (Vec<Plane>, noharm::NoHarmReport) {
     if opts.denoise > 0.0 {
         let d = denoise::DenoiseOptions {
-            sigma: noise.iter().map(|s| opts.denoise * s).collect(),
+            sigma: noise.sigma.iter().map(|s| opts.denoise * s).collect(),
             transfer: opts.output_transfer.unwrap_or(crate::image::Transfer::Linear),
             parallel: opts.parallel,
             ..opts.denoiser.clone()
@@ -448,33 +522,16 @@ pub fn deblur(
         out = denoise::denoise(&out, &d);
     }
     let no_harm = if opts.no_harm.enabled {
-        let variance = |c: usize, x: f32| match &law {
+        let variance = |c: usize, x: f32| match &noise.law {
             Some(l) => l.variance(c, x),
-            None => noise[c] * noise[c],
+            None => noise.sigma[c] * noise.sigma[c],
         };
         noharm::apply(planes, &mut out, &variance, &opts.no_harm)
     } else {
         noharm::NoHarmReport::default()
     };
-    let report = DeconvReport {
-        noise_sigma: noise,
-        estimated_sigma: estimated,
-        noise_law: law,
-        warnings,
-        no_harm,
-        channels: grid.channels.clone(),
-        lambda,
-        order,
-        tiles: total,
-        window: [pw, ph],
-        levels: lv,
-        cp_iterations: cp,
-        cg_iterations: cg,
-        saturated_pixels: sat,
-    };
-    Ok((out, report))
+    (out, no_harm)
 }
-
 /// The argument checks of [`deblur`].
 fn check_inputs(planes: &[Plane], grid: &PsfGrid, opts: &DeconvOptions) -> Result<(), DeconvError> {
     let nch = planes.len();
@@ -658,8 +715,52 @@ pub fn restore_tile(windows: &[Vec<f32>], kernels: &[Plane], setup: &TileSetup) 
     let opts = setup.opts;
     let nch = windows.len();
     let mut stats = TileStats::default();
+    let pyr = tile_pyramid(windows, kernels, setup, &mut stats);
+    let mut prev: Option<Vec<Vec<f32>>> = None;
+    for z in (0..stats.levels).rev() {
+        let (pw, ph) = (setup.width >> z, setup.height >> z);
+        let fft = Fft2::plan(pw, ph);
+        let mut restored: Vec<Option<Vec<f32>>> = vec![None; nch];
+        for (pos, &c) in setup.order.iter().enumerate() {
+            let ksp = KernelSpectrum::new(&fft, &kernel_to_origin(&pyr.ks[z][c], pw, ph));
+            let data = &pyr.js[z][c];
+            // warm start of the level's first (non-residual) solve: the upsampled coarser result,
+            // or the blurred data at the coarsest level
+            let start = match &prev {
+                Some(p) => pyramid::upsample_nearest(&p[c], pw / 2, ph / 2),
+                None => data.clone(),
+            };
+            let others: Vec<&Vec<f32>> = setup.order[..pos].iter().filter_map(|&l| restored[l].as_ref()).collect();
+            let dark_w2 = (opts.dark_weight > 0.0 && !others.is_empty())
+                .then(|| dark_region_weight(&others, data, opts.dark_threshold, pw, ph, z))
+                .filter(|w2: &Vec<f32>| w2.iter().any(|v| *v > 1e-4));
+            let weight = transfer_weight_map(data, pw, ph, opts.output_transfer, opts.transfer_weight, (2.0 / (1u32 << z) as f32).max(0.75));
+            let cs = ChannelSolve { opts, fft: &fft, ksp: &ksp, mask: pyr.ms[z][c].as_deref(), others: &others, dark_w2, weight, pw, ph, z };
+            let field = setup.field.as_ref().filter(|_| z == 0);
+            let est = restore_channel(&cs, data, start, setup.lambda[c], field.map(|f| (f, c)), &mut stats);
+            restored[c] = Some(est);
+        }
+        prev = Some(restored.into_iter().map(|r| r.unwrap_or_default()).collect());
+    }
+    (prev.unwrap_or_default(), stats)
+}
+
+/// A tile's per-level data, index 0 = finest.
+struct TilePyramid {
+    /// Blurred windows per level and channel.
+    js: Vec<Vec<Vec<f32>>>,
+    /// Data masks per level and channel (`None`: all pixels count).
+    ms: Vec<Vec<Option<Vec<f32>>>>,
+    /// Kernels per level and channel.
+    ks: Vec<Vec<Plane>>,
+}
+
+/// Pyramid stage of [`restore_tile`]: data masks, depth, and the downsampled windows, masks and
+/// kernels; sets `stats.levels` and `stats.saturated`.
+fn tile_pyramid(windows: &[Vec<f32>], kernels: &[Plane], setup: &TileSetup, stats: &mut TileStats) -> TilePyramid {
+    let opts = setup.opts;
     // saturation masks (only channels that have saturated pixels)
-    let masks0 = saturation_masks(windows, opts.saturation, &mut stats);
+    let masks0 = saturation_masks(windows, opts.saturation, stats);
     // pyramid depth: halve while the kernel stays informative and the domain stays sizeable
     let levels = pyramid_depth(kernels, setup.width, setup.height, opts.max_levels);
     stats.levels = levels;
@@ -671,7 +772,6 @@ pub fn restore_tile(windows: &[Vec<f32>], kernels: &[Plane], setup: &TileSetup) 
     } else {
         masks0
     };
-    // pyramids, index 0 = finest
     let mut js: Vec<Vec<Vec<f32>>> = vec![windows.to_vec()];
     let mut ms: Vec<Vec<Option<Vec<f32>>>> = vec![masks0];
     let mut ks: Vec<Vec<Plane>> = vec![kernels.to_vec()];
@@ -681,100 +781,108 @@ pub fn restore_tile(windows: &[Vec<f32>], kernels: &[Plane], setup: &TileSetup) 
         ms.push(ms[z - 1].iter().map(|m| m.as_ref().map(|m| pyramid::downsample_mask_periodic(m, pw, ph))).collect());
         ks.push(ks[z - 1].iter().map(pyramid::downsample_kernel).collect());
     }
-    let mut prev: Option<Vec<Vec<f32>>> = None;
-    for z in (0..levels).rev() {
-        let (pw, ph) = (setup.width >> z, setup.height >> z);
+    TilePyramid { js, ms, ks }
+}
+
+/// One channel's solve setting at pyramid level `z` (`pw × ph`).
+struct ChannelSolve<'s> {
+    opts: &'s DeconvOptions,
+    fft: &'s Fft2,
+    ksp: &'s KernelSpectrum,
+    mask: Option<&'s [f32]>,
+    /// Channels restored before this one at this level.
+    others: &'s [&'s Vec<f32>],
+    /// Dark-region weight `w²` (`None`: no dark-region term).
+    dark_w2: Option<Vec<f32>>,
+    /// Per-pixel prior weight from the output transfer.
+    weight: Option<Vec<f32>>,
+    pw: usize,
+    ph: usize,
+    z: usize,
+}
+
+impl ChannelSolve<'_> {
+    /// Solve stage of [`restore_tile`]: one ADMM (or Chambolle–Pock) solve for `data` at prior
+    /// weight `lam`, warm started at `warm`; `est` is the current estimate (dark-region target).
+    fn solve(&self, data: &[f32], warm: Vec<f32>, est: &[f32], lam: f32, stats: &mut TileStats) -> Vec<f32> {
+        let (opts, others, pw, ph, z) = (self.opts, self.others, self.pw, self.ph, self.z);
         let n = pw * ph;
-        let fft = Fft2::plan(pw, ph);
-        let mut restored: Vec<Option<Vec<f32>>> = vec![None; nch];
-        for (pos, &c) in setup.order.iter().enumerate() {
-            let ksp = KernelSpectrum::new(&fft, &kernel_to_origin(&ks[z][c], pw, ph));
-            // warm start of the level's first (non-residual) solve: the upsampled coarser result,
-            // or the blurred data at the coarsest level
-            let start = match &prev {
-                Some(p) => pyramid::upsample_nearest(&p[c], pw / 2, ph / 2),
-                None => js[z][c].clone(),
-            };
-            let mut est = vec![0.0; n];
-            let others: Vec<&Vec<f32>> = setup.order[..pos].iter().filter_map(|&l| restored[l].as_ref()).collect();
-            let dark_w2 = (opts.dark_weight > 0.0 && !others.is_empty())
-                .then(|| dark_region_weight(&others, &js[z][c], opts.dark_threshold, pw, ph, z))
-                .filter(|w2: &Vec<f32>| w2.iter().any(|v| *v > 1e-4));
-            let weight = transfer_weight_map(&js[z][c], pw, ph, opts.output_transfer, opts.transfer_weight, (2.0 / (1u32 << z) as f32).max(0.75));
-            let lam0 = setup.lambda[c];
-            let mut lam = lam0;
-            let solve = |data: &[f32], warm: Vec<f32>, est: &[f32], lam: f32, stats: &mut TileStats| -> Vec<f32> {
-                let cross: Vec<CrossChannel> = if opts.cross_weight > 0.0 {
-                    others.iter().map(|o| cross_channel(o, opts, lam, pw, ph, z)).collect()
-                } else {
-                    Vec::new()
-                };
-                let dark = dark_w2.as_ref().map(|w2| {
-                    let mut target = vec![0.0; n];
-                    for o in &others {
-                        let diff: Vec<f32> = o.iter().zip(est).map(|(a, b)| a - b).collect();
-                        add_weighted_gradient_normal(&diff, w2, pw, ph, &mut target);
-                    }
-                    DarkTerm { lambda_b: opts.dark_weight, w2: w2.clone(), others: others.len(), target }
-                });
-                let mut p = ChannelProblem::new(&fft, &ksp, data, ms[z][c].as_deref(), lam, &cross, dark);
-                p.set_weight(weight.as_deref());
-                p.order2_weight = opts.order2_weight;
-                if opts.reweight_power != 1.0 {
-                    p.reweight = Some((opts.reweight_power, opts.reweight_eps));
-                }
-                let mut x = warm;
-                if opts.unknown_boundary {
-                    p.data_split = Some(2.0 * opts.data_split_rho);
-                }
-                if opts.admm_rho > 0.0 && p.admm_applies() {
-                    stats.cg_iterations += p.solve_admm(&mut x, opts.max_iterations, opts.admm_rho * lam, opts.admm_cg_iterations);
-                    stats.cp_iterations += opts.max_iterations;
-                    return x;
-                }
-                let mut y = vec![0.0; crate::solve::primal_dual::PrimalDual::dual_len(&p)];
-                let l = operator_norm(&PrimalDualOperator(&p), 15, NORM_SAFETY).max(1e-12);
-                let cp = Options {
-                    max_iterations: opts.cp_max_iterations,
-                    min_iterations: 10,
-                    tolerance: opts.tolerance,
-                    check_every: 10,
-                    sigma: opts.step_balance / l,
-                    theta: 1.0,
-                };
-                let st = chambolle_pock(&mut p, &mut x, &mut y, &cp, Some(l), |_, _| true);
-                stats.cp_iterations += st.iterations;
-                stats.cg_iterations += p.counters.cg_iterations;
-                x
-            };
-            for step in 0..opts.residual_steps.max(1) {
-                let blurred = convolve_spec(&fft, &est, &ksp);
-                let residual: Vec<f32> = js[z][c].iter().zip(&blurred).map(|(j, b)| j - b).collect();
-                // step 0 solves for the image itself (warm started), later steps for increments
-                let warm = if step == 0 { start.clone() } else { vec![0.0; n] };
-                let x = solve(&residual, warm, &est, lam, &mut stats);
-                est.iter_mut().zip(&x).for_each(|(e, d)| *e += d);
-                lam /= 3.0;
+        let cross: Vec<CrossChannel> = if opts.cross_weight > 0.0 {
+            others.iter().map(|o| cross_channel(o, opts, lam, pw, ph, z)).collect()
+        } else {
+            Vec::new()
+        };
+        let dark = self.dark_w2.as_ref().map(|w2| {
+            let mut target = vec![0.0; n];
+            for o in others {
+                let diff: Vec<f32> = o.iter().zip(est).map(|(a, b)| a - b).collect();
+                add_weighted_gradient_normal(&diff, w2, pw, ph, &mut target);
             }
-            // defect correction with the exact field-varying operator A (finest level only):
-            // solve with the tile's kernel B against data corrected by (A − B)·estimate
-            if z == 0 && opts.field_passes > 0 {
-                if let Some(f) = &setup.field {
-                    let op = FieldOperator::new(f.grid, c, f.x0, f.y0, pw, ph, f.image_width, f.image_height);
-                    let mut ax = vec![0.0; n];
-                    for _ in 0..opts.field_passes {
-                        op.apply(&est, &mut ax);
-                        let bx = convolve_spec(&fft, &est, &ksp);
-                        let data: Vec<f32> = js[z][c].iter().zip(&ax).zip(&bx).map(|((j, a), b)| j - a + b).collect();
-                        est = solve(&data, est.clone(), &vec![0.0; n], lam0, &mut stats);
-                    }
-                }
-            }
-            restored[c] = Some(est);
+            DarkTerm { lambda_b: opts.dark_weight, w2: w2.clone(), others: others.len(), target }
+        });
+        let mut p = ChannelProblem::new(self.fft, self.ksp, data, self.mask, lam, &cross, dark);
+        p.set_weight(self.weight.as_deref());
+        p.order2_weight = opts.order2_weight;
+        if opts.reweight_power != 1.0 {
+            p.reweight = Some((opts.reweight_power, opts.reweight_eps));
         }
-        prev = Some(restored.into_iter().map(|r| r.unwrap_or_default()).collect());
+        let mut x = warm;
+        if opts.unknown_boundary {
+            p.data_split = Some(2.0 * opts.data_split_rho);
+        }
+        if opts.admm_rho > 0.0 && p.admm_applies() {
+            stats.cg_iterations += p.solve_admm(&mut x, opts.max_iterations, opts.admm_rho * lam, opts.admm_cg_iterations);
+            stats.cp_iterations += opts.max_iterations;
+            return x;
+        }
+        let mut y = vec![0.0; crate::solve::primal_dual::PrimalDual::dual_len(&p)];
+        let l = operator_norm(&PrimalDualOperator(&p), 15, NORM_SAFETY).max(1e-12);
+        let cp = Options {
+            max_iterations: opts.cp_max_iterations,
+            min_iterations: 10,
+            tolerance: opts.tolerance,
+            check_every: 10,
+            sigma: opts.step_balance / l,
+            theta: 1.0,
+        };
+        let st = chambolle_pock(&mut p, &mut x, &mut y, &cp, Some(l), |_, _| true);
+        stats.cp_iterations += st.iterations;
+        stats.cg_iterations += p.counters.cg_iterations;
+        x
     }
-    (prev.unwrap_or_default(), stats)
+}
+
+/// Channel stage of [`restore_tile`]: residual deconvolution steps from `start`, then (with
+/// `field` = the window and channel, finest level only) defect correction with the exact operator.
+fn restore_channel(cs: &ChannelSolve, data: &[f32], start: Vec<f32>, lam0: f32, field: Option<(&FieldWindow, usize)>, stats: &mut TileStats) -> Vec<f32> {
+    let (opts, pw, ph) = (cs.opts, cs.pw, cs.ph);
+    let n = pw * ph;
+    let mut est = vec![0.0; n];
+    let mut lam = lam0;
+    for step in 0..opts.residual_steps.max(1) {
+        let blurred = convolve_spec(cs.fft, &est, cs.ksp);
+        let residual: Vec<f32> = data.iter().zip(&blurred).map(|(j, b)| j - b).collect();
+        // step 0 solves for the image itself (warm started), later steps for increments
+        let warm = if step == 0 { start.clone() } else { vec![0.0; n] };
+        let x = cs.solve(&residual, warm, &est, lam, stats);
+        est.iter_mut().zip(&x).for_each(|(e, d)| *e += d);
+        lam /= 3.0;
+    }
+    // defect correction with the exact field-varying operator A (finest level only):
+    // solve with the tile's kernel B against data corrected by (A − B)·estimate
+    if opts.field_passes > 0 {
+        if let Some((f, c)) = field {
+            let op = FieldOperator::new(f.grid, c, f.x0, f.y0, pw, ph, f.image_width, f.image_height);
+            let mut ax = vec![0.0; n];
+            for _ in 0..opts.field_passes {
+                op.apply(&est, &mut ax);
+                let bx = convolve_spec(cs.fft, &est, cs.ksp);
+                let corrected: Vec<f32> = data.iter().zip(&ax).zip(&bx).map(|((j, a), b)| j - a + b).collect();
+                est = cs.solve(&corrected, est.clone(), &vec![0.0; n], lam0, stats);
+            }
+        }
+    }
+    est
 }
 
 #[cfg(test)]

@@ -92,19 +92,8 @@ impl<'p, 'a> ChannelAdmm<'p, 'a> {
         } else {
             XUpdate::Cg
         };
-        let nblk = ALL.len() + 2 * p.cross.len();
-        let scale: Vec<f32> =
-            (0..nblk).map(|blk| if blk < ALL.len() { p.block_lambda(blk) / rho } else { p.cross[(blk - ALL.len()) / 2].beta / rho }).collect();
-        let cross_w: Vec<Option<Vec<f32>>> = p
-            .cross
-            .iter()
-            .map(|cc| {
-                cc.pixel.as_ref().map(|px| match p.weight {
-                    Some(wt) => px.iter().zip(wt).map(|(p, w)| p * w).collect(),
-                    None => px.clone(),
-                })
-            })
-            .collect();
+        let scale = block_scales(p, rho);
+        let cross_w = cross_weights(p);
         let spec = vec![Complex32::new(0.0, 0.0); p.fft.spectrum_len()];
         let scratch = |on: bool| if on { vec![0.0f32; n] } else { Vec::new() };
         let mut s = Self {
@@ -137,17 +126,23 @@ impl<'p, 'a> ChannelAdmm<'p, 'a> {
             bu: scratch(mode == XUpdate::Cg),
             spec,
         };
-        s.two_btj = s.data_rhs();
-        if split.is_some() {
-            s.bx = s.blur(x);
-        }
-        if fast {
-            s.p.fft.forward_into(x, &mut s.spec);
-            s.spec.iter_mut().zip(&s.denom).for_each(|(sp, d)| *sp *= d);
-            s.p.fft.inverse_into(&mut s.spec, &mut s.px);
-            s.p.add_cross_normal(x, rho, &mut s.kbuf, &mut s.cx);
-        }
+        s.prime(x);
         s
+    }
+
+    /// Warm-start stage of [`Self::new`]: the data right-hand side, `B x` with the data split,
+    /// and `P x`, `ρ CᵀC x` for the fast x-update.
+    fn prime(&mut self, x: &[f32]) {
+        self.two_btj = self.data_rhs();
+        if self.split.is_some() {
+            self.bx = self.blur(x);
+        }
+        if self.mode == XUpdate::Fast {
+            self.p.fft.forward_into(x, &mut self.spec);
+            self.spec.iter_mut().zip(&self.denom).for_each(|(sp, d)| *sp *= d);
+            self.p.fft.inverse_into(&mut self.spec, &mut self.px);
+            self.p.add_cross_normal(x, self.rho, &mut self.kbuf, &mut self.cx);
+        }
     }
 
     /// `2 BᵀM ΔJ`, spatial, for the CG paths (zeros with the data split, which refills it
@@ -364,4 +359,25 @@ impl AdmmSteps for ChannelAdmm<'_, '_> {
         }
         self.x_update_cg(x)
     }
+}
+
+/// Threshold-scale stage of [`ChannelAdmm::new`]: `λ_blk / ρ` per derivative block, `β / ρ`
+/// for both blocks of each cross-channel term.
+fn block_scales(p: &ChannelProblem, rho: f32) -> Vec<f32> {
+    let nblk = ALL.len() + 2 * p.cross.len();
+    (0..nblk).map(|blk| if blk < ALL.len() { p.block_lambda(blk) / rho } else { p.cross[(blk - ALL.len()) / 2].beta / rho }).collect()
+}
+
+/// Cross-weight stage of [`ChannelAdmm::new`]: each cross-channel term's per-pixel weight
+/// times the transfer weight (`None`: no per-pixel weight).
+fn cross_weights(p: &ChannelProblem) -> Vec<Option<Vec<f32>>> {
+    p.cross
+        .iter()
+        .map(|cc| {
+            cc.pixel.as_ref().map(|px| match p.weight {
+                Some(wt) => px.iter().zip(wt).map(|(p, w)| p * w).collect(),
+                None => px.clone(),
+            })
+        })
+        .collect()
 }

@@ -5,12 +5,13 @@
 //!   the benchmark's (`chromatic` 1.0 instead of 0.45, 31-px kernels): green is the sharpest
 //!   channel, red and blue are defocused to discs of about 9 px radius on axis (about 13 px in
 //!   the corners). 5 × 4 PSF grid. The **true** profile is used (no `estimate` run).
-//! - **Scene:** `fundus(1024, 768)`, a procedural red-dominant fundus-like image (generated
+//! - **Scene:** [`lensrig::deconv::synth::fundus`] at 1024 × 768, a procedural red-dominant fundus-like image (generated
 //!   here, CC0; `data/scenes-extra/README.md`): smooth orange-red disc, a bright optic disc,
 //!   darker vessels, dim green and blue.
 //! - **Noise:** Poisson–Gaussian, full well 15 000 e⁻, read noise 4 e⁻ (linear full scale).
 //! - **Restoration:** `deconv::deblur` with the true noise law (as the profile would carry it),
-//!   linear output; the denoiser's noise model is the second argument (default `flat`).
+//!   linear output; the denoiser's noise model is the second argument: `flat` (`denoise × σ_c`,
+//!   the former default) or `coloured` (propagated through the solver, [`lensrig::deconv::coloured`]).
 //!
 //! Prints PSNR (dB, linear values) of the blurred input and of the output, per channel the
 //! error RMS of each relative to the sensor noise RMS, and the share of 32×32 blocks where the
@@ -32,39 +33,6 @@ const W: usize = 1024;
 const H: usize = 768;
 const FULL_WELL: f64 = 15_000.0;
 const READ_E: f64 = 4.0;
-
-/// A smooth fundus-like scene on the linear axis: `[R, G, B]`.
-fn fundus(w: usize, h: usize) -> Vec<Plane> {
-    let (cx, cy, rad) = (w as f32 / 2.0, h as f32 / 2.0, 0.47 * h as f32);
-    let (dx0, dy0) = (cx + 0.22 * w as f32, cy - 0.05 * h as f32); // optic disc
-    // vessels: smooth curves y = y_i + a_i sin(x / p_i + φ_i), 2.5–5 px wide
-    let vessels = [(0.30f32, 28.0f32, 140.0f32, 0.3f32, 4.5f32), (0.45, 40.0, 210.0, 1.7, 3.0), (0.62, 35.0, 170.0, 2.9, 5.0), (0.75, 22.0, 120.0, 4.1, 2.5)];
-    let mut planes = vec![Plane::new(w, h), Plane::new(w, h), Plane::new(w, h)];
-    for y in 0..h {
-        for x in 0..w {
-            let (fx, fy) = (x as f32, y as f32);
-            let r = ((fx - cx).powi(2) + (fy - cy).powi(2)).sqrt() / rad;
-            // soft circular field stop and a vignetted fundus
-            let stop = (1.0 - (r - 0.97) / 0.03).clamp(0.0, 1.0);
-            let base = 0.55 + 0.25 * (1.0 - r * r).max(0.0);
-            let d2 = ((fx - dx0).powi(2) + (fy - dy0).powi(2)) / (0.07 * h as f32).powi(2);
-            let disc = (-d2).exp();
-            let mut vessel = 0.0f32;
-            for (yi, a, p, ph, wd) in vessels {
-                let yc = yi * h as f32 + a * (fx / p + ph).sin() + 0.1 * (fx - cx);
-                vessel = vessel.max((-((fy - yc) / wd).powi(2)).exp());
-            }
-            let mottle = 0.03 * ((fx / 37.0).sin() * (fy / 53.0).cos() + (fx / 71.0 + fy / 89.0).sin());
-            let red = (base + mottle + 0.2 * disc) * (1.0 - 0.35 * vessel);
-            let green = (0.12 + 0.5 * mottle + 0.3 * disc) * (1.0 - 0.6 * vessel);
-            let blue = (0.04 + 0.15 * disc) * (1.0 - 0.3 * vessel);
-            planes[0].set(x, y, (stop * red).clamp(0.0, 1.0));
-            planes[1].set(x, y, (stop * green).clamp(0.0, 1.0));
-            planes[2].set(x, y, (stop * blue).clamp(0.0, 1.0));
-        }
-    }
-    planes
-}
 
 fn mse(a: &Plane, b: &Plane) -> f64 {
     a.data.iter().zip(&b.data).map(|(u, v)| ((u - v) as f64).powi(2)).sum::<f64>() / a.data.len().max(1) as f64
@@ -112,7 +80,7 @@ fn main() -> anyhow::Result<()> {
     };
     let dir = Path::new(out);
     std::fs::create_dir_all(dir)?;
-    let sharp = fundus(W, H);
+    let sharp = lensrig::deconv::synth::fundus(W, H);
     let lens = SyntheticLens { chromatic: 1.0, ..SyntheticLens::new(31, 3) };
     let grid = lens.grid(W, H, 3, 5, 4);
     let mut rng = lensrig::rng::Rng::new(12);
@@ -126,10 +94,12 @@ fn main() -> anyhow::Result<()> {
     save(dir, "sharp.png", &sharp)?;
     save(dir, "blurred.png", &noisy)?;
     let law = NoiseLaw::new(vec![1.0 / FULL_WELL; 3], vec![READ_E / FULL_WELL; 3], "given");
-    let opts = DeconvOptions { noise: NoiseSource::Law(law), ..DeconvOptions::default() };
-    if mode != "flat" {
-        anyhow::bail!("unknown mode '{mode}' (flat)");
-    }
+    let coloured_noise = match mode {
+        "flat" => false,
+        "coloured" => true,
+        m => anyhow::bail!("unknown mode '{m}' (flat|coloured)"),
+    };
+    let opts = DeconvOptions { noise: NoiseSource::Law(law), coloured_noise, ..DeconvOptions::default() };
     let t = Instant::now();
     let (restored, report) = deblur(&noisy, &grid, &opts, &|_, _| {})?;
     let secs = t.elapsed().as_secs_f64();

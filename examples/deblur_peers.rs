@@ -94,7 +94,7 @@ fn prepare(out: &Path, scene: &Path) -> anyhow::Result<()> {
         "noise_sigma_linear": NOISE,
     });
     std::fs::write(dir.join("psfs.json"), serde_json::to_string(&psfs)?)?;
-    // LR_DARK / LR_TILE / LR_ITERS override the defaults (for profiling runs only)
+    // LR_DARK / LR_TILE / LR_ITERS / LR_FLAT_DENOISE override the defaults (for profiling runs only)
     let env = |k: &str| std::env::var(k).ok().and_then(|v| v.parse::<f32>().ok());
     let d = lensrig::deconv::DeconvOptions::default();
     let opts = lensrig::deconv::DeconvOptions {
@@ -103,6 +103,8 @@ fn prepare(out: &Path, scene: &Path) -> anyhow::Result<()> {
         max_iterations: env("LR_ITERS").map_or(d.max_iterations, |v| v as usize),
         saturation: Some(0.99),
         tile_core: env("LR_TILE").map(|v| v as usize),
+        // LR_FLAT_DENOISE=1: the former flat-σ denoiser (before/after comparisons)
+        coloured_noise: std::env::var("LR_FLAT_DENOISE").map_or(d.coloured_noise, |v| v != "1"),
         ..d
     };
     let (profile, input, restored) = (dir.join("profile"), dir.join("blurred.png"), dir.join("lensrig.png"));

@@ -68,6 +68,11 @@ pub struct DeblurArgs {
     /// restoration is noisier than it).
     #[arg(long)]
     pub no_harm_off: bool,
+    /// Noise model of the denoising stage: `coloured` (each opponent plane's noise per DCT
+    /// coefficient, propagated through the solver from the channel's PSF and the noise level) or
+    /// `flat` (a flat spectrum at a multiple of the input σ).
+    #[arg(long, value_parser = ["flat", "coloured"], default_value = if DeconvOptions::default().coloured_noise { "coloured" } else { "flat" })]
+    pub denoise_noise: String,
     /// Largest tile core in pixels (default: from the kernel size and the PSF grid).
     #[arg(long)]
     pub tile: Option<usize>,
@@ -88,6 +93,7 @@ impl DeblurArgs {
             saturation: (self.saturation <= 1.0).then_some(self.saturation),
             tile_core: self.tile,
             noise: self.noise.clone(),
+            coloured_noise: self.denoise_noise == "coloured",
             no_harm: lensrig::deconv::noharm::NoHarmOptions { enabled: !self.no_harm_off, ..Default::default() },
             ..DeconvOptions::default()
         }

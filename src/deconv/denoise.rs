@@ -55,6 +55,12 @@ pub struct DenoiseOptions {
     /// Matching threshold: a candidate joins when its mean squared difference to the reference
     /// is below `match_tau · σ_b²`.
     pub match_tau: f32,
+    /// Coloured noise (docs/deconvolution.md "Coloured-noise denoising"): per decorrelated plane
+    /// (opponent `Y, C₁, C₂` for RGB, else the channels), the linear-axis variance `σ²_k` of each
+    /// 8×8 DCT coefficient (row-major `k = 8u + v`) of the noise the stage faces. When set, it
+    /// replaces `sigma` and `chroma`: the plane's level is `σ = √(mean_k σ²_k)` and coefficient
+    /// `k` is thresholded and Wiener-shrunk at `σ_b √(σ²_k / mean σ²)`.
+    pub coefficient_variance: Option<Vec<[f32; 64]>>,
     /// Exponent `p`: the block noise level is `σ g'(0.18) (g'(v̄_b)/g'(0.18))^p` (1: the delta
     /// method; smaller values account for the solver's prior, which already regularises dark
     /// regions more).
@@ -79,6 +85,7 @@ impl Default for DenoiseOptions {
             group: 8,
             match_tau: 10.0,
             slope_power: 0.0,
+            coefficient_variance: None,
             parallel: true,
         }
     }
@@ -165,7 +172,7 @@ fn transpose(d: &[f32; 64]) -> [f32; 64] {
 
 /// `D X Dᵀ` (forward 2-D DCT) of an 8×8 block.
 #[inline]
-fn dct2(x: &[f32; 64], out: &mut [f32; 64]) {
+pub(crate) fn dct2(x: &[f32; 64], out: &mut [f32; 64]) {
     *out = transpose(&fdct_rows(&transpose(&fdct_rows(x))));
 }
 
@@ -185,7 +192,8 @@ fn lattice(n: usize, step: usize) -> Vec<usize> {
     v
 }
 
-const OPP: [[f32; 3]; 3] = [
+/// The orthonormal opponent transform (rows `Y`, `C₁`, `C₂`).
+pub(crate) const OPP: [[f32; 3]; 3] = [
     [0.577_350_26, 0.577_350_26, 0.577_350_26],
     [0.707_106_77, 0.0, -0.707_106_77],
     [0.408_248_3, -0.816_496_6, 0.408_248_3],
@@ -196,7 +204,11 @@ const OPP: [[f32; 3]; 3] = [
 pub fn denoise(planes: &[Plane], opts: &DenoiseOptions) -> Vec<Plane> {
     let nch = planes.len();
     let (w, h) = (planes[0].width, planes[0].height);
-    if w < B || h < B || nch == 0 || opts.sigma.iter().all(|s| *s <= 1e-9) {
+    let silent = match &opts.coefficient_variance {
+        Some(v) => v.len() < nch || v.iter().all(|c| c.iter().all(|s| *s <= 1e-18)),
+        None => opts.sigma.len() < nch || opts.sigma.iter().all(|s| *s <= 1e-9),
+    };
+    if w < B || h < B || nch == 0 || silent {
         return planes.to_vec();
     }
     let step = opts.step.clamp(1, B);
@@ -209,17 +221,8 @@ pub fn denoise(planes: &[Plane], opts: &DenoiseOptions) -> Vec<Plane> {
     let halo = 2 * B + 4 * sr;
     let starts: Vec<usize> = (0..h).step_by(strip).collect();
     let opponent = nch == 3;
-    // noise of each decorrelated channel, relative to the encoded slope
-    let sig_lin: Vec<f32> = if opponent {
-        (0..3)
-            .map(|i| {
-                let v: f32 = (0..3).map(|c| OPP[i][c] * OPP[i][c] * opts.sigma[c] * opts.sigma[c]).sum();
-                v.sqrt() * if i == 0 { 1.0 } else { opts.chroma }
-            })
-            .collect()
-    } else {
-        opts.sigma.clone()
-    };
+    let (sig_lin, rel) = plane_noise(opts, opponent);
+    let rel = &rel;
     let t = opts.transfer;
     let raw_slope = move |v: f32| {
         if t == Transfer::Linear {
@@ -279,16 +282,18 @@ pub fn denoise(planes: &[Plane], opts: &DenoiseOptions) -> Vec<Plane> {
                     }
                     dct2(&x, &mut c);
                     let thr = opts.threshold * sg;
-                    let mut kept = 1usize;
-                    for v in c.iter_mut().skip(1) {
-                        if v.abs() < thr {
+                    let rc = &rel[ch];
+                    // the estimate's noise variance, in units of sg²: Σ over kept coefficients
+                    let mut kept = rc[0] * rc[0];
+                    for (v, r) in c.iter_mut().zip(rc).skip(1) {
+                        if v.abs() < thr * r {
                             *v = 0.0;
                         } else {
-                            kept += 1;
+                            kept += r * r;
                         }
                     }
                     idct2(&c, &mut o);
-                    let wt = 1.0 / (sg * sg * kept as f32).max(1e-20);
+                    let wt = 1.0 / (sg * sg * kept).max(1e-20);
                     for r in 0..B {
                         let row = (ly + r) * w + px;
                         for q in 0..B {
@@ -305,7 +310,7 @@ pub fn denoise(planes: &[Plane], opts: &DenoiseOptions) -> Vec<Plane> {
             let refs = blocks(y0 as isize - 2 * B as isize + 2 - 3 * srs, y1 as isize + 3 * srs + B as isize - 1);
             for ch in 0..nbm.min(noisy.len()) {
                 let sigma = |ly: usize, px: usize| sig_lin[ch] * block_sigma(ly, px);
-                bm_stage(&ctx, &noisy[ch], None, &refs, &sigma, &mut pilot[ch], &mut wsum[ch]);
+                bm_stage(&ctx, &noisy[ch], None, &refs, (&sigma, &rel[ch]), &mut pilot[ch], &mut wsum[ch]);
             }
         }
         for (p, s) in pilot.iter_mut().zip(&wsum) {
@@ -335,10 +340,10 @@ pub fn denoise(planes: &[Plane], opts: &DenoiseOptions) -> Vec<Plane> {
                         }
                         dct2(&x, &mut pc);
                         let mut wn = 0.0;
-                        for (k, (cv, pv)) in c.iter_mut().zip(&pc).enumerate() {
-                            let f = if k == 0 { 1.0 } else { pv * pv / (pv * pv + s2v).max(1e-30) };
+                        for (k, ((cv, pv), r)) in c.iter_mut().zip(&pc).zip(&rel[ch]).enumerate() {
+                            let f = if k == 0 { 1.0 } else { pv * pv / (pv * pv + s2v * r * r).max(1e-30) };
                             *cv *= f;
-                            wn += f * f;
+                            wn += f * f * r * r;
                         }
                         idct2(&c, &mut o);
                         let wt = 1.0 / (s2v * wn).max(1e-20);
@@ -356,7 +361,7 @@ pub fn denoise(planes: &[Plane], opts: &DenoiseOptions) -> Vec<Plane> {
                 let refs = blocks(y0 as isize - B as isize + 1 - srs, y1 as isize + srs);
                 for ch in 0..nbm.min(noisy.len()) {
                     let sigma = |ly: usize, px: usize| sig_lin[ch] * block_sigma(ly, px);
-                    bm_stage(&ctx, &noisy[ch], Some(&pilot[ch]), &refs, &sigma, &mut num[ch], &mut den[ch]);
+                    bm_stage(&ctx, &noisy[ch], Some(&pilot[ch]), &refs, (&sigma, &rel[ch]), &mut num[ch], &mut den[ch]);
                 }
             }
             num.iter_mut().zip(&den).for_each(|(n, d)| n.iter_mut().zip(d).for_each(|(n, d)| *n = if *d > 0.0 { *n / d } else { 0.0 }));
@@ -386,6 +391,37 @@ pub fn denoise(planes: &[Plane], opts: &DenoiseOptions) -> Vec<Plane> {
     }
     out
 }
+
+/// The noise level `σ` of each decorrelated plane (linear axis, before the transfer slope) and
+/// each DCT coefficient's level relative to it (`√(σ²_k / mean_k σ²_k)`; all 1 for white noise).
+fn plane_noise(opts: &DenoiseOptions, opponent: bool) -> (Vec<f32>, Vec<[f32; 64]>) {
+    if let Some(var) = &opts.coefficient_variance {
+        return var
+            .iter()
+            .map(|v| {
+                let mean = v.iter().sum::<f32>() / 64.0;
+                let rel = std::array::from_fn(|k| if mean > 0.0 { (v[k] / mean).max(0.0).sqrt() } else { 1.0 });
+                (mean.max(0.0).sqrt(), rel)
+            })
+            .unzip();
+    }
+    let sig: Vec<f32> = if opponent {
+        (0..3)
+            .map(|i| {
+                let v: f32 = (0..3).map(|c| OPP[i][c] * OPP[i][c] * opts.sigma[c] * opts.sigma[c]).sum();
+                v.sqrt() * if i == 0 { 1.0 } else { opts.chroma }
+            })
+            .collect()
+    } else {
+        opts.sigma.clone()
+    };
+    let n = sig.len();
+    (sig, vec![[1.0; 64]; n])
+}
+
+/// A block's noise for [`bm_stage`]: its level `σ_b` at (local row, column) and each DCT
+/// coefficient's level relative to it.
+type BlockNoise<'n> = (&'n dyn Fn(usize, usize) -> f32, &'n [f32; 64]);
 
 struct BmContext<'a> {
     w: usize,
@@ -438,8 +474,10 @@ fn haar_inverse(g: &mut [[f32; 64]], t: &mut [[f32; 64]], n: usize) {
 /// block (local rows `refs`, columns `ctx.xs`), the most similar blocks within the search window
 /// are grouped (matched on `pilot` when given, else on `noisy`), transformed by the 2-D DCT and a
 /// 1-D Haar transform across the group, hard-thresholded (no pilot) or Wiener-shrunk against the
-/// pilot group, and aggregated into `num`/`den`.
-fn bm_stage(ctx: &BmContext, noisy: &[f32], pilot: Option<&[f32]>, refs: &[usize], sigma: &dyn Fn(usize, usize) -> f32, num: &mut [f32], den: &mut [f32]) {
+/// pilot group, and aggregated into `num`/`den`. `noise` is the block's level `σ_b` and the
+/// relative level of each DCT coefficient (all 1 for white noise).
+fn bm_stage(ctx: &BmContext, noisy: &[f32], pilot: Option<&[f32]>, refs: &[usize], noise: BlockNoise, num: &mut [f32], den: &mut [f32]) {
+    let (sigma, rel) = noise;
     let (w, opts) = (ctx.w, ctx.opts);
     let sr = opts.search as isize;
     let st = opts.search_step.max(1);
@@ -519,17 +557,18 @@ fn bm_stage(ctx: &BmContext, noisy: &[f32], pilot: Option<&[f32]>, refs: &[usize
                 haar_forward(&mut gp, &mut scratch, n);
                 for (c, p) in gc[..n].iter_mut().zip(&gp[..n]) {
                     for k in 0..64 {
-                        let f = if k == 0 { 1.0 } else { p[k] * p[k] / (p[k] * p[k] + s2).max(1e-30) };
+                        let r2 = rel[k] * rel[k];
+                        let f = if k == 0 { 1.0 } else { p[k] * p[k] / (p[k] * p[k] + s2 * r2).max(1e-30) };
                         c[k] *= f;
-                        wn += f * f;
+                        wn += f * f * r2;
                     }
                 }
             } else {
                 let thr = opts.threshold * sg;
                 for c in gc[..n].iter_mut() {
                     for (k, v) in c.iter_mut().enumerate() {
-                        if k == 0 || v.abs() >= thr {
-                            wn += 1.0;
+                        if k == 0 || v.abs() >= thr * rel[k] {
+                            wn += rel[k] * rel[k];
                         } else {
                             *v = 0.0;
                         }

@@ -69,7 +69,7 @@ pub fn output_variance(fft: &Fft2, gain: &[f32], sigma2: f32) -> f32 {
 }
 
 /// How many full-spectrum bins half-spectrum column `kx` stands for (1 or 2).
-fn bin_weight(kx: usize, w: usize) -> f64 {
+pub(crate) fn bin_weight(kx: usize, w: usize) -> f64 {
     if kx == 0 || (w % 2 == 0 && kx == w / 2) {
         1.0
     } else {

@@ -78,6 +78,41 @@ impl SyntheticLens {
     }
 }
 
+/// A smooth, red-dominant fundus-like scene on the linear axis, `[R, G, B]` (procedural, CC0;
+/// data/scenes-extra/README.md): an orange-red disc with a soft field stop, a brighter optic
+/// disc, four darker vessels 2.5–5 px wide, a faint mottle; green ≈ 0.1–0.4, blue ≈ 0.04–0.2.
+pub fn fundus(w: usize, h: usize) -> Vec<Plane> {
+    let (cx, cy, rad) = (w as f32 / 2.0, h as f32 / 2.0, 0.47 * h as f32);
+    let (dx0, dy0) = (cx + 0.22 * w as f32, cy - 0.05 * h as f32); // optic disc
+    // vessels: smooth curves y = y_i + a_i sin(x / p_i + φ_i), 2.5–5 px wide
+    let vessels = [(0.30f32, 28.0f32, 140.0f32, 0.3f32, 4.5f32), (0.45, 40.0, 210.0, 1.7, 3.0), (0.62, 35.0, 170.0, 2.9, 5.0), (0.75, 22.0, 120.0, 4.1, 2.5)];
+    let mut planes = vec![Plane::new(w, h), Plane::new(w, h), Plane::new(w, h)];
+    for y in 0..h {
+        for x in 0..w {
+            let (fx, fy) = (x as f32, y as f32);
+            let r = ((fx - cx).powi(2) + (fy - cy).powi(2)).sqrt() / rad;
+            // soft circular field stop and a vignetted fundus
+            let stop = (1.0 - (r - 0.97) / 0.03).clamp(0.0, 1.0);
+            let base = 0.55 + 0.25 * (1.0 - r * r).max(0.0);
+            let d2 = ((fx - dx0).powi(2) + (fy - dy0).powi(2)) / (0.07 * h as f32).powi(2);
+            let disc = (-d2).exp();
+            let mut vessel = 0.0f32;
+            for (yi, a, p, ph, wd) in vessels {
+                let yc = yi * h as f32 + a * (fx / p + ph).sin() + 0.1 * (fx - cx);
+                vessel = vessel.max((-((fy - yc) / wd).powi(2)).exp());
+            }
+            let mottle = 0.03 * ((fx / 37.0).sin() * (fy / 53.0).cos() + (fx / 71.0 + fy / 89.0).sin());
+            let red = (base + mottle + 0.2 * disc) * (1.0 - 0.35 * vessel);
+            let green = (0.12 + 0.5 * mottle + 0.3 * disc) * (1.0 - 0.6 * vessel);
+            let blue = (0.04 + 0.15 * disc) * (1.0 - 0.3 * vessel);
+            planes[0].set(x, y, (stop * red).clamp(0.0, 1.0));
+            planes[1].set(x, y, (stop * green).clamp(0.0, 1.0));
+            planes[2].set(x, y, (stop * blue).clamp(0.0, 1.0));
+        }
+    }
+    planes
+}
+
 /// Deterministic standard normal samples (SplitMix64 + Box–Muller).
 pub struct GaussianNoise {
     state: u64,

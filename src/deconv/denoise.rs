@@ -211,177 +211,13 @@ pub fn denoise(planes: &[Plane], opts: &DenoiseOptions) -> Vec<Plane> {
     if w < B || h < B || nch == 0 || silent {
         return planes.to_vec();
     }
-    let step = opts.step.clamp(1, B);
-    let xs = lattice(w, step);
-    let ys = lattice(h, step);
-    let bm = opts.search > 0 && opts.group > 1;
-    let sr = if bm { opts.search } else { 0 };
-    let strip = if bm { 128usize } else { 64usize };
-    let nbm = opts.bm_channels.max(1);
-    let halo = 2 * B + 4 * sr;
-    let starts: Vec<usize> = (0..h).step_by(strip).collect();
-    let opponent = nch == 3;
-    let (sig_lin, rel) = plane_noise(opts, opponent);
-    let rel = &rel;
-    let t = opts.transfer;
-    let raw_slope = move |v: f32| {
-        if t == Transfer::Linear {
-            return 1.0;
-        }
-        let v = v.clamp(1e-4, 1.0);
-        let dv = 1e-3 * v;
-        (t.encode(v + dv) - t.encode(v - dv)) / (2.0 * dv)
-    };
-    let mid = raw_slope(0.18);
-    let sp = opts.slope_power;
-    let slope = move |v: f32| mid * (raw_slope(v) / mid).powf(sp);
-    let work = |&y0: &usize| -> (usize, Vec<Vec<f32>>) {
-        let y1 = (y0 + strip).min(h);
-        // rows of the strip with the two stages' halos
-        let a = y0.saturating_sub(halo);
-        let b = (y1 + halo).min(h);
-        let rows = b - a;
-        let lin: Vec<&[f32]> = planes.iter().map(|p| &p.data[a * w..b * w]).collect();
-        // per-block brightness comes from the linear mean over channels
-        let mean_lin: Vec<f32> = (0..rows * w).map(|i| lin.iter().map(|p| p[i]).sum::<f32>() / nch as f32).collect();
-        let enc: Vec<Vec<f32>> = lin.iter().map(|p| p.iter().map(|v| t.encode(*v)).collect()).collect();
-        let noisy: Vec<Vec<f32>> = if opponent {
-            (0..3).map(|i| (0..rows * w).map(|k| OPP[i][0] * enc[0][k] + OPP[i][1] * enc[1][k] + OPP[i][2] * enc[2][k]).collect()).collect()
-        } else {
-            enc
-        };
-        let block_sigma = |by: usize, bx: usize| {
-            let mut s = 0.0;
-            for r in 0..B {
-                for q in 0..B {
-                    s += mean_lin[(by + r) * w + bx + q];
-                }
-            }
-            slope(s / (B * B) as f32)
-        };
-        // stage 1 over blocks whose rows lie in [y0 − 2B + 1, y1 + B − 1) (the pilot then is
-        // complete on [y0 − B, y1 + B))
-        let blocks = |lo: isize, hi: isize| -> Vec<usize> { ys.iter().copied().filter(|&py| (py as isize) >= lo && (py as isize) < hi).collect() };
-        let s1 = blocks(y0 as isize - 2 * B as isize + 1, y1 as isize + B as isize);
-        let mut pilot = vec![vec![0.0f32; rows * w]; noisy.len()];
-        let mut wsum = vec![vec![0.0f32; rows * w]; noisy.len()];
-        let mut x = [0.0f32; 64];
-        let mut c = [0.0f32; 64];
-        let mut o = [0.0f32; 64];
-        for &py in &s1 {
-            let ly = py - a;
-            for &px in &xs {
-                let g = block_sigma(ly, px);
-                for (ch, plane) in noisy.iter().enumerate() {
-                    if bm && ch < nbm {
-                        continue;
-                    }
-                    let sg = sig_lin[ch] * g;
-                    for r in 0..B {
-                        x[r * B..r * B + B].copy_from_slice(&plane[(ly + r) * w + px..(ly + r) * w + px + B]);
-                    }
-                    dct2(&x, &mut c);
-                    let thr = opts.threshold * sg;
-                    let rc = &rel[ch];
-                    // the estimate's noise variance, in units of sg²: Σ over kept coefficients
-                    let mut kept = rc[0] * rc[0];
-                    for (v, r) in c.iter_mut().zip(rc).skip(1) {
-                        if v.abs() < thr * r {
-                            *v = 0.0;
-                        } else {
-                            kept += r * r;
-                        }
-                    }
-                    idct2(&c, &mut o);
-                    let wt = 1.0 / (sg * sg * kept).max(1e-20);
-                    for r in 0..B {
-                        let row = (ly + r) * w + px;
-                        for q in 0..B {
-                            pilot[ch][row + q] += wt * o[r * B + q];
-                            wsum[ch][row + q] += wt;
-                        }
-                    }
-                }
-            }
-        }
-        let srs = sr as isize;
-        let ctx = BmContext { w, h, a, b, xs: &xs, opts };
-        if bm {
-            let refs = blocks(y0 as isize - 2 * B as isize + 2 - 3 * srs, y1 as isize + 3 * srs + B as isize - 1);
-            for ch in 0..nbm.min(noisy.len()) {
-                let sigma = |ly: usize, px: usize| sig_lin[ch] * block_sigma(ly, px);
-                bm_stage(&ctx, &noisy[ch], None, &refs, (&sigma, &rel[ch]), &mut pilot[ch], &mut wsum[ch]);
-            }
-        }
-        for (p, s) in pilot.iter_mut().zip(&wsum) {
-            p.iter_mut().zip(s).for_each(|(p, s)| *p = if *s > 0.0 { *p / s } else { 0.0 });
-        }
-        let result: Vec<Vec<f32>> = if opts.wiener {
-            let s2 = blocks(y0 as isize - B as isize + 1, y1 as isize);
-            let mut num = vec![vec![0.0f32; rows * w]; noisy.len()];
-            let mut den = vec![vec![0.0f32; rows * w]; noisy.len()];
-            let mut pc = [0.0f32; 64];
-            for &py in &s2 {
-                let ly = py - a;
-                for &px in &xs {
-                    let g = block_sigma(ly, px);
-                    for ch in 0..noisy.len() {
-                        if bm && ch < nbm {
-                            continue;
-                        }
-                        let sg = sig_lin[ch] * g;
-                        let s2v = sg * sg;
-                        for r in 0..B {
-                            x[r * B..r * B + B].copy_from_slice(&noisy[ch][(ly + r) * w + px..(ly + r) * w + px + B]);
-                        }
-                        dct2(&x, &mut c);
-                        for r in 0..B {
-                            x[r * B..r * B + B].copy_from_slice(&pilot[ch][(ly + r) * w + px..(ly + r) * w + px + B]);
-                        }
-                        dct2(&x, &mut pc);
-                        let mut wn = 0.0;
-                        for (k, ((cv, pv), r)) in c.iter_mut().zip(&pc).zip(&rel[ch]).enumerate() {
-                            let f = if k == 0 { 1.0 } else { pv * pv / (pv * pv + s2v * r * r).max(1e-30) };
-                            *cv *= f;
-                            wn += f * f * r * r;
-                        }
-                        idct2(&c, &mut o);
-                        let wt = 1.0 / (s2v * wn).max(1e-20);
-                        for r in 0..B {
-                            let row = (ly + r) * w + px;
-                            for q in 0..B {
-                                num[ch][row + q] += wt * o[r * B + q];
-                                den[ch][row + q] += wt;
-                            }
-                        }
-                    }
-                }
-            }
-            if bm {
-                let refs = blocks(y0 as isize - B as isize + 1 - srs, y1 as isize + srs);
-                for ch in 0..nbm.min(noisy.len()) {
-                    let sigma = |ly: usize, px: usize| sig_lin[ch] * block_sigma(ly, px);
-                    bm_stage(&ctx, &noisy[ch], Some(&pilot[ch]), &refs, (&sigma, &rel[ch]), &mut num[ch], &mut den[ch]);
-                }
-            }
-            num.iter_mut().zip(&den).for_each(|(n, d)| n.iter_mut().zip(d).for_each(|(n, d)| *n = if *d > 0.0 { *n / d } else { 0.0 }));
-            num
-        } else {
-            pilot
-        };
-        // back to RGB, decode, keep the strip's own rows
-        let (k0, k1) = ((y0 - a) * w, (y1 - a) * w);
-        let out: Vec<Vec<f32>> = if opponent {
-            (0..3).map(|c| (k0..k1).map(|k| t.decode(OPP[0][c] * result[0][k] + OPP[1][c] * result[1][k] + OPP[2][c] * result[2][k])).collect()).collect()
-        } else {
-            result.iter().map(|r| r[k0..k1].iter().map(|v| t.decode(*v)).collect()).collect()
-        };
-        (y0, out)
-    };
+    let plan = Plan::new(planes, opts);
+    let starts: Vec<usize> = (0..h).step_by(plan.strip).collect();
     // a few strips per worker at a time, copied out at once: the strips' results never add up
     // to a second copy of the image
     let mut out: Vec<Plane> = (0..nch).map(|_| Plane::new(w, h)).collect();
     for batch in starts.chunks(2 * rayon::current_num_threads().max(1)) {
+        let work = |y0: &usize| (*y0, plan.strip_result(*y0));
         let parts: Vec<(usize, Vec<Vec<f32>>)> = if opts.parallel { batch.par_iter().map(work).collect() } else { batch.iter().map(work).collect() };
         for (y0, p) in parts {
             for (c, v) in p.into_iter().enumerate() {
@@ -390,6 +226,280 @@ pub fn denoise(planes: &[Plane], opts: &DenoiseOptions) -> Vec<Plane> {
         }
     }
     out
+}
+
+/// The slope `g'(v)` of the output encoding at linear value `v`, softened by the exponent `p`
+/// ([`DenoiseOptions::slope_power`]): `g'(0.18) (g'(v)/g'(0.18))^p`.
+#[derive(Clone, Copy)]
+struct Slope {
+    transfer: Transfer,
+    mid: f32,
+    power: f32,
+}
+
+impl Slope {
+    fn new(transfer: Transfer, power: f32) -> Self {
+        let mut s = Self { transfer, mid: 1.0, power };
+        s.mid = s.raw(0.18);
+        s
+    }
+    fn raw(&self, v: f32) -> f32 {
+        if self.transfer == Transfer::Linear {
+            return 1.0;
+        }
+        let v = v.clamp(1e-4, 1.0);
+        let dv = 1e-3 * v;
+        (self.transfer.encode(v + dv) - self.transfer.encode(v - dv)) / (2.0 * dv)
+    }
+    fn at(&self, v: f32) -> f32 {
+        self.mid * (self.raw(v) / self.mid).powf(self.power)
+    }
+}
+
+/// What every strip of one [`denoise`] call shares: the block lattice, the strip geometry and
+/// the noise of each decorrelated plane.
+struct Plan<'a> {
+    planes: &'a [Plane],
+    opts: &'a DenoiseOptions,
+    w: usize,
+    h: usize,
+    xs: Vec<usize>,
+    ys: Vec<usize>,
+    /// Block matching on the first `nbm` planes (search radius `sr`).
+    bm: bool,
+    nbm: usize,
+    sr: usize,
+    strip: usize,
+    halo: usize,
+    opponent: bool,
+    sig_lin: Vec<f32>,
+    rel: Vec<[f32; 64]>,
+    slope: Slope,
+}
+
+/// One strip's decorrelated, encoded planes (rows `a..a + rows` of the image) and the linear
+/// mean over channels that sets each block's brightness.
+struct Strip {
+    a: usize,
+    rows: usize,
+    noisy: Vec<Vec<f32>>,
+    mean_lin: Vec<f32>,
+}
+
+impl<'a> Plan<'a> {
+    fn new(planes: &'a [Plane], opts: &'a DenoiseOptions) -> Self {
+        let (w, h) = (planes[0].width, planes[0].height);
+        let step = opts.step.clamp(1, B);
+        let bm = opts.search > 0 && opts.group > 1;
+        let sr = if bm { opts.search } else { 0 };
+        let opponent = planes.len() == 3;
+        let (sig_lin, rel) = plane_noise(opts, opponent);
+        Self {
+            planes,
+            opts,
+            w,
+            h,
+            xs: lattice(w, step),
+            ys: lattice(h, step),
+            bm,
+            nbm: opts.bm_channels.max(1),
+            sr,
+            strip: if bm { 128 } else { 64 },
+            halo: 2 * B + 4 * sr,
+            opponent,
+            sig_lin,
+            rel,
+            slope: Slope::new(opts.transfer, opts.slope_power),
+        }
+    }
+
+    /// Block origins (image rows) in `[lo, hi)`.
+    fn blocks(&self, lo: isize, hi: isize) -> Vec<usize> {
+        self.ys.iter().copied().filter(|&py| (py as isize) >= lo && (py as isize) < hi).collect()
+    }
+
+    /// The rows of the strip starting at `y0` with the two stages' halos, encoded and
+    /// decorrelated.
+    fn load_strip(&self, y0: usize) -> Strip {
+        let (w, t, nch) = (self.w, self.opts.transfer, self.planes.len());
+        let y1 = (y0 + self.strip).min(self.h);
+        let a = y0.saturating_sub(self.halo);
+        let b = (y1 + self.halo).min(self.h);
+        let rows = b - a;
+        let lin: Vec<&[f32]> = self.planes.iter().map(|p| &p.data[a * w..b * w]).collect();
+        let mean_lin: Vec<f32> = (0..rows * w).map(|i| lin.iter().map(|p| p[i]).sum::<f32>() / nch as f32).collect();
+        let enc: Vec<Vec<f32>> = lin.iter().map(|p| p.iter().map(|v| t.encode(*v)).collect()).collect();
+        let noisy: Vec<Vec<f32>> = if self.opponent {
+            (0..3).map(|i| (0..rows * w).map(|k| OPP[i][0] * enc[0][k] + OPP[i][1] * enc[1][k] + OPP[i][2] * enc[2][k]).collect()).collect()
+        } else {
+            enc
+        };
+        Strip { a, rows, noisy, mean_lin }
+    }
+
+    /// The encoding slope at the mean linear brightness of the block at (local row, column).
+    fn block_gain(&self, s: &Strip, by: usize, bx: usize) -> f32 {
+        let mut m = 0.0;
+        for r in 0..B {
+            for q in 0..B {
+                m += s.mean_lin[(by + r) * self.w + bx + q];
+            }
+        }
+        self.slope.at(m / (B * B) as f32)
+    }
+
+    /// The denoised rows `y0..y0 + strip` of every channel (linear).
+    fn strip_result(&self, y0: usize) -> Vec<Vec<f32>> {
+        let s = self.load_strip(y0);
+        let y1 = (y0 + self.strip).min(self.h);
+        // stage 1 over blocks whose rows lie in [y0 − 2B + 1, y1 + B − 1) (the pilot then is
+        // complete on [y0 − B, y1 + B))
+        let (mut pilot, wsum) = self.hard_threshold_stage(&s, y0, y1);
+        for (p, w) in pilot.iter_mut().zip(&wsum) {
+            p.iter_mut().zip(w).for_each(|(p, w)| *p = if *w > 0.0 { *p / w } else { 0.0 });
+        }
+        let result = if self.opts.wiener { self.wiener_stage(&s, &pilot, y0, y1) } else { pilot };
+        self.decode_rows(&result, (y0 - s.a) * self.w, (y1 - s.a) * self.w)
+    }
+
+    /// Stage 1: hard thresholding of single blocks (planes without block matching) and of
+    /// groups (planes with it); returns the unnormalised aggregate and its weights.
+    fn hard_threshold_stage(&self, s: &Strip, y0: usize, y1: usize) -> (Vec<Vec<f32>>, Vec<Vec<f32>>) {
+        let (w, n) = (self.w, s.noisy.len());
+        let s1 = self.blocks(y0 as isize - 2 * B as isize + 1, y1 as isize + B as isize);
+        let mut pilot = vec![vec![0.0f32; s.rows * w]; n];
+        let mut wsum = vec![vec![0.0f32; s.rows * w]; n];
+        let (mut x, mut c, mut o) = ([0.0f32; 64], [0.0f32; 64], [0.0f32; 64]);
+        for &py in &s1 {
+            let ly = py - s.a;
+            for &px in &self.xs {
+                let g = self.block_gain(s, ly, px);
+                for (ch, plane) in s.noisy.iter().enumerate() {
+                    if self.bm && ch < self.nbm {
+                        continue;
+                    }
+                    let sg = self.sig_lin[ch] * g;
+                    load_block(plane, w, ly, px, &mut x);
+                    dct2(&x, &mut c);
+                    let rc = &self.rel[ch];
+                    // the estimate's noise variance, in units of sg²: Σ over kept coefficients
+                    let kept = hard_threshold(&mut c, self.opts.threshold * sg, rc, 0.0);
+                    idct2(&c, &mut o);
+                    add_block(&o, 1.0 / (sg * sg * kept).max(1e-20), w, ly, px, &mut pilot[ch], &mut wsum[ch]);
+                }
+            }
+        }
+        if self.bm {
+            let srs = self.sr as isize;
+            let refs = self.blocks(y0 as isize - 2 * B as isize + 2 - 3 * srs, y1 as isize + 3 * srs + B as isize - 1);
+            self.bm_planes(s, None, &refs, &mut pilot, &mut wsum);
+        }
+        (pilot, wsum)
+    }
+
+    /// Stage 2: empirical Wiener shrinkage against the pilot; returns the normalised result.
+    fn wiener_stage(&self, s: &Strip, pilot: &[Vec<f32>], y0: usize, y1: usize) -> Vec<Vec<f32>> {
+        let (w, n) = (self.w, s.noisy.len());
+        let s2 = self.blocks(y0 as isize - B as isize + 1, y1 as isize);
+        let mut num = vec![vec![0.0f32; s.rows * w]; n];
+        let mut den = vec![vec![0.0f32; s.rows * w]; n];
+        let (mut x, mut c, mut pc, mut o) = ([0.0f32; 64], [0.0f32; 64], [0.0f32; 64], [0.0f32; 64]);
+        for &py in &s2 {
+            let ly = py - s.a;
+            for &px in &self.xs {
+                let g = self.block_gain(s, ly, px);
+                for ch in 0..n {
+                    if self.bm && ch < self.nbm {
+                        continue;
+                    }
+                    let sg = self.sig_lin[ch] * g;
+                    let s2v = sg * sg;
+                    load_block(&s.noisy[ch], w, ly, px, &mut x);
+                    dct2(&x, &mut c);
+                    load_block(&pilot[ch], w, ly, px, &mut x);
+                    dct2(&x, &mut pc);
+                    let wn = wiener_shrink(&mut c, &pc, s2v, &self.rel[ch]);
+                    idct2(&c, &mut o);
+                    add_block(&o, 1.0 / (s2v * wn).max(1e-20), w, ly, px, &mut num[ch], &mut den[ch]);
+                }
+            }
+        }
+        if self.bm {
+            let srs = self.sr as isize;
+            let refs = self.blocks(y0 as isize - B as isize + 1 - srs, y1 as isize + srs);
+            self.bm_planes(s, Some(pilot), &refs, &mut num, &mut den);
+        }
+        num.iter_mut().zip(&den).for_each(|(n, d)| n.iter_mut().zip(d).for_each(|(n, d)| *n = if *d > 0.0 { *n / d } else { 0.0 }));
+        num
+    }
+
+    /// [`bm_stage`] on each plane filtered with block matching.
+    fn bm_planes(&self, s: &Strip, pilot: Option<&[Vec<f32>]>, refs: &[usize], num: &mut [Vec<f32>], den: &mut [Vec<f32>]) {
+        let ctx = BmContext { w: self.w, h: self.h, a: s.a, b: s.a + s.rows, xs: &self.xs, opts: self.opts };
+        for ch in 0..self.nbm.min(s.noisy.len()) {
+            let sigma = |ly: usize, px: usize| self.sig_lin[ch] * self.block_gain(s, ly, px);
+            bm_stage(&ctx, &s.noisy[ch], pilot.map(|p| p[ch].as_slice()), refs, (&sigma, &self.rel[ch]), &mut num[ch], &mut den[ch]);
+        }
+    }
+
+    /// Back to RGB (from the opponent planes) and to linear values, rows `k0..k1` (flat
+    /// indices) of the strip.
+    fn decode_rows(&self, result: &[Vec<f32>], k0: usize, k1: usize) -> Vec<Vec<f32>> {
+        let t = self.opts.transfer;
+        if self.opponent {
+            (0..3).map(|c| (k0..k1).map(|k| t.decode(OPP[0][c] * result[0][k] + OPP[1][c] * result[1][k] + OPP[2][c] * result[2][k])).collect()).collect()
+        } else {
+            result.iter().map(|r| r[k0..k1].iter().map(|v| t.decode(*v)).collect()).collect()
+        }
+    }
+}
+
+/// Copies the 8×8 block at (row `ly`, column `px`) of a row-major plane of width `w`.
+#[inline]
+fn load_block(plane: &[f32], w: usize, ly: usize, px: usize, x: &mut [f32; 64]) {
+    for r in 0..B {
+        x[r * B..r * B + B].copy_from_slice(&plane[(ly + r) * w + px..(ly + r) * w + px + B]);
+    }
+}
+
+/// Adds `wt · o` and `wt` into the aggregation buffers at the block (row `ly`, column `px`).
+#[inline]
+fn add_block(o: &[f32; 64], wt: f32, w: usize, ly: usize, px: usize, num: &mut [f32], den: &mut [f32]) {
+    for r in 0..B {
+        let row = (ly + r) * w + px;
+        for q in 0..B {
+            num[row + q] += wt * o[r * B + q];
+            den[row + q] += wt;
+        }
+    }
+}
+
+/// Zeroes the AC coefficients below `thr · rel_k`; returns `acc + Σ rel_k²` over the kept ones
+/// (DC always kept): the estimate's noise variance in units of the block's `σ_b²`.
+#[inline]
+fn hard_threshold(c: &mut [f32; 64], thr: f32, rel: &[f32; 64], acc: f32) -> f32 {
+    let mut kept = acc + rel[0] * rel[0];
+    for (v, r) in c.iter_mut().zip(rel).skip(1) {
+        if v.abs() < thr * r {
+            *v = 0.0;
+        } else {
+            kept += r * r;
+        }
+    }
+    kept
+}
+
+/// Empirical Wiener shrinkage `c_k ← p_k²/(p_k² + σ_b² rel_k²) · c_k` (DC kept); returns
+/// `Σ f_k² rel_k²`, the estimate's noise variance in units of `σ_b²`.
+#[inline]
+fn wiener_shrink(c: &mut [f32; 64], pc: &[f32; 64], s2v: f32, rel: &[f32; 64]) -> f32 {
+    let mut wn = 0.0;
+    for (k, ((cv, pv), r)) in c.iter_mut().zip(pc).zip(rel).enumerate() {
+        let f = if k == 0 { 1.0 } else { pv * pv / (pv * pv + s2v * r * r).max(1e-30) };
+        *cv *= f;
+        wn += f * f * r * r;
+    }
+    wn
 }
 
 /// The noise level `σ` of each decorrelated plane (linear axis, before the transfer slope) and
@@ -479,13 +589,8 @@ fn haar_inverse(g: &mut [[f32; 64]], t: &mut [[f32; 64]], n: usize) {
 fn bm_stage(ctx: &BmContext, noisy: &[f32], pilot: Option<&[f32]>, refs: &[usize], noise: BlockNoise, num: &mut [f32], den: &mut [f32]) {
     let (sigma, rel) = noise;
     let (w, opts) = (ctx.w, ctx.opts);
-    let sr = opts.search as isize;
-    let st = opts.search_step.max(1);
     let gmax = opts.group.clamp(1, 32).next_power_of_two().min(32);
     let gmax = if gmax > opts.group.max(1) { gmax / 2 } else { gmax };
-    let ymin = ctx.a as isize;
-    let ymax = (ctx.b.min(ctx.h) - B) as isize;
-    let xmax = (w - B) as isize;
     let guide = pilot.unwrap_or(noisy);
     let mut cand: Vec<(f32, usize, usize)> = Vec::new();
     let mut gc = vec![[0.0f32; 64]; gmax];
@@ -494,48 +599,12 @@ fn bm_stage(ctx: &BmContext, noisy: &[f32], pilot: Option<&[f32]>, refs: &[usize
     let mut o = [0.0f32; 64];
     let mut scratch = vec![[0.0f32; 64]; gmax];
     let mut members: Vec<(usize, usize)> = Vec::with_capacity(gmax);
-    let load = |plane: &[f32], ly: usize, px: usize, x: &mut [f32; 64]| {
-        for r in 0..B {
-            x[r * B..r * B + B].copy_from_slice(&plane[(ly + r) * w + px..(ly + r) * w + px + B]);
-        }
-    };
     for &py in refs {
         let ly = py - ctx.a;
         for &px in ctx.xs {
             let sg = sigma(ly, px);
             let s2 = sg * sg;
-            let thr_match = opts.match_tau * s2;
-            // block matching on the guide
-            cand.clear();
-            load(guide, ly, px, &mut x);
-            let y_lo = (py as isize - sr).max(ymin);
-            let y_hi = (py as isize + sr).min(ymax);
-            let x_lo = (px as isize - sr).max(0);
-            let x_hi = (px as isize + sr).min(xmax);
-            let mut yy = y_lo;
-            while yy <= y_hi {
-                let mut xx = x_lo;
-                while xx <= x_hi {
-                    if yy as usize != py || xx as usize != px {
-                        let cy = yy as usize - ctx.a;
-                        let mut dsum = 0.0;
-                        for r in 0..B {
-                            let row = &guide[(cy + r) * w + xx as usize..(cy + r) * w + xx as usize + B];
-                            for q in 0..B {
-                                let e = row[q] - x[r * B + q];
-                                dsum += e * e;
-                            }
-                        }
-                        let dm = dsum / 64.0;
-                        if dm < thr_match {
-                            cand.push((dm, cy, xx as usize));
-                        }
-                    }
-                    xx += st as isize;
-                }
-                yy += st as isize;
-            }
-            cand.sort_unstable_by(|p, q| p.0.total_cmp(&q.0));
+            match_blocks(ctx, guide, (py, px), opts.match_tau * s2, &mut cand);
             let mut n = 1usize;
             while n * 2 <= gmax && n * 2 - 1 <= cand.len() {
                 n *= 2;
@@ -544,51 +613,83 @@ fn bm_stage(ctx: &BmContext, noisy: &[f32], pilot: Option<&[f32]>, refs: &[usize
             members.push((ly, px));
             members.extend(cand.iter().take(n - 1).map(|c| (c.1, c.2)));
             for (g, &(my, mx)) in members.iter().enumerate() {
-                load(noisy, my, mx, &mut x);
+                load_block(noisy, w, my, mx, &mut x);
                 dct2(&x, &mut gc[g]);
                 if let Some(p) = pilot {
-                    load(p, my, mx, &mut x);
+                    load_block(p, w, my, mx, &mut x);
                     dct2(&x, &mut gp[g]);
                 }
             }
-            let mut wn = 0.0f32;
             haar_forward(&mut gc, &mut scratch, n);
-            if pilot.is_some() {
+            // the estimate's noise variance in units of σ_b², summed over the group
+            let wn = if pilot.is_some() {
                 haar_forward(&mut gp, &mut scratch, n);
-                for (c, p) in gc[..n].iter_mut().zip(&gp[..n]) {
-                    for k in 0..64 {
-                        let r2 = rel[k] * rel[k];
-                        let f = if k == 0 { 1.0 } else { p[k] * p[k] / (p[k] * p[k] + s2 * r2).max(1e-30) };
-                        c[k] *= f;
-                        wn += f * f * r2;
-                    }
-                }
+                gc[..n].iter_mut().zip(&gp[..n]).fold(0.0f32, |wn, (c, p)| wiener_shrink_group(c, p, s2, rel, wn))
             } else {
                 let thr = opts.threshold * sg;
-                for c in gc[..n].iter_mut() {
-                    for (k, v) in c.iter_mut().enumerate() {
-                        if k == 0 || v.abs() >= thr * rel[k] {
-                            wn += rel[k] * rel[k];
-                        } else {
-                            *v = 0.0;
-                        }
-                    }
-                }
-            }
+                gc[..n].iter_mut().fold(0.0f32, |wn, c| hard_threshold(c, thr, rel, wn))
+            };
             haar_inverse(&mut gc, &mut scratch, n);
             let wt = 1.0 / (s2 * wn).max(1e-20);
             for (g, &(my, mx)) in members.iter().enumerate() {
                 idct2(&gc[g], &mut o);
-                for r in 0..B {
-                    let row = (my + r) * w + mx;
-                    for q in 0..B {
-                        num[row + q] += wt * o[r * B + q];
-                        den[row + q] += wt;
-                    }
-                }
+                add_block(&o, wt, w, my, mx, num, den);
             }
         }
     }
+}
+
+/// [`wiener_shrink`] on one block of a group's 3-D spectrum, accumulating `Σ f_k² rel_k²` onto
+/// `wn` (the group's running sum).
+#[inline]
+fn wiener_shrink_group(c: &mut [f32; 64], p: &[f32; 64], s2: f32, rel: &[f32; 64], mut wn: f32) -> f32 {
+    for k in 0..64 {
+        let r2 = rel[k] * rel[k];
+        let f = if k == 0 { 1.0 } else { p[k] * p[k] / (p[k] * p[k] + s2 * r2).max(1e-30) };
+        c[k] *= f;
+        wn += f * f * r2;
+    }
+    wn
+}
+
+/// Block matching: the blocks of the search window around the reference at image (row, column)
+/// `(py, px)` whose mean squared difference to it on `guide` is below `thr_match`, as
+/// (distance, local row, column), nearest first.
+fn match_blocks(ctx: &BmContext, guide: &[f32], (py, px): (usize, usize), thr_match: f32, cand: &mut Vec<(f32, usize, usize)>) {
+    let (w, opts) = (ctx.w, ctx.opts);
+    let sr = opts.search as isize;
+    let st = opts.search_step.max(1) as isize;
+    let mut x = [0.0f32; 64];
+    load_block(guide, w, py - ctx.a, px, &mut x);
+    cand.clear();
+    let y_lo = (py as isize - sr).max(ctx.a as isize);
+    let y_hi = (py as isize + sr).min((ctx.b.min(ctx.h) - B) as isize);
+    let x_lo = (px as isize - sr).max(0);
+    let x_hi = (px as isize + sr).min((w - B) as isize);
+    let mut yy = y_lo;
+    while yy <= y_hi {
+        let mut xx = x_lo;
+        while xx <= x_hi {
+            if yy as usize != py || xx as usize != px {
+                let cy = yy as usize - ctx.a;
+                let mut dsum = 0.0;
+                for r in 0..B {
+                    let row = &guide[(cy + r) * w + xx as usize..(cy + r) * w + xx as usize + B];
+                    for q in 0..B {
+                        let e = row[q] - x[r * B + q];
+                        dsum += e * e;
+                    }
+                }
+                let dm = dsum / 64.0;
+                if dm < thr_match {
+                    cand.push((dm, cy, xx as usize));
+                }
+            }
+            xx += st;
+        }
+        yy += st;
+    }
+    cand.sort_unstable_by(|p, q| p.0.total_cmp(&q.0));
 }
 
 #[cfg(test)]

@@ -66,8 +66,7 @@ pub struct Vignetting {
 /// computes it for an image of the calibration's aspect ratio: one unit is half the diagonal
 /// of `(w−1) × (h−1)` divided by `hypot(aspect, 1)`, i.e. about half the shorter side.
 pub fn tca_norm(width: usize, height: usize) -> f64 {
-    let ar = width.max(height) as f64 / width.min(height).max(1) as f64;
-    2.0 * ar.hypot(1.0) / ((width as f64 - 1.0).hypot(height as f64 - 1.0))
+    crate::optics::distortion::radius_norm(width, height)
 }
 
 /// Radius normalisation of vignetting: one unit is half the diagonal of `(w−1) × (h−1)`.

@@ -11,6 +11,8 @@
 //! Paper geometry in millimetres; print pixels at `dpi`; `cell_dots` printer pixels per cell.
 //! Reflectances: white paper `0.90`, toner `0.05` (linear).
 
+pub mod locate;
+
 use crate::fsutil::{write_atomic, write_atomic_with, Overwrite};
 use crate::image::Plane;
 use serde::{Deserialize, Serialize};

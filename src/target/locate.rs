@@ -381,6 +381,104 @@ pub fn field_difference(a: &PtLens, b: &PtLens, width: usize, height: usize) -> 
     (worst, (ss / n).sqrt())
 }
 
+/// File name of a distortion measurement in a profile directory.
+pub const DISTORTION_FILE: &str = "distortion.toml";
+
+/// A distortion measurement as stored with a profile (`PROFILE/distortion.toml`, see
+/// `docs/profile-format.md`): lensfun ptlens coefficients for a `width × height` sensor and
+/// how they were measured.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MeasuredDistortion {
+    /// Always `"ptlens"` (lensfun's model).
+    pub model: String,
+    pub a: f64,
+    pub b: f64,
+    pub c: f64,
+    pub width: usize,
+    pub height: usize,
+    /// UTC time of the measurement.
+    pub measured: String,
+    /// The sharp capture that was registered.
+    pub capture: String,
+    /// The target description it was registered to.
+    pub target: String,
+    pub tiles_used: usize,
+    pub tiles_total: usize,
+    pub rms_residual_px: f64,
+    pub pixels_per_cell: f64,
+    pub rotation_deg: f64,
+}
+
+/// Why a distortion record could not be read or written.
+#[derive(Debug, thiserror::Error)]
+pub enum DistortionFileError {
+    #[error("{path}: {source}")]
+    Io { path: std::path::PathBuf, #[source] source: std::io::Error },
+    #[error("{path}: {problem}")]
+    Invalid { path: std::path::PathBuf, problem: String },
+}
+
+impl MeasuredDistortion {
+    /// The record of a fit of `capture` against `target`.
+    pub fn of(f: &DistortionFit, capture: &std::path::Path, target: &std::path::Path) -> Self {
+        Self {
+            model: "ptlens".into(),
+            a: f.ptlens.a,
+            b: f.ptlens.b,
+            c: f.ptlens.c,
+            width: f.width,
+            height: f.height,
+            measured: crate::timestamp_utc(),
+            capture: capture.display().to_string(),
+            target: target.display().to_string(),
+            tiles_used: f.tiles_used,
+            tiles_total: f.tiles.len(),
+            rms_residual_px: f.rms_residual_px,
+            pixels_per_cell: f.pixels_per_cell,
+            rotation_deg: f.rotation_deg,
+        }
+    }
+
+    pub fn ptlens(&self) -> PtLens {
+        PtLens { a: self.a, b: self.b, c: self.c }
+    }
+
+    /// Writes `dir/distortion.toml` atomically (replacing an older measurement).
+    ///
+    /// # Errors
+    /// Non-finite numbers (never written), I/O.
+    pub fn save(&self, dir: &std::path::Path) -> Result<(), DistortionFileError> {
+        let path = dir.join(DISTORTION_FILE);
+        let invalid = |problem: String| DistortionFileError::Invalid { path: path.clone(), problem };
+        if let Some(k) = crate::fsutil::first_non_finite(self) {
+            return Err(invalid(format!("non-finite value in {k}")));
+        }
+        let text = format!("# lensrig distortion measurement (lensfun ptlens, r_d = r_u·(a·r_u³ + b·r_u² + c·r_u + 1 − a − b − c)); see docs/profile-format.md\n{}", toml::to_string_pretty(self).map_err(|e| invalid(e.to_string()))?);
+        crate::fsutil::write_atomic(&path, text.as_bytes(), crate::fsutil::Overwrite::Replace).map_err(|source| DistortionFileError::Io { path, source })
+    }
+
+    /// Reads `dir/distortion.toml`; `Ok(None)` when the profile holds no measurement.
+    ///
+    /// # Errors
+    /// Unreadable or invalid file, another model than ptlens, non-finite or folding
+    /// coefficients.
+    pub fn load(dir: &std::path::Path) -> Result<Option<Self>, DistortionFileError> {
+        let path = dir.join(DISTORTION_FILE);
+        if !path.is_file() {
+            return Ok(None);
+        }
+        let text = std::fs::read_to_string(&path).map_err(|source| DistortionFileError::Io { path: path.clone(), source })?;
+        let invalid = |problem: String| DistortionFileError::Invalid { path: path.clone(), problem };
+        let m: Self = toml::from_str(&text).map_err(|e| invalid(crate::toml_error(&text, &e)))?;
+        if m.model != "ptlens" {
+            return Err(invalid(format!("model {:?}: only \"ptlens\" is known", m.model)));
+        }
+        m.ptlens().check(m.width, m.height).map_err(|e| invalid(e.to_string()))?;
+        Ok(Some(m))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -434,5 +532,23 @@ mod tests {
         let strict = LocateOptions { min_tiles: 40, ..o };
         assert!(matches!(locate(&part, &spec(), &good, &strict), Err(LocateError::TooFewTiles { .. })), "{:?}", locate(&part, &spec(), &good, &strict).map(|f| f.tiles_used));
         assert!(matches!(locate(&Plane::filled(100, 100, 0.5), &spec(), &good, &o), Err(LocateError::TooSmall { .. })));
+    }
+
+    #[test]
+    fn the_record_round_trips_and_rejects_bad_files() {
+        let (w, h) = (256, 192);
+        let cap = capture(&PtLens { a: 0.0, b: -0.02, c: 0.0 }, 1.6, w, h);
+        let f = locate(&cap, &spec(), &Nominal { pixels_per_cell: 1.6, u0: 30.0, v0: 20.0 }, &LocateOptions::default()).unwrap();
+        let d = tempfile::tempdir().unwrap();
+        assert!(MeasuredDistortion::load(d.path()).unwrap().is_none());
+        let m = MeasuredDistortion::of(&f, std::path::Path::new("pinhole.png"), std::path::Path::new("t.toml"));
+        m.save(d.path()).unwrap();
+        assert_eq!(MeasuredDistortion::load(d.path()).unwrap(), Some(m.clone()));
+        let text = std::fs::read_to_string(d.path().join(DISTORTION_FILE)).unwrap();
+        std::fs::write(d.path().join(DISTORTION_FILE), text.replace("model = \"ptlens\"", "model = \"poly3\"")).unwrap();
+        assert!(MeasuredDistortion::load(d.path()).unwrap_err().to_string().contains("poly3"));
+        std::fs::write(d.path().join(DISTORTION_FILE), format!("{text}extra = 1\n")).unwrap();
+        assert!(MeasuredDistortion::load(d.path()).is_err());
+        assert!(MeasuredDistortion { a: f64::NAN, ..m }.save(d.path()).is_err());
     }
 }

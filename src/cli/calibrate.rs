@@ -15,7 +15,8 @@
 //!
 //! Distortion: when the rig's target file and its nominal layout on the sensor are known (a
 //! mock rig: `[lens] pixels_per_cell` and the stage offset), the first stage position's pinhole
-//! capture is registered to the target file ([`lensrig::target::locate`]) and lensfun's ptlens
+//! capture (its G channel, or the channel mean) is registered to the target file
+//! ([`lensrig::target::locate`]) and lensfun's ptlens
 //! fit is stored as `profiles/<key>/distortion.toml`; `lens.xml` then carries
 //! `<distortion model="ptlens">`. The report shows the fit (against the mock's truth).
 
@@ -239,12 +240,19 @@ fn distortion_section(out: &Path, session_dir: &Path, cfg: &RigConfig, ests: &[(
     let spec = TargetSpec::load(&t.path).with_context(|| format!("cannot read the target {}", t.path.display()))?;
     let path = session_dir.join(&p.dir).join(&p.pinhole);
     let img = read_image(&path).with_context(|| format!("cannot read {}", path.display()))?;
-    let n = img.planes.len() as f32;
-    let mut mean = img.planes[0].clone();
-    for q in &img.planes[1..] {
-        mean.data.iter_mut().zip(&q.data).for_each(|(m, v)| *m += v);
-    }
-    mean.data.iter_mut().for_each(|m| *m /= n);
+    // lensfun's distortion is the green channel's geometry (TCA is R and B against G)
+    let mean = match img.channels.iter().position(|c| c == "G") {
+        Some(g) => img.planes[g].clone(),
+        None => {
+            let mut m = img.planes[0].clone();
+            for q in &img.planes[1..] {
+                m.data.iter_mut().zip(&q.data).for_each(|(a, v)| *a += v);
+            }
+            let n = img.planes.len() as f32;
+            m.data.iter_mut().for_each(|a| *a /= n);
+            m
+        }
+    };
     let (u0, v0) = o.target_origin(p.stage_mm);
     let fit = match locate(&mean, &spec, &Nominal { pixels_per_cell: o.pixels_per_cell, u0, v0 }, &LocateOptions::default()) {
         Ok(f) => f,

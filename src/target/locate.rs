@@ -15,7 +15,8 @@
 //!    lensfun's ptlens `a, b, c` ([`crate::optics::distortion`], centre at the image centre):
 //!    `p ≈ c + D(A·(m − c) + t)`, `m = p − d` the tile's position in the expected scene, `A`
 //!    a scaled rotation, `D` the ptlens map in pixels about `c`. One round of outlier
-//!    rejection at 3 × the median residual (at least 0.1 px), then a refit.
+//!    rejection at 3 × the median residual (at least 0.1 px), then a refit. Steps 2 and 3
+//!    repeat against the scene rendered through the fit until the map moves < 0.003 px.
 //!
 //! # Units
 //! Pixels (sensor, pixel centres at integers), target cells, lensfun distortion units
@@ -287,10 +288,13 @@ fn tile_residuals(th: &[f64; 7], tiles: &[&TileMatch], w: usize, h: usize) -> Ve
     residuals(th, tiles, w, h).chunks(2).map(|c| c[0].hypot(c[1])).collect()
 }
 
-/// Measurement passes: the first against the straight layout, each further one against the
-/// scene rendered through the previous fit (so the remaining displacements are small and
-/// uniform within a tile).
-const PASSES: usize = 3;
+/// Measurement passes, at most: the first against the straight layout, each further one
+/// against the scene rendered through the previous fit (so the remaining displacements are
+/// small and uniform within a tile; the sub-pixel peak interpolation under-reads a shift, so
+/// each pass recovers most, not all, of what is left).
+const MAX_PASSES: usize = 10;
+/// Passes stop when the fitted map moves by less than this along the diagonal, pixels.
+const CONVERGED_PX: f64 = 0.003;
 
 /// One pass: tiles through the model `th`, the fit, outlier rejection, the refit. Returns the
 /// parameters, the tiles (with `used`) and the RMS residual, pixels.
@@ -340,11 +344,18 @@ pub fn locate(capture: &Plane, spec: &TargetSpec, nominal: &Nominal, o: &LocateO
     if q < o.min_ncc {
         return Err(LocateError::NotFound { best_ncc: q, need: o.min_ncc, range_pct: o.scale_range * 100.0 });
     }
-    let mut th = [0.0f64; 7];
-    let mut pass = fit_pass(capture, spec, &lock, &th, o)?;
-    for _ in 0..PASSES - 1 {
-        th = pass.0;
+    let mut pass = fit_pass(capture, spec, &lock, &[0.0; 7], o)?;
+    for _ in 1..MAX_PASSES {
+        let th = pass.0;
         pass = fit_pass(capture, spec, &lock, &th, o)?;
+        let moved = (0..=8).map(|i| i as f64 / 8.0).map(|f| {
+            let p = (f * (w as f64 - 1.0), f * (h as f64 - 1.0));
+            let (a, b) = (unpredict(&th, p, w, h), unpredict(&pass.0, p, w, h));
+            (a.0 - b.0).hypot(a.1 - b.1)
+        });
+        if moved.fold(0.0, f64::max) < CONVERGED_PX {
+            break;
+        }
     }
     let (th, tiles, rms) = pass;
     let tiles_used = tiles.iter().filter(|t| t.used).count();

@@ -9,6 +9,7 @@ mod common;
 
 use lensrig::export::lensfun::{tca_norm, vignetting_norm};
 use lensrig::optics::distortion::PtLens;
+use lensrig::rig::camera::mock::MockOptics;
 use lensrig::target::locate::MeasuredDistortion;
 use lensrig::fsutil::Overwrite;
 use lensrig::image::io::write_png16;
@@ -163,7 +164,8 @@ fn lensfun_reads_the_export_and_corrects_like_lensrig() {
 
 /// `calibrate` on a mock rig with a flat step writes `lens.xml`; liblensfun loads it and its
 /// vignetting correction flattens the mock's true falloff (`[lens] vignetting`) within 0.5 %
-/// at the centre, the tile grid's corners and the image corners.
+/// at the centre, the tile grid's corners and the image corners; its distortion correction
+/// (measured from the pinhole capture) agrees with the mock's true ptlens within 0.2 px.
 #[test]
 fn calibrate_with_a_flat_step_exports_vignetting_lensfun_applies() {
     let d = tempfile::tempdir().expect("tempdir");
@@ -174,7 +176,7 @@ fn calibrate_with_a_flat_step_exports_vignetting_lensfun_applies() {
     let text = std::fs::read_to_string(&xml).expect("lens.xml");
     assert!(text.contains("<vignetting model=\"pa\" focal=\"16\" aperture=\"5.6\" distance=\"1000\""), "{text}");
     let rig = lensrig::rig::config::load(&cfg).expect("config");
-    let truth = lensrig::rig::camera::mock::MockOptics::from_config(&rig).expect("optics").vignetting.expect("a stated vignetting");
+    let truth = MockOptics::from_config(&rig).expect("optics").vignetting.expect("a stated vignetting");
     let probe = match build_probe(d.path()) {
         Ok(p) => p,
         Err(why) => {
@@ -211,6 +213,19 @@ fn calibrate_with_a_flat_step_exports_vignetting_lensfun_applies() {
     println!("calibrate's lens.xml through liblensfun: max vignetting residual against the mock's truth {:.3} % at {n} points", worst * 100.0);
     assert_eq!(n, pts.len(), "{stdout}");
     assert!(worst < 0.005, "lensfun leaves {worst} of the mock's falloff");
+    // the distortion measured from the pinhole capture, applied by lensfun, puts every point
+    // within 0.2 px of where the mock's true ptlens puts it
+    let dist = MockOptics::from_config(&rig).expect("optics").distortion.expect("mock.toml states a distortion");
+    let mut dworst = 0.0f64;
+    let mut nd = 0;
+    for line in stdout.lines().filter(|l| l.starts_with("dist ")) {
+        let v: Vec<f64> = line.split_whitespace().skip(1).filter_map(|s| s.parse().ok()).collect();
+        let (x, y) = dist.distort_px(v[0], v[1], 384, 288);
+        dworst = dworst.max((v[2] - x).hypot(v[3] - y));
+        nd += 1;
+    }
+    println!("calibrate's lens.xml through liblensfun: max distortion error against the mock's truth {dworst:.3} px at {nd} points");
+    assert!(nd == pts.len() && dworst <= 0.2, "lensfun's distortion differs from the mock's truth by {dworst} px ({nd} points)");
 }
 
 /// Runs the probe on `xml` for lens `model` at `pts` (16 mm, f/5.6, 1000 m); its stdout.

@@ -57,6 +57,14 @@ fn calibrate_on_the_mock_rig_recovers_the_true_psfs() {
     let worst = (0..=20).map(|i| i as f64 / 20.0).map(|r| (v(&k, r) - v(&truth, r)).abs()).fold(0.0, f64::max);
     eprintln!("flat field: pa {k:?} vs truth {truth:?}, max |ΔV| {worst:.5}");
     assert!(worst < 0.005, "pa {k:?} vs truth {truth:?}: {worst}");
+    // mock.toml's distortion, measured from the pinhole capture: lens.xml carries ptlens whose
+    // displacement field is within 0.2 px of the mock's over the frame
+    let truth_d = optics.distortion.expect("mock.toml states a distortion");
+    assert!(xml.contains("<distortion model=\"ptlens\"") && xml.contains("Measured: distortion (ptlens)"), "{xml}");
+    let m = lensrig::target::locate::MeasuredDistortion::load(&out.join("profiles/000-stage-X-20.000")).unwrap().expect("distortion.toml");
+    let (max, rms) = lensrig::target::locate::field_difference(&m.ptlens(), &truth_d, 384, 288);
+    eprintln!("distortion: ptlens a {:.4} b {:.4} c {:.4} vs truth {truth_d:?}: field error max {max:.3} px, RMS {rms:.3} px", m.a, m.b, m.c);
+    assert!(max <= 0.2, "distortion field error {max} px");
     let flat = std::fs::read_to_string(out.join("session/flat/flat.toml")).unwrap();
     assert!(flat.contains("role = \"flat\"") && flat.contains("aperture_mm = -1.0") && flat.contains("stage_mm = -90.0") && flat.contains("frames_averaged = 16"), "{flat}");
     let html = std::fs::read_to_string(out.join("index.html")).unwrap();
@@ -176,7 +184,7 @@ fn locate_recovers_the_mock_distortion_from_the_pinhole_capture() {
     let dir = tmp("locate");
     for (k, truth, tol) in [("none", PtLens::NONE, 0.1), ("barrel", PtLens { a: 0.0, b: -0.02, c: 0.0 }, 0.2), ("wavy", PtLens { a: 0.01, b: -0.03, c: 0.005 }, 0.2)] {
         let line = format!("distortion = [{}, {}, {}]", truth.a, truth.b, truth.c);
-        let cfg = config::load(&config_variant(&dir.join(k), |t| format!("{t}\n{line}\n"))).unwrap();
+        let cfg = config::load(&config_variant(&dir.join(k), |t| t.lines().filter(|l| !l.starts_with("distortion =")).map(|l| format!("{l}\n")).collect::<String>() + &line)).unwrap();
         let pos = Arc::new(Mutex::new(Position::ZERO));
         let mut cam = MockCamera::new(&cfg, pos.clone()).unwrap();
         let o = cam.optics().clone();

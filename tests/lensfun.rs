@@ -8,6 +8,9 @@
 mod common;
 
 use lensrig::export::lensfun::{tca_norm, vignetting_norm};
+use lensrig::optics::distortion::PtLens;
+use lensrig::rig::camera::mock::MockOptics;
+use lensrig::target::locate::MeasuredDistortion;
 use lensrig::fsutil::Overwrite;
 use lensrig::image::io::write_png16;
 use lensrig::image::filter::pixel_gaussian as gaussian;
@@ -161,7 +164,8 @@ fn lensfun_reads_the_export_and_corrects_like_lensrig() {
 
 /// `calibrate` on a mock rig with a flat step writes `lens.xml`; liblensfun loads it and its
 /// vignetting correction flattens the mock's true falloff (`[lens] vignetting`) within 0.5 %
-/// at the centre, the tile grid's corners and the image corners.
+/// at the centre, the tile grid's corners and the image corners; its distortion correction
+/// (measured from the pinhole capture) agrees with the mock's true ptlens within 0.2 px.
 #[test]
 fn calibrate_with_a_flat_step_exports_vignetting_lensfun_applies() {
     let d = tempfile::tempdir().expect("tempdir");
@@ -172,7 +176,7 @@ fn calibrate_with_a_flat_step_exports_vignetting_lensfun_applies() {
     let text = std::fs::read_to_string(&xml).expect("lens.xml");
     assert!(text.contains("<vignetting model=\"pa\" focal=\"16\" aperture=\"5.6\" distance=\"1000\""), "{text}");
     let rig = lensrig::rig::config::load(&cfg).expect("config");
-    let truth = lensrig::rig::camera::mock::MockOptics::from_config(&rig).expect("optics").vignetting.expect("a stated vignetting");
+    let truth = MockOptics::from_config(&rig).expect("optics").vignetting.expect("a stated vignetting");
     let probe = match build_probe(d.path()) {
         Ok(p) => p,
         Err(why) => {
@@ -209,4 +213,103 @@ fn calibrate_with_a_flat_step_exports_vignetting_lensfun_applies() {
     println!("calibrate's lens.xml through liblensfun: max vignetting residual against the mock's truth {:.3} % at {n} points", worst * 100.0);
     assert_eq!(n, pts.len(), "{stdout}");
     assert!(worst < 0.005, "lensfun leaves {worst} of the mock's falloff");
+    // the distortion measured from the pinhole capture, applied by lensfun, puts every point
+    // within 0.2 px of where the mock's true ptlens puts it
+    let dist = MockOptics::from_config(&rig).expect("optics").distortion.expect("mock.toml states a distortion");
+    let mut dworst = 0.0f64;
+    let mut nd = 0;
+    for line in stdout.lines().filter(|l| l.starts_with("dist ")) {
+        let v: Vec<f64> = line.split_whitespace().skip(1).filter_map(|s| s.parse().ok()).collect();
+        let (x, y) = dist.distort_px(v[0], v[1], 384, 288);
+        dworst = dworst.max((v[2] - x).hypot(v[3] - y));
+        nd += 1;
+    }
+    println!("calibrate's lens.xml through liblensfun: max distortion error against the mock's truth {dworst:.3} px at {nd} points");
+    assert!(nd == pts.len() && dworst <= 0.2, "lensfun's distortion differs from the mock's truth by {dworst} px ({nd} points)");
+}
+
+/// Runs the probe on `xml` for lens `model` at `pts` (16 mm, f/5.6, 1000 m); its stdout.
+fn run_probe(probe: &Path, xml: &Path, model: &str, crop: &str, pts: &[(f64, f64)]) -> String {
+    let mut child = Command::new(probe)
+        .args([xml.to_str().unwrap_or_default(), "lensrig", model, crop, &W.to_string(), &H.to_string(), "16", "5.6", "1000"])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("probe");
+    {
+        let mut stdin = child.stdin.take().expect("stdin");
+        for (x, y) in pts {
+            writeln!(stdin, "{x} {y}").expect("write");
+        }
+    }
+    let o = child.wait_with_output().expect("probe output");
+    let stdout = String::from_utf8_lossy(&o.stdout).to_string();
+    assert!(o.status.success(), "probe: {} {}", stdout, String::from_utf8_lossy(&o.stderr));
+    stdout
+}
+
+/// A profile holding a distortion measurement exports `<distortion model="ptlens">`, and
+/// liblensfun's distortion correction maps every corrected pixel of a 13 × 9 grid (corners
+/// included) to the sensor position lensrig's ptlens model gives, within 0.05 px; lensrig's
+/// own undistortion of that position returns the grid point within 0.05 px.
+#[test]
+fn lensfun_applies_the_exported_distortion_like_lensrig() {
+    let d = tempfile::tempdir().expect("tempdir");
+    write_inputs(d.path());
+    let truth = PtLens { a: 0.004, b: -0.02, c: 0.003 };
+    let rec = MeasuredDistortion {
+        model: "ptlens".into(),
+        a: truth.a,
+        b: truth.b,
+        c: truth.c,
+        width: W,
+        height: H,
+        measured: "2026-01-01T00:00:00Z".into(),
+        capture: "pinhole.png".into(),
+        target: "target.toml".into(),
+        tiles_used: 88,
+        tiles_total: 88,
+        rms_residual_px: 0.01,
+        pixels_per_cell: 1.6,
+        rotation_deg: 0.0,
+    };
+    let (p, x) = (d.path().join("profile"), d.path().join("lens.xml"));
+    rec.save(&p).expect("distortion.toml");
+    let out = lensrig(&["export", "lensfun", "--profile", p.to_str().unwrap_or_default(), "--out", x.to_str().unwrap_or_default(), "--model", "Test singlet", "--focal-mm", "16", "--crop-factor", "18"]);
+    assert!(out.contains("distortion,") && !out.contains("no distortion"), "{out}");
+    let text = std::fs::read_to_string(&x).expect("xml");
+    assert!(text.contains("<distortion model=\"ptlens\" focal=\"16\" a=\"0.004\" b=\"-0.02\" c=\"0.003\" />") && text.contains("Measured: distortion (ptlens) at 2026-01-01T00:00:00Z"), "{text}");
+    assert!(text.find("<distortion").unwrap_or(usize::MAX) < text.find("<tca").unwrap_or(0), "XSD order: distortion before tca");
+    // another sensor size is refused
+    let mut other = rec.clone();
+    other.width = 640;
+    other.save(&p).expect("distortion.toml");
+    let o = Command::new(env!("CARGO_BIN_EXE_lensrig")).args(["export", "lensfun", "--profile", p.to_str().unwrap_or_default(), "--out", d.path().join("x.xml").to_str().unwrap_or_default(), "--focal-mm", "16", "--crop-factor", "18"]).output().expect("run");
+    assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("640x288"), "{}", String::from_utf8_lossy(&o.stderr));
+    let probe = match build_probe(d.path()) {
+        Ok(p) => p,
+        Err(why) => {
+            eprintln!("SKIPPED the lensfun distortion round trip: {why}");
+            println!("SKIPPED the lensfun distortion round trip: {why}");
+            return;
+        }
+    };
+    let pts: Vec<(f64, f64)> = (0..=8).flat_map(|j| (0..=12).map(move |i| (i as f64 * (W as f64 - 1.0) / 12.0, j as f64 * (H as f64 - 1.0) / 8.0))).collect();
+    let stdout = run_probe(&probe, &x, "Test singlet", "18", &pts);
+    assert!(stdout.contains("distortion=1"), "lensfun did not apply the distortion: {stdout}");
+    let (mut fwd, mut back, mut shift, mut n) = (0.0f64, 0.0f64, 0.0f64, 0);
+    for line in stdout.lines().filter(|l| l.starts_with("dist ")) {
+        let v: Vec<f64> = line.split_whitespace().skip(1).filter_map(|s| s.parse().ok()).collect();
+        let (xd, yd) = truth.distort_px(v[0], v[1], W, H);
+        fwd = fwd.max((v[2] - xd).hypot(v[3] - yd));
+        let (xu, yu) = truth.undistort_px(v[2], v[3], W, H);
+        back = back.max((xu - v[0]).hypot(yu - v[1]));
+        shift = shift.max((v[2] - v[0]).hypot(v[3] - v[1]));
+        n += 1;
+    }
+    println!("lensfun distortion at {n} points: max |lensfun − lensrig| {fwd:.4} px, lensrig's undistortion of lensfun's position {back:.4} px (largest displacement {shift:.2} px)");
+    assert_eq!(n, pts.len(), "{stdout}");
+    assert!(shift > 2.0, "the test distortion is too weak to test anything: {shift} px");
+    assert!(fwd <= 0.05 && back <= 0.05, "lensfun and lensrig differ: {fwd} / {back} px");
 }

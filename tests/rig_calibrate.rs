@@ -57,6 +57,14 @@ fn calibrate_on_the_mock_rig_recovers_the_true_psfs() {
     let worst = (0..=20).map(|i| i as f64 / 20.0).map(|r| (v(&k, r) - v(&truth, r)).abs()).fold(0.0, f64::max);
     eprintln!("flat field: pa {k:?} vs truth {truth:?}, max |ΔV| {worst:.5}");
     assert!(worst < 0.005, "pa {k:?} vs truth {truth:?}: {worst}");
+    // mock.toml's distortion, measured from the pinhole capture: lens.xml carries ptlens whose
+    // displacement field is within 0.2 px of the mock's over the frame
+    let truth_d = optics.distortion.expect("mock.toml states a distortion");
+    assert!(xml.contains("<distortion model=\"ptlens\"") && xml.contains("Measured: distortion (ptlens)"), "{xml}");
+    let m = lensrig::target::locate::MeasuredDistortion::load(&out.join("profiles/000-stage-X-20.000")).unwrap().expect("distortion.toml");
+    let (max, rms) = lensrig::target::locate::field_difference(&m.ptlens(), &truth_d, 384, 288);
+    eprintln!("distortion: ptlens a {:.4} b {:.4} c {:.4} vs truth {truth_d:?}: field error max {max:.3} px, RMS {rms:.3} px", m.a, m.b, m.c);
+    assert!(max <= 0.2, "distortion field error {max} px");
     let flat = std::fs::read_to_string(out.join("session/flat/flat.toml")).unwrap();
     assert!(flat.contains("role = \"flat\"") && flat.contains("aperture_mm = -1.0") && flat.contains("stage_mm = -90.0") && flat.contains("frames_averaged = 16"), "{flat}");
     let html = std::fs::read_to_string(out.join("index.html")).unwrap();
@@ -157,5 +165,49 @@ fn resume_after_an_interrupted_session_keeps_finished_pairs_byte_identical() {
     let other = config_variant(&dir.join("other"), |t| t.replace("frames_to_average = 16", "frames_to_average = 3"));
     let e = fails(&["capture", "--rig", other.to_str().unwrap(), "--out", s.to_str().unwrap(), "--resume"]);
     assert!(e.contains("differs"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The mock rig's pinhole capture (in process, through the mock camera's noise and
+/// vignetting) registered to the target file: the fitted ptlens displacement field matches
+/// the configured one within 0.2 px everywhere on the 384 × 288 frame (17 × 13 grid, corners
+/// included), and with no distortion configured the fitted field stays under 0.1 px.
+#[test]
+fn locate_recovers_the_mock_distortion_from_the_pinhole_capture() {
+    use lensrig::optics::distortion::PtLens;
+    use lensrig::rig::camera::mock::MockCamera;
+    use lensrig::rig::camera::Camera;
+    use lensrig::rig::controller::Position;
+    use lensrig::target::locate::{field_difference, locate, LocateOptions, Nominal};
+    use lensrig::target::TargetSpec;
+    use std::sync::{Arc, Mutex};
+    let dir = tmp("locate");
+    for (k, truth, tol) in [("none", PtLens::NONE, 0.1), ("barrel", PtLens { a: 0.0, b: -0.02, c: 0.0 }, 0.2), ("wavy", PtLens { a: 0.01, b: -0.03, c: 0.005 }, 0.2)] {
+        let line = format!("distortion = [{}, {}, {}]", truth.a, truth.b, truth.c);
+        let cfg = config::load(&config_variant(&dir.join(k), |t| t.lines().filter(|l| !l.starts_with("distortion =")).map(|l| format!("{l}\n")).collect::<String>() + &line)).unwrap();
+        let pos = Arc::new(Mutex::new(Position::ZERO));
+        let mut cam = MockCamera::new(&cfg, pos.clone()).unwrap();
+        let o = cam.optics().clone();
+        assert_eq!(o.distortion, Some(truth));
+        let stage = cfg.axes.stage.positions[0];
+        pos.lock().unwrap().set(o.aperture_axis, o.aperture_pinhole);
+        pos.lock().unwrap().set(o.stage_axis, stage);
+        cam.set_exposure(cfg.camera.exposure_us * 16).unwrap();
+        let f = cam.capture(16).unwrap();
+        let g = &f.image.planes[1];
+        let target = TargetSpec::load(&cfg.target.as_ref().unwrap().path).unwrap();
+        let (u0, v0) = o.target_origin(stage);
+        // the rig's magnification known to 4 %
+        let nominal = Nominal { pixels_per_cell: o.pixels_per_cell * 0.96, u0, v0 };
+        let fit = locate(g, &target, &nominal, &LocateOptions::default()).unwrap();
+        let (max, rms) = field_difference(&fit.ptlens, &truth, g.width, g.height);
+        let corner = truth.displacement_px(0.0, 0.0, g.width, g.height);
+        eprintln!(
+            "{k}: truth {truth:?} (corner {:.2} px), fit a {:.4} b {:.4} c {:.4}; field error max {max:.3} px, RMS {rms:.3} px; {} of {} tiles, residual {:.3} px",
+            corner.0.hypot(corner.1), fit.ptlens.a, fit.ptlens.b, fit.ptlens.c, fit.tiles_used, fit.tiles.len(), fit.rms_residual_px
+        );
+        assert!(max <= tol, "{k}: field error {max} px > {tol}");
+        assert!(fit.tiles_used >= 60, "{k}: {} tiles", fit.tiles_used);
+    }
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -12,6 +12,13 @@
 //! dark frame, at the open f-number and a stated focus distance of 1000 m (the flat field is
 //! taken at one focus). The report shows the measured relative illumination (against the
 //! mock's truth on a mock rig).
+//!
+//! Distortion: when the rig's target file and its nominal layout on the sensor are known (a
+//! mock rig: `[lens] pixels_per_cell` and the stage offset), the first stage position's pinhole
+//! capture (its G channel, or the channel mean) is registered to the target file
+//! ([`lensrig::target::locate`]) and lensfun's ptlens
+//! fit is stored as `profiles/<key>/distortion.toml`; `lens.xml` then carries
+//! `<distortion model="ptlens">`. The report shows the fit (against the mock's truth).
 
 use super::args::{EstimateArgs, RigArgs};
 use super::capture::capture_session;
@@ -27,7 +34,10 @@ use lensrig::optics::psf_grid::PsfGrid;
 use lensrig::report::ProfileReport;
 use lensrig::export::lensfun::LensInfo;
 use lensrig::rig::camera::mock::MockOptics;
+use lensrig::rig::config::RigConfig;
 use lensrig::rig::session::{PairRecord, SessionRecord};
+use lensrig::target::locate::{field_difference, locate, LocateOptions, MeasuredDistortion, Nominal};
+use lensrig::target::TargetSpec;
 use std::path::{Path, PathBuf};
 
 use std::time::Instant;
@@ -173,12 +183,12 @@ fn lensfun_section(out: &Path, session_dir: &Path, rec: &SessionRecord, ests: &[
     let profile_dir = out.join("profiles").join(&p.key);
     let e = lensfun_export(&profile_dir, prof, &info, flat.as_ref())?;
     write_atomic(&out.join("lens.xml"), e.xml.as_bytes(), Overwrite::Replace)?;
-    let blocks: Vec<&str> = [e.tca.map(|_| "tca (poly3)"), e.vignetting.map(|_| "vignetting (pa)")].into_iter().flatten().collect();
+    let blocks: Vec<&str> = [e.distortion.as_ref().map(|_| "distortion (ptlens)"), e.tca.map(|_| "tca (poly3)"), e.vignetting.map(|_| "vignetting (pa)")].into_iter().flatten().collect();
     html.push_str(&format!(
         "<p><code>lens.xml</code>: a lensfun database file (lens \"lensrig / Simple lens\", focal {} mm, crop factor {}) with {} from <code>profiles/{}/</code>{}; copy it to <code>~/.local/share/lensfun/</code>.</p>",
         lensrig::report::significant(focal, 3),
         lensrig::report::significant(info.crop_factor, 3),
-        if blocks.is_empty() { "no calibration block".to_string() } else { blocks.join(" and ") },
+        if blocks.is_empty() { "no calibration block".to_string() } else { blocks.join(", ") },
         p.key,
         if e.vignetting.is_some() { " and the flat field <code>session/flat/</code>" } else { "" }
     ));
@@ -214,7 +224,65 @@ fn lensfun_section(out: &Path, session_dir: &Path, rec: &SessionRecord, ests: &[
             "max_abs_difference_vs_truth": truth.map(|_| worst),
         });
     }
-    let json = serde_json::json!({ "file": "lens.xml", "profile": format!("profiles/{}", p.key), "tca": e.tca.map(|t| serde_json::json!({"red": t.red, "blue": t.blue})), "vignetting": vig_json });
+    let json = serde_json::json!({ "file": "lens.xml", "profile": format!("profiles/{}", p.key), "distortion": e.distortion.is_some(), "tca": e.tca.map(|t| serde_json::json!({"red": t.red, "blue": t.blue})), "vignetting": vig_json });
+    Ok((html, json))
+}
+
+/// Measures the lens's distortion from the first pair's pinhole capture (see the module docs),
+/// stores it as `profiles/<key>/distortion.toml`, and returns its report section and
+/// `summary.json` entry. A registration that fails is reported, not fatal.
+fn distortion_section(out: &Path, session_dir: &Path, cfg: &RigConfig, ests: &[(PairRecord, Estimate)], optics: Option<&MockOptics>) -> Result<(String, serde_json::Value)> {
+    let mut html = String::from("<h2>Geometric distortion</h2>");
+    let (Some((p, _)), Some(t), Some(o)) = (ests.first(), cfg.target.as_ref(), optics) else {
+        html.push_str("<p>Not measured: registering the pinhole capture to the target file needs the target (<code>[target]</code>) and its nominal layout on the sensor, known today on a mock rig only.</p>");
+        return Ok((html, serde_json::Value::Null));
+    };
+    let spec = TargetSpec::load(&t.path).with_context(|| format!("cannot read the target {}", t.path.display()))?;
+    let path = session_dir.join(&p.dir).join(&p.pinhole);
+    let img = read_image(&path).with_context(|| format!("cannot read {}", path.display()))?;
+    // lensfun's distortion is the green channel's geometry (TCA is R and B against G)
+    let mean = match img.channels.iter().position(|c| c == "G") {
+        Some(g) => img.planes[g].clone(),
+        None => {
+            let mut m = img.planes[0].clone();
+            for q in &img.planes[1..] {
+                m.data.iter_mut().zip(&q.data).for_each(|(a, v)| *a += v);
+            }
+            let n = img.planes.len() as f32;
+            m.data.iter_mut().for_each(|a| *a /= n);
+            m
+        }
+    };
+    let (u0, v0) = o.target_origin(p.stage_mm);
+    let fit = match locate(&mean, &spec, &Nominal { pixels_per_cell: o.pixels_per_cell, u0, v0 }, &LocateOptions::default()) {
+        Ok(f) => f,
+        Err(e) => {
+            html.push_str(&format!("<p>Not measured: {e}.</p>"));
+            return Ok((html, serde_json::json!({ "error": e.to_string() })));
+        }
+    };
+    let rec = MeasuredDistortion::of(&fit, &path, &t.path);
+    rec.save(&out.join("profiles").join(&p.key))?;
+    let truth = o.distortion.unwrap_or_default();
+    let (max, rms) = field_difference(&fit.ptlens, &truth, fit.width, fit.height);
+    let (w, h) = (fit.width as f64 - 1.0, fit.height as f64 - 1.0);
+    let corner = |d: &lensrig::optics::distortion::PtLens| {
+        let (x, y) = d.displacement_px(0.0, 0.0, fit.width, fit.height);
+        x.hypot(y)
+    };
+    html.push_str(&format!(
+        "<p>lensfun <code>ptlens</code> from the pinhole capture of <code>{}</code> registered to the target file: a {:.5}, b {:.5}, c {:.5} ({} of {} tiles, RMS residual {:.3} px; {:.3} px per target cell, rotation {:.3}°). Displacement in the corner {:.2} px. Stored in <code>profiles/{}/distortion.toml</code>.</p>",
+        p.key, fit.ptlens.a, fit.ptlens.b, fit.ptlens.c, fit.tiles_used, fit.tiles.len(), fit.rms_residual_px, fit.pixels_per_cell, fit.rotation_deg, corner(&fit.ptlens), p.key
+    ));
+    html.push_str(&format!(
+        "<p>Against the simulator's truth (a {}, b {}, c {}; corner displacement {:.2} px): displacement field error max {:.3} px, RMS {:.3} px over the {:.0}×{:.0} frame.</p>",
+        truth.a, truth.b, truth.c, corner(&truth), max, rms, w + 1.0, h + 1.0
+    ));
+    let json = serde_json::json!({
+        "file": format!("profiles/{}/distortion.toml", p.key), "a": fit.ptlens.a, "b": fit.ptlens.b, "c": fit.ptlens.c,
+        "tiles_used": fit.tiles_used, "tiles": fit.tiles.len(), "rms_residual_px": fit.rms_residual_px,
+        "truth": [truth.a, truth.b, truth.c], "field_error_max_px": max, "field_error_rms_px": rms,
+    });
     Ok((html, json))
 }
 
@@ -251,11 +319,13 @@ pub fn run(a: &CalibrateArgs) -> Result<()> {
         pairs_json.push(r.json);
         medians.extend(r.truth.map(|t| t.0));
     }
+    let (dist_html, dist_json) = distortion_section(&a.out, &session_dir, &cfg, &ests, optics.as_ref())?;
     let (lens_html, lens_json) = lensfun_section(&a.out, &session_dir, &rec, &ests, &facts, optics.as_ref())?;
+    html.push_str(&dist_html);
     html.push_str(&lens_html);
     let seconds = t0.elapsed().as_secs_f64();
     let summary = serde_json::json!({
-        "rig": a.rig.rig.display().to_string(), "session": "session", "pairs": pairs_json, "lensfun": lens_json,
+        "rig": a.rig.rig.display().to_string(), "session": "session", "pairs": pairs_json, "distortion": dist_json, "lensfun": lens_json,
         "mock_f_number_open": optics.as_ref().map(|o| o.f_number_open),
         "mock_f_number_pinhole": optics.as_ref().map(|o| o.f_number_pinhole),
         "capture_seconds": t_capture, "seconds": seconds,

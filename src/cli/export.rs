@@ -1,5 +1,6 @@
-//! `lensrig export lensfun`: a lensfun database file from a profile (TCA), a flat-field
-//! capture (vignetting) and the lens's identity. See [`lensrig::export::lensfun`] for what is
+//! `lensrig export lensfun`: a lensfun database file from a profile (TCA, and distortion when
+//! the profile holds `distortion.toml`), a flat-field capture (vignetting) and the lens's
+//! identity. See [`lensrig::export::lensfun`] for what is
 //! written and why.
 
 use super::report::rig_facts;
@@ -10,11 +11,12 @@ use lensrig::fsutil::{write_atomic, Overwrite};
 use lensrig::image::io::read_image;
 use lensrig::image::Image;
 use lensrig::profile::Profile;
+use lensrig::target::locate::MeasuredDistortion;
 use std::path::{Path, PathBuf};
 
 #[derive(Subcommand, Debug)]
 pub enum ExportCommand {
-    /// A lensfun database file (format version 1): TCA from the profile, vignetting from --flat.
+    /// A lensfun database file (format version 1): TCA and distortion (distortion.toml) from the profile, vignetting from --flat.
     Lensfun(LensfunArgs),
 }
 
@@ -74,6 +76,7 @@ pub struct FlatField {
 /// A lensfun file and what it holds.
 pub struct LensfunExport {
     pub xml: String,
+    pub distortion: Option<MeasuredDistortion>,
     pub tca: Option<Tca>,
     pub vignetting: Option<Vignetting>,
 }
@@ -82,7 +85,8 @@ pub struct LensfunExport {
 /// an optional flat field, with the provenance header saying what was measured from what.
 ///
 /// # Errors
-/// A flat field of another size than the profile's source, or too small or dark to fit.
+/// A flat field of another size than the profile's source, or too small or dark to fit; an
+/// invalid `distortion.toml` or one measured on another sensor size.
 pub fn lensfun_export(profile_dir: &Path, p: &Profile, info: &LensInfo, flat: Option<&FlatField>) -> Result<LensfunExport> {
     let (w, h) = (p.meta.source.width, p.meta.source.height);
     let report = lensrig::report::analyse(&p.grid, w, h, None);
@@ -118,9 +122,25 @@ pub fn lensfun_export(profile_dir: &Path, p: &Profile, info: &LensInfo, flat: Op
             None
         }
     };
-    prov.push("Not measured: distortion (registering the pinhole capture to the target file is not implemented).".into());
-    let xml = lensfun_xml(info, tca.as_ref(), vig.as_ref(), &prov);
-    Ok(LensfunExport { xml, tca, vignetting: vig })
+    let dist = distortion_of(profile_dir, w, h, &mut prov)?;
+    let xml = lensfun_xml(info, dist.as_ref().map(MeasuredDistortion::ptlens).as_ref(), tca.as_ref(), vig.as_ref(), &prov);
+    Ok(LensfunExport { xml, distortion: dist, tca, vignetting: vig })
+}
+
+/// The profile's distortion measurement (`distortion.toml`), with its provenance line.
+fn distortion_of(profile_dir: &Path, w: usize, h: usize, prov: &mut Vec<String>) -> Result<Option<MeasuredDistortion>> {
+    let Some(d) = MeasuredDistortion::load(profile_dir)? else {
+        prov.push("Not measured: distortion (the profile holds no distortion.toml; calibrate writes one when it can register the pinhole capture to the target file).".into());
+        return Ok(None);
+    };
+    if (d.width, d.height) != (w, h) {
+        bail!("{}: measured on {}x{} but the profile on {}x{}", profile_dir.join(lensrig::target::locate::DISTORTION_FILE).display(), d.width, d.height, w, h);
+    }
+    prov.push(format!(
+        "Measured: distortion (ptlens) at {} by registering the pinhole capture {} to the target {} ({} of {} tiles, RMS residual {:.3} px).",
+        d.measured, d.capture, d.target, d.tiles_used, d.tiles_total, d.rms_residual_px
+    ));
+    Ok(Some(d))
 }
 
 pub fn run(c: &ExportCommand) -> Result<()> {
@@ -164,8 +184,9 @@ fn run_lensfun(a: &LensfunArgs) -> Result<()> {
     let (xml, tca, vig) = (e.xml, e.tca, e.vignetting);
     write_atomic(&a.out, xml.as_bytes(), if a.force { Overwrite::Replace } else { Overwrite::Never }).with_context(|| format!("cannot write {}", a.out.display()))?;
     println!(
-        "wrote {} ({}{}; crop factor {:.2}, focal {} mm)",
+        "wrote {} ({}{}{}; crop factor {:.2}, focal {} mm)",
         a.out.display(),
+        if e.distortion.is_some() { "distortion, " } else { "no distortion, " },
         if tca.is_some() { "tca" } else { "no tca" },
         if vig.is_some() { ", vignetting" } else { ", no vignetting" },
         crop,

@@ -7,10 +7,14 @@
 //! - `<vignetting model="pa">`: fitted to a flat-field capture (wide open, a uniform target
 //!   or a diffuser) ([`fit_vignetting`]). The ratio of the wide-open and pinhole exposures is
 //!   *relative* vignetting between two apertures, not the lens's falloff, and is never exported.
-//! - `<distortion>` is not written: lensrig does not yet register the pinhole capture to the
-//!   target file, so distortion is not measured (see the file's header comment).
+//! - `<distortion model="ptlens">`: fitted by registering a sharp (pinhole) capture to the
+//!   target file itself ([`crate::target::locate`]), stored with the profile as
+//!   `distortion.toml` ([`crate::target::locate::MeasuredDistortion`]).
 //!
 //! # lensfun's conventions (checked against liblensfun 0.3.3 by `tests/lensfun.rs`)
+//! - Distortion ptlens: `r_d = r_u·(a·r_u³ + b·r_u² + c·r_u + 1 − a − b − c)`, `r_u` in the
+//!   corrected image, `r_d` on the sensor, same centre and radius unit as TCA
+//!   ([`crate::optics::distortion`]).
 //! - TCA poly3: `r_d = r_u·(b·r_u² + c·r_u + v)` per channel, `r_u` the radius in the corrected
 //!   (G-aligned) image and `r_d` where that channel's content lies in the capture; radii are
 //!   about the image centre `((w−1)/2, (h−1)/2)`, normalised so that 1 is about half the
@@ -23,6 +27,7 @@
 //!   calibration`, and inside `calibration`: `distortion, tca, vignetting`.
 
 use crate::image::Image;
+use crate::optics::distortion::PtLens;
 use crate::report::ProfileReport;
 use std::fmt::Write as _;
 
@@ -66,8 +71,7 @@ pub struct Vignetting {
 /// computes it for an image of the calibration's aspect ratio: one unit is half the diagonal
 /// of `(w−1) × (h−1)` divided by `hypot(aspect, 1)`, i.e. about half the shorter side.
 pub fn tca_norm(width: usize, height: usize) -> f64 {
-    let ar = width.max(height) as f64 / width.min(height).max(1) as f64;
-    2.0 * ar.hypot(1.0) / ((width as f64 - 1.0).hypot(height as f64 - 1.0))
+    crate::optics::distortion::radius_norm(width, height)
 }
 
 /// Radius normalisation of vignetting: one unit is half the diagonal of `(w−1) × (h−1)`.
@@ -251,7 +255,7 @@ fn gcd(a: usize, b: usize) -> usize {
 
 /// The database file. `provenance` lines go into the header comment (what was measured, from
 /// which files, when).
-pub fn lensfun_xml(info: &LensInfo, tca: Option<&Tca>, vignetting: Option<&Vignetting>, provenance: &[String]) -> String {
+pub fn lensfun_xml(info: &LensInfo, distortion: Option<&PtLens>, tca: Option<&Tca>, vignetting: Option<&Vignetting>, provenance: &[String]) -> String {
     let mut s = String::from("<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n<!DOCTYPE lensdatabase SYSTEM \"lensfun-database.dtd\">\n<!--\n");
     for line in provenance {
         let _ = writeln!(s, "  {}", line.replace("--", "- -"));
@@ -263,8 +267,11 @@ pub fn lensfun_xml(info: &LensInfo, tca: Option<&Tca>, vignetting: Option<&Vigne
     let _ = writeln!(s, "        <cropfactor>{}</cropfactor>", num(info.crop_factor));
     let g = gcd(info.width, info.height).max(1);
     let _ = writeln!(s, "        <aspect-ratio>{}:{}</aspect-ratio>", info.width.max(info.height) / g, info.width.min(info.height) / g);
-    if tca.is_some() || vignetting.is_some() {
+    if distortion.is_some() || tca.is_some() || vignetting.is_some() {
         s.push_str("        <calibration>\n");
+        if let Some(d) = distortion {
+            let _ = writeln!(s, "            <distortion model=\"ptlens\" focal=\"{}\" a=\"{}\" b=\"{}\" c=\"{}\" />", num(info.focal_mm), num(d.a), num(d.b), num(d.c));
+        }
         if let Some(t) = tca {
             let _ = writeln!(
                 s,
@@ -330,7 +337,7 @@ mod tests {
     fn xml_has_lensfun_order_and_only_measured_blocks() {
         let info = LensInfo { maker: "lensrig".into(), model: "A & B".into(), mount: "C".into(), focal_mm: 16.0, crop_factor: 18.0, aperture: 5.6, distance_m: 1.0, width: 384, height: 288 };
         let t = Tca { red: [1.001, 0.0, 0.0002], blue: [0.999, 0.0, 0.0], tiles: 12, residual_px: 0.01 };
-        let x = lensfun_xml(&info, Some(&t), None, &["measured: tca".into()]);
+        let x = lensfun_xml(&info, None, Some(&t), None, &["measured: tca".into()]);
         assert!(x.contains("<lensdatabase version=\"1\">"));
         assert!(x.contains("<model>A &amp; B</model>"));
         assert!(x.contains("<aspect-ratio>4:3</aspect-ratio>"));
@@ -339,7 +346,11 @@ mod tests {
         let order = ["<maker>", "<model>", "<mount>", "<cropfactor>", "<aspect-ratio>", "<calibration>", "<tca"];
         let pos: Vec<usize> = order.iter().map(|o| x.find(o).unwrap_or(usize::MAX)).collect();
         assert!(pos.windows(2).all(|p| p[0] < p[1]), "{pos:?}");
-        let none = lensfun_xml(&info, None, None, &[]);
+        let none = lensfun_xml(&info, None, None, None, &[]);
         assert!(!none.contains("<calibration>"));
+        let d = PtLens { a: 0.001, b: -0.02, c: 0.0 };
+        let x = lensfun_xml(&info, Some(&d), Some(&t), None, &[]);
+        assert!(x.contains("<distortion model=\"ptlens\" focal=\"16\" a=\"0.001\" b=\"-0.02\" c=\"0\" />"), "{x}");
+        assert!(x.find("<distortion").unwrap() < x.find("<tca").unwrap());
     }
 }

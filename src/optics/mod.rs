@@ -2,6 +2,7 @@
 //! simulator used as the rig's digital twin.
 
 pub mod capture;
+pub mod distortion;
 pub mod field_operator;
 pub mod forward;
 pub mod kernel_operator;

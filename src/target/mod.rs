@@ -11,6 +11,8 @@
 //! Paper geometry in millimetres; print pixels at `dpi`; `cell_dots` printer pixels per cell.
 //! Reflectances: white paper `0.90`, toner `0.05` (linear).
 
+pub mod locate;
+
 use crate::fsutil::{write_atomic, write_atomic_with, Overwrite};
 use crate::image::Plane;
 use serde::{Deserialize, Serialize};
@@ -229,14 +231,20 @@ impl TargetSpec {
 /// pixels per target cell, starting at cell coordinates `(u0, v0)`, area-averaged over each
 /// pixel (`ss × ss` supersampling). Linear reflectance.
 pub fn render_noise_scene(spec: &TargetSpec, width: usize, height: usize, pixels_per_cell: f64, u0: f64, v0: f64) -> Plane {
+    render_noise_scene_mapped(spec, width, height, pixels_per_cell, u0, v0, |x, y| (x, y))
+}
+
+/// [`render_noise_scene`] through a geometric map: sensor pixel coordinates `(x, y)` (pixel
+/// centres at integers) are mapped by `map` to the undistorted pixel coordinates the target
+/// is laid out in (`u = u0 + x_u / pixels_per_cell`), per supersample.
+pub fn render_noise_scene_mapped(spec: &TargetSpec, width: usize, height: usize, pixels_per_cell: f64, u0: f64, v0: f64, map: impl Fn(f64, f64) -> (f64, f64)) -> Plane {
     let ss = 4;
     Plane::from_fn(width, height, |x, y| {
         let mut acc = 0.0;
         for j in 0..ss {
             for i in 0..ss {
-                let u = u0 + (x as f64 + (i as f64 + 0.5) / ss as f64 - 0.5) / pixels_per_cell;
-                let v = v0 + (y as f64 + (j as f64 + 0.5) / ss as f64 - 0.5) / pixels_per_cell;
-                acc += spec.noise_at(u, v);
+                let (xu, yu) = map(x as f64 + (i as f64 + 0.5) / ss as f64 - 0.5, y as f64 + (j as f64 + 0.5) / ss as f64 - 0.5);
+                acc += spec.noise_at(u0 + xu / pixels_per_cell, v0 + yu / pixels_per_cell);
             }
         }
         acc / (ss * ss) as f32

@@ -5,6 +5,7 @@
  * stdin: "x y" per line (pixel coordinates). stdout per point:
  *   "tca X Y XR YR XB YB"  source positions of R and B for the corrected pixel (LF_MODIFY_TCA)
  *   "vig X Y GAIN"         the factor lensfun's vignetting correction applies (LF_MODIFY_VIGNETTING)
+ *   "dist X Y XD YD"       the source (distorted) position of the corrected pixel (LF_MODIFY_DISTORTION)
  * Exit 2 when the file does not load or the lens is not found. */
 #include <lensfun.h>
 #include <stdio.h>
@@ -24,13 +25,20 @@ int main(int argc, char **argv) {
     int tf = lf_modifier_initialize(tm, lens, LF_PF_F32, focal, aperture, distance, 1.0, lens->Type, LF_MODIFY_TCA, 0);
     lfModifier *vm = lf_modifier_new(lens, crop, w, h);
     int vf = lf_modifier_initialize(vm, lens, LF_PF_F32, focal, aperture, distance, 1.0, lens->Type, LF_MODIFY_VIGNETTING, 0);
-    printf("flags tca=%d vignetting=%d\n", (tf & LF_MODIFY_TCA) != 0, (vf & LF_MODIFY_VIGNETTING) != 0);
+    lfModifier *dm = lf_modifier_new(lens, crop, w, h);
+    int df = lf_modifier_initialize(dm, lens, LF_PF_F32, focal, aperture, distance, 1.0, lens->Type, LF_MODIFY_DISTORTION, 0);
+    printf("flags tca=%d vignetting=%d distortion=%d\n", (tf & LF_MODIFY_TCA) != 0, (vf & LF_MODIFY_VIGNETTING) != 0, (df & LF_MODIFY_DISTORTION) != 0);
     double x, y;
     while (scanf("%lf %lf", &x, &y) == 2) {
         float res[6];
         if (tf & LF_MODIFY_TCA) {
             if (lf_modifier_apply_subpixel_distortion(tm, (float)x, (float)y, 1, 1, res))
                 printf("tca %g %g %.5f %.5f %.5f %.5f\n", x, y, res[0], res[1], res[4], res[5]);
+        }
+        if (df & LF_MODIFY_DISTORTION) {
+            float xy[2];
+            if (lf_modifier_apply_geometry_distortion(dm, (float)x, (float)y, 1, 1, xy))
+                printf("dist %g %g %.5f %.5f\n", x, y, xy[0], xy[1]);
         }
         if (vf & LF_MODIFY_VIGNETTING) {
             float px[3] = {1.0f, 1.0f, 1.0f};
@@ -40,6 +48,7 @@ int main(int argc, char **argv) {
     }
     lf_modifier_destroy(tm);
     lf_modifier_destroy(vm);
+    lf_modifier_destroy(dm);
     lf_free(lenses);
     lf_db_destroy(db);
     return 0;

@@ -18,7 +18,10 @@
 //! `brightness` (300, full-scale per second at f/1), `full_well_e` (20000), `read_noise_e` (6),
 //! `bands` (`"rgb"` or `"mono"`, default `"mono"`), `seed` (1), `vignetting` (`[k1, k2, k3]`,
 //! lensfun's `pa` relative illumination applied to every frame, see
-//! [`crate::optics::vignetting`]; default none), and the fault
+//! [`crate::optics::vignetting`]; default none), `distortion` (`[a, b, c]`, lensfun's `ptlens`
+//! geometric distortion, see [`crate::optics::distortion`]: every frame shows the target
+//! where the distorted lens puts it, both apertures alike; must be monotonic over the frame;
+//! default none), and the fault
 //! `timeout_after_captures` (a capture after that many returns [`CameraError::Timeout`]
 //! after `camera.frame_timeout_ms`,
 //! for resume tests; the environment variable `LENSRIG_MOCK_TIMEOUT_AFTER_CAPTURES` does the
@@ -41,11 +44,12 @@ use super::{Camera, CameraError, FourCc, Frame, FrameFormat, FrameMeta};
 use crate::image::{Image, Plane, SampleFormat, Transfer};
 use crate::optics::capture::{render, Sensor, Shot};
 use crate::optics::lens::{mono_band, LensModel};
+use crate::optics::distortion::PtLens;
 use crate::optics::vignetting::PaVignetting;
 use crate::rig::config::RigConfig;
 use crate::rig::controller::{Axis, Position};
 use crate::rng::Rng;
-use crate::target::{render_noise_scene, TargetSpec};
+use crate::target::{render_noise_scene, render_noise_scene_mapped, TargetSpec};
 
 /// The machine position as last reported by the controller.
 pub type PositionSource = Arc<Mutex<Position>>;
@@ -93,12 +97,14 @@ pub struct MockOptics {
     pub kernel_size: usize,
     /// `[lens] vignetting`: the lens's relative illumination (`None`: none).
     pub vignetting: Option<PaVignetting>,
+    /// `[lens] distortion`: the lens's geometric distortion (`None`: none).
+    pub distortion: Option<PtLens>,
     /// Stage position of the diffuser (`[plan.flat] stage_mm`).
     pub flat_stage_mm: Option<f64>,
 }
 
 /// The keys `[lens]` may hold (see the module docs).
-const KNOWN: [&str; 14] = [
+const KNOWN: [&str; 15] = [
     "focal_length_mm",
     "pixel_pitch_um",
     "f_number_open",
@@ -113,6 +119,7 @@ const KNOWN: [&str; 14] = [
     "seed",
     "timeout_after_captures",
     "vignetting",
+    "distortion",
 ];
 
 /// `[lens] vignetting = [k1, k2, k3]` (lensfun `pa`; fewer than three = trailing zeros), checked
@@ -130,6 +137,24 @@ fn parse_vignetting(t: &toml::Table) -> Result<Option<PaVignetting>, MockError> 
             Some(v)
         }
         Some(v) => return Err(MockError::WrongType { key: "vignetting".into(), expected: "[k1, k2, k3] (lensfun pa)", got: v.to_string() }),
+    })
+}
+
+/// `[lens] distortion = [a, b, c]` (lensfun ptlens; fewer than three = trailing zeros),
+/// checked to be monotonic over a `width × height` frame.
+fn parse_distortion(t: &toml::Table, width: usize, height: usize) -> Result<Option<PtLens>, MockError> {
+    Ok(match t.get("distortion") {
+        None => None,
+        Some(toml::Value::Array(a)) if (1..=3).contains(&a.len()) => {
+            let mut k = [0.0; 3];
+            for (d, v) in k.iter_mut().zip(a) {
+                *d = v.as_float().or_else(|| v.as_integer().map(|i| i as f64)).ok_or_else(|| MockError::WrongType { key: "distortion".into(), expected: "numbers", got: v.to_string() })?;
+            }
+            let d = PtLens { a: k[0], b: k[1], c: k[2] };
+            d.check(width, height).map_err(|e| MockError::BadValue { key: "distortion", problem: e.to_string() })?;
+            Some(d)
+        }
+        Some(v) => return Err(MockError::WrongType { key: "distortion".into(), expected: "[a, b, c] (lensfun ptlens)", got: v.to_string() }),
     })
 }
 
@@ -183,6 +208,7 @@ impl MockOptics {
         let sensor = Sensor { full_well_e: num("full_well_e", 20_000.0)?, read_noise_e: num("read_noise_e", 6.0)?, ..Sensor::default() };
         let kernel_size = lens.suggested_kernel_size(f_open);
         let vignetting = parse_vignetting(t)?;
+        let distortion = parse_distortion(t, w, h)?;
         Ok(Self {
             f_number_open: f_open,
             f_number_pinhole: pinhole,
@@ -199,6 +225,7 @@ impl MockOptics {
             psf_rows: 7,
             kernel_size,
             vignetting,
+            distortion,
             flat_stage_mm: cfg.plan.flat.as_ref().map(|f| f.stage_mm),
             lens,
         })
@@ -218,6 +245,22 @@ impl MockOptics {
     /// The PSF grid the camera renders with at `f_number` (the simulator's truth).
     pub fn truth_grid(&self, f_number: f64) -> crate::optics::psf_grid::PsfGrid {
         self.lens.psf_grid(f_number, self.psf_columns, self.psf_rows, self.kernel_size)
+    }
+
+    /// Target cell coordinates `(u0, v0)` of the undistorted pixel `(0, 0)` at a stage
+    /// position: the stage slides the target by `cells_per_mm` cells per mm along x.
+    pub fn target_origin(&self, stage_mm: f64) -> (f64, f64) {
+        (7.0 - stage_mm * self.cells_per_mm, 5.0)
+    }
+
+    /// The sharp scene (linear reflectance) the lens images at a stage position, laid out
+    /// through the distortion: sensor pixel `p` shows the target at the undistorted `D⁻¹(p)`.
+    pub fn scene(&self, target: &TargetSpec, width: usize, height: usize, stage_mm: f64) -> Plane {
+        let (u0, v0) = self.target_origin(stage_mm);
+        match self.distortion {
+            Some(d) if !d.is_none() => render_noise_scene_mapped(target, width, height, self.pixels_per_cell, u0, v0, |x, y| d.undistort_px(x, y, width, height)),
+            _ => render_noise_scene(target, width, height, self.pixels_per_cell, u0, v0),
+        }
     }
 }
 
@@ -320,8 +363,7 @@ impl MockCamera {
         let mut clean = if diffuser {
             vec![Plane::filled(w, h, 1.0); bands]
         } else {
-            let u0 = 7.0 - stage * self.optics.cells_per_mm;
-            let scene = render_noise_scene(&self.target, w, h, self.optics.pixels_per_cell, u0, 5.0);
+            let scene = self.optics.scene(&self.target, w, h, stage);
             let scene = vec![scene; bands];
             let mut shot = match n {
                 Some(n) => Shot::lens(n, 1.0, self.optics.psf_columns, self.optics.psf_rows, self.optics.kernel_size),
@@ -568,6 +610,46 @@ mod tests {
         assert!(((p.get(0, 0) / p.get(48, 36)) as f64 - 0.75).abs() < 0.03);
         let e = config::parse(&text.replace("[-0.3, 0.05]", "[-1.5]"), &dir.join("mock.toml")).map(|c| MockOptics::from_config(&c));
         assert!(matches!(e, Ok(Err(m)) if m.to_string().contains("lens.vignetting")));
+    }
+
+    /// `[lens] distortion` lays the target out through lensfun's ptlens map: the centre is
+    /// unmoved, a corner pixel shows the target where the undistorted scene has it at
+    /// `D⁻¹(p)`; a folding map, a wrong type and an unknown key are config errors.
+    #[test]
+    fn distortion_moves_the_target_and_bad_values_are_rejected() {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("rig-configs");
+        // mock.toml without its own distortion line
+        let base: String = std::fs::read_to_string(dir.join("mock.toml")).unwrap().lines().filter(|l| !l.starts_with("distortion =")).map(|l| format!("{l}\n")).collect();
+        let with = |line: &str| {
+            let text = format!("{base}\n{line}\n");
+            config::parse(&text, &dir.join("mock.toml")).map(|mut c| {
+                c.camera.width = 96;
+                c.camera.height = 72;
+                MockOptics::from_config(&c)
+            })
+        };
+        let o = with("distortion = [0.0, -0.05]").unwrap().unwrap();
+        assert_eq!(o.distortion, Some(PtLens { a: 0.0, b: -0.05, c: 0.0 }));
+        let t = TargetSpec::load(&dir.join("../targets/a4-noise-300dpi.toml")).unwrap();
+        let (w, h) = (96, 72);
+        let bent = o.scene(&t, w, h, -20.0);
+        let (u0, v0) = o.target_origin(-20.0);
+        let straight = render_noise_scene(&t, w, h, o.pixels_per_cell, u0, v0);
+        let d = o.distortion.unwrap();
+        // centre pixels barely move; a corner pixel is displaced by more than a pixel
+        assert!((bent.get(48, 36) - straight.get(48, 36)).abs() < 0.05);
+        let (dx, dy) = d.displacement_px(0.0, 0.0, w, h);
+        assert!(dx.hypot(dy) > 1.0, "{dx} {dy}");
+        // the distorted frame agrees with the straight one sampled at D⁻¹(p) (to the supersampling)
+        let agree = (4..20).flat_map(|y| (4..20).map(move |x| (x, y))).filter(|&(x, y)| {
+            let (xu, yu) = d.undistort_px(x as f64, y as f64, w, h);
+            let one = render_noise_scene(&t, 1, 1, o.pixels_per_cell, u0 + xu / o.pixels_per_cell, v0 + yu / o.pixels_per_cell);
+            (one.get(0, 0) - bent.get(x, y)).abs() < 0.2
+        });
+        assert!(agree.count() > 16 * 16 * 9 / 10);
+        assert!(matches!(with("distortion = [0.0, -0.4]"), Ok(Err(m)) if m.to_string().contains("lens.distortion") && m.to_string().contains("monotonic")));
+        assert!(matches!(with("distortion = \"barrel\""), Ok(Err(m)) if m.to_string().contains("lens.distortion")));
+        assert!(matches!(with("distortoin = [0.0, -0.02]"), Ok(Err(m)) if m.to_string().contains("unknown key")));
     }
 
     #[test]

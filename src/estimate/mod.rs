@@ -21,6 +21,7 @@
 //! row-major `(x, y)` with `x` to the right. `s` is stored per channel in the profile; centres
 //! are `[x, y]` pixel coordinates (pixel centres at integers).
 
+pub mod bootstrap;
 pub mod joint;
 pub mod register;
 pub mod session;

@@ -28,6 +28,7 @@ use std::path::{Path, PathBuf};
 
 pub mod noise;
 pub mod set;
+pub mod uncertainty;
 
 /// The format version this build writes and reads.
 pub const FORMAT_VERSION: u32 = 1;

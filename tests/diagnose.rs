@@ -65,6 +65,39 @@ fn clean_data_is_no_mismatch_and_the_noise_model_matches_the_sensor() {
     assert!((floor / true_floor - 1.0).abs() < 0.10, "noise floor {floor:.3e} vs true {true_floor:.3e}");
 }
 
+/// A kernel window large against the image (31-px kernels on 256×192: the nominal kernel count
+/// is 16% of the evaluated pixels). Clean data must be consistent with noise once the reduced
+/// χ² subtracts the effective degrees of freedom, where the nominal count would call it a
+/// mismatch; a concealed vignetting must still leave the base model inconsistent and be named.
+/// The kernel budget is raised to 400 iterations: with 80, 31-px kernels are not converged on
+/// this pair (χ²/N 1.6, a real misfit, not a count).
+fn big_kernel_case(effect: Option<&str>) -> (BenchRow, Diagnosis, lensrig::diagnose::proof::Case) {
+    let spec = CaseSpec { kernel_size: 31, ..CaseSpec::default() };
+    let mut opts = proof_options(&spec);
+    opts.base_fit.kernel_iterations = 400;
+    bench_case(effect, 31, &spec, &opts).expect("diagnosis runs")
+}
+
+#[test]
+fn big_kernels_on_clean_data_are_consistent_with_effective_dof() {
+    let (row, d, _) = big_kernel_case(None);
+    let b = &d.base;
+    let nominal = b.chi2() / (b.n() as f64 - b.params as f64);
+    assert!(b.params as f64 > 0.15 * b.n() as f64, "nominal {} of {} pixels", b.params, b.n());
+    assert!(nominal > 1.10, "the nominal count would not inflate χ²/dof here: {nominal:.3}");
+    eprintln!("big kernels, clean: {} pixels, {} nominal, {:.0} effective; χ²/(N − p) {nominal:.3}, χ²/(N − p_eff) {:.3}", b.n(), b.params, b.effective_params(), b.reduced_chi2());
+    assert!(b.effective_params() < 0.5 * b.params as f64, "effective {:.0} of {} nominal", b.effective_params(), b.params);
+    assert!(d.verdict.starts_with("no mismatch"), "{} (nominal χ²/dof {nominal:.3}, effective {:.3})", d.verdict, b.reduced_chi2());
+    assert!(row.floor_ratio <= FLOOR, "base residual {:.3}× the floor", row.floor_ratio);
+}
+
+#[test]
+fn big_kernels_with_vignetting_are_inconsistent_with_effective_dof() {
+    let (_, d, c) = big_kernel_case(Some("vignetting"));
+    assert!(d.base.reduced_chi2() > 1.10, "base χ²/dof {:.3} (truth {})", d.base.reduced_chi2(), c.truth);
+    assert_eq!(d.effects.first().map(|e| e.name.as_str()), Some("vignetting"), "rounds {:?}", d.rounds);
+}
+
 #[test]
 fn vignetting_is_named_and_its_gain_recovered() {
     let (d, c) = check_named("vignetting", 2);

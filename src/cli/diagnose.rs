@@ -56,9 +56,22 @@ pub struct DiagnoseArgs {
     /// Benchmark: first seed.
     #[arg(long, hide = true, default_value_t = 1)]
     pub bench_first_seed: u64,
-    /// Benchmark: only this effect (or "clean").
+    /// Benchmark: only this effect (or "clean"); comma-separated for several.
+    #[arg(long, hide = true, value_delimiter = ',')]
+    pub bench_effect: Option<Vec<String>>,
+    /// Benchmark: image size `WIDTHxHEIGHT` (default 256x192, the proof suite's).
     #[arg(long, hide = true)]
-    pub bench_effect: Option<String>,
+    pub bench_size: Option<String>,
+    /// Benchmark: RGB pairs through the simulator's chromatic singlet (default monochrome).
+    #[arg(long, hide = true)]
+    pub bench_rgb: bool,
+    /// Benchmark: kernel size of the simulator's lens (default 15; at least 45 at 1024x768).
+    #[arg(long, hide = true)]
+    pub bench_kernel: Option<usize>,
+    /// Benchmark: a truth profile (e.g. from the lens test bed) whose PSFs render the wide-open
+    /// capture instead of the simulator's lens; its size, channels and kernel size set the case.
+    #[arg(long, hide = true)]
+    pub bench_lens: Option<PathBuf>,
     /// No progress output.
     #[arg(long)]
     pub quiet: bool,
@@ -156,6 +169,9 @@ fn run_session(a: &DiagnoseArgs, session: &Path, out: &Path) -> Result<()> {
 /// every candidate of every round.
 fn print_details(truth: &serde_json::Value, d: &Diagnosis) {
     eprintln!("truth {truth}");
+    for (name, f) in [("base", &d.base), ("final", &d.final_fit)] {
+        eprintln!("{name}: {} pixels, {} parameters, {:.0} effective; χ²/N {:.3}, χ²/(N − p) {:.3}, χ²/(N − p_eff) {:.3}", f.n(), f.params, f.effective_params(), f.chi2() / f.n().max(1) as f64, f.chi2() / (f.n() as f64 - f.params as f64).max(1.0), f.reduced_chi2());
+    }
     for n in &d.noise {
         eprintln!("noise {}: a {:.3e} b {:.3e} misfit {:.3} | linear law misfit {:.3}; bins {:?}", n.channel, n.a, n.b, n.misfit, n.misfit_linear, n.curve.bins);
     }
@@ -174,11 +190,15 @@ fn print_row(r: &BenchRow) {
 }
 
 fn bench(a: &DiagnoseArgs, seeds: u64) -> Result<()> {
-    let spec = CaseSpec::default();
-    let opts = proof_options(&spec);
-    let effects: Vec<Option<&str>> = match a.bench_effect.as_deref() {
-        Some("clean") => vec![None],
-        Some(e) => vec![Some(e)],
+    let spec = bench_spec(a)?;
+    let mut opts = proof_options(&spec);
+    if spec.width != CaseSpec::default().width || spec.height != CaseSpec::default().height {
+        // the estimator's own tiling at other sizes; progress on stderr
+        opts.estimate.tile = None;
+        opts.progress = !a.quiet;
+    }
+    let effects: Vec<Option<&str>> = match &a.bench_effect {
+        Some(list) => list.iter().map(|e| (e != "clean").then_some(e.as_str())).collect(),
         None => std::iter::once(None).chain(CONCEALED.iter().map(|e| Some(*e))).collect(),
     };
     println!("{:<22} {:>4} {:<22} {:>3} {:>10} {:>10} {:>8} {:>6}  fitted/true", "effect", "seed", "named first", "ok", "base χ²", "final χ²", "floor×", "s");
@@ -189,11 +209,54 @@ fn bench(a: &DiagnoseArgs, seeds: u64) -> Result<()> {
             if a.bench_effect.is_some() {
                 print_details(&c.truth, &d);
             }
+            eprintln!("{} seed {seed}: rendering {:.1} s; {}", r.effect, r.render_seconds, d.stage_seconds.iter().map(|(n, s)| format!("{n} {s:.1} s")).collect::<Vec<_>>().join(", "));
             total += 1;
             ok += r.correct as usize;
             print_row(&r);
         }
     }
     println!("{ok} of {total} cases named correctly");
+    if let Some(kb) = peak_memory_kb() {
+        println!("peak memory {:.0} MB", kb as f64 / 1024.0);
+    }
     Ok(())
+}
+
+/// The process's peak resident memory (Linux `VmHWM`), kB.
+fn peak_memory_kb() -> Option<u64> {
+    let s = std::fs::read_to_string("/proc/self/status").ok()?;
+    s.lines().find_map(|l| l.strip_prefix("VmHWM:")).and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+}
+
+/// The benchmark case's size and optics from the `--bench-*` flags: the proof suite's by
+/// default; `--bench-lens` takes size, channels and kernel size from the truth profile.
+fn bench_spec(a: &DiagnoseArgs) -> Result<CaseSpec> {
+    let mut spec = CaseSpec::default();
+    if let Some(s) = &a.bench_size {
+        let (w, h) = s.split_once('x').with_context(|| format!("--bench-size {s}: expected WIDTHxHEIGHT"))?;
+        spec.width = w.parse().with_context(|| format!("--bench-size {s}: width"))?;
+        spec.height = h.parse().with_context(|| format!("--bench-size {s}: height"))?;
+        spec.grid = (7, 5);
+    }
+    if a.bench_rgb {
+        spec.channels = 3;
+    }
+    if let Some(k) = a.bench_kernel {
+        check_kernel(Some(k), 3)?;
+        spec.kernel_size = k;
+    }
+    if let Some(dir) = &a.bench_lens {
+        let p = Profile::load(dir).with_context(|| format!("reading the truth profile {}", dir.display()))?;
+        let src = &p.meta.source;
+        if p.grid.channels.len() != 3 {
+            bail!("{}: the truth profile has {} channel(s); the benchmark renders RGB", dir.display(), p.grid.channels.len());
+        }
+        (spec.width, spec.height, spec.channels, spec.kernel_size) = (src.width, src.height, 3, p.grid.kernel_size);
+        spec.grid = (p.grid.columns, p.grid.rows);
+        spec.truth_psfs = Some(p.grid);
+    }
+    if spec.width < 4 * spec.kernel_size || spec.height < 4 * spec.kernel_size {
+        bail!("the benchmark image {}x{} is too small for {}-px kernels", spec.width, spec.height, spec.kernel_size);
+    }
+    Ok(spec)
 }

@@ -262,7 +262,7 @@ pub fn analyse(fit: &Fit) -> Analysis {
     let worst = tiles.iter().max_by(|a, b| a.reduced_chi2.total_cmp(&b.reduced_chi2)).cloned();
     Analysis {
         reduced_chi2: fit.reduced_chi2(),
-        reduced_chi2_channel: fit.chi2_channel.iter().zip(&fit.n_channel).map(|(c, n)| c / (*n as f64 - fit.params as f64 / nch as f64).max(1.0)).collect(),
+        reduced_chi2_channel: fit.reduced_chi2_channel(),
         tiles,
         curves,
         histogram_edges: hist.edges,

@@ -30,7 +30,10 @@ pub struct BenchRow {
     /// The first effect's parameters against the rendered truth, for the keys both have
     /// (`key fitted/true`; empty when the effect is misnamed or has no numeric truth).
     pub recovered: String,
+    /// Wall-clock seconds of the diagnosis (rendering excluded).
     pub seconds: f64,
+    /// Wall-clock seconds of rendering the pair.
+    pub render_seconds: f64,
 }
 
 /// `key fitted/true` for every numeric key of `truth` that `fitted` also has (arrays: the first
@@ -63,6 +66,8 @@ fn short(v: f64) -> String {
 pub fn bench_case(effect: Option<&str>, seed: u64, spec: &CaseSpec, opts: &DiagnoseOptions) -> Result<(BenchRow, Diagnosis, Case), BenchError> {
     let t = std::time::Instant::now();
     let case = render_case(effect, seed, spec)?;
+    let render_seconds = t.elapsed().as_secs_f64();
+    let t = std::time::Instant::now();
     let opts = DiagnoseOptions { pinhole_variance_scale: 1.0 / case.pinhole_frames as f64, ..opts.clone() };
     let d = diagnose(&case.open.image, &case.pinhole.image, None, &opts)?;
     let named = d.effects.first().map_or("no mismatch".to_string(), |e| e.name.clone());
@@ -85,6 +90,7 @@ pub fn bench_case(effect: Option<&str>, seed: u64, spec: &CaseSpec, opts: &Diagn
         floor_ratio: ratio,
         recovered,
         seconds: t.elapsed().as_secs_f64(),
+        render_seconds,
     };
     Ok((row, d, case))
 }

@@ -23,7 +23,7 @@
 //!
 //! Parameters: `C·(T·(k² − 1) + 1)` for the kernels and sums plus each correction's own.
 
-use super::kernels::{fit_kernels, KernelFitSettings};
+use super::kernels::{fit_kernels, kernel_divergence, KernelFitSettings};
 use crate::optics::kernel_operator::KernelOperator;
 use super::model::{model_transfer, reference_planes, Corrections, GlareCorrection};
 use super::noise::{srgb_slope, NoiseCurve};
@@ -90,7 +90,14 @@ pub struct Fit {
     /// Plain squared residual and variance sums per channel (stored axis).
     pub sq_channel: Vec<f64>,
     pub var_channel: Vec<f64>,
+    /// Nominal parameter count (kernel values, sums, corrections); BIC's penalty counts these.
     pub params: usize,
+    /// Effective degrees of freedom of the kernels (Monte-Carlo divergence of the kernel fit,
+    /// [`measure_kernel_dof`]; docs/diagnosis.md "Effective degrees of freedom"), once measured
+    /// or inherited; `None`: the nominal kernel count stands in.
+    pub kernel_dof: Option<f64>,
+    /// Nominal kernel parameters (`C·(T·(k² − 1) + 1)`), part of `params`.
+    pub kernel_params: usize,
     /// How badly the noise curve misfits a Poisson–Gaussian law on this model's linear axis
     /// (Σ over channels of [`super::noise::PoissonGaussian::chi2`]), and the worst relative
     /// misfit of a channel.
@@ -113,9 +120,29 @@ impl Fit {
     pub fn n(&self) -> usize {
         self.n_channel.iter().sum()
     }
-    /// χ² per degree of freedom.
+    /// The parameters the consistency test subtracts: the kernels' effective degrees of
+    /// freedom (nominal until measured) plus the corrections' and sums' nominal count.
+    pub fn effective_params(&self) -> f64 {
+        let other = (self.params - self.kernel_params) as f64;
+        self.kernel_dof.map_or(self.params as f64, |k| k + other)
+    }
+    /// χ² per effective degree of freedom: `χ² / (N − p_eff)`.
     pub fn reduced_chi2(&self) -> f64 {
-        self.chi2() / (self.n() as f64 - self.params as f64).max(1.0)
+        self.chi2() / (self.n() as f64 - self.effective_params()).max(1.0)
+    }
+    /// [`Fit::reduced_chi2`] per channel (each channel carries an equal share of `p_eff`).
+    pub fn reduced_chi2_channel(&self) -> Vec<f64> {
+        let share = self.effective_params() / self.chi2_channel.len().max(1) as f64;
+        self.chi2_channel.iter().zip(&self.n_channel).map(|(c, n)| c / (*n as f64 - share).max(1.0)).collect()
+    }
+    /// Takes over `from`'s measured kernel degrees of freedom, scaled by the ratio of tile
+    /// counts (a finer grid under `psf_field_variation` has proportionally more): a candidate
+    /// is refitted from `from` with the same kernel solver, so it responds to the noise alike.
+    pub fn inherit_dof(&mut self, from: &Fit) {
+        if let Some(k) = from.kernel_dof {
+            let ratio = self.model.grid.tile_count() as f64 / from.model.grid.tile_count().max(1) as f64;
+            self.kernel_dof = Some((k * ratio).min(self.kernel_params as f64));
+        }
     }
     /// `χ² + χ²_noise-law + p·ln N`.
     pub fn bic(&self) -> f64 {
@@ -456,7 +483,8 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
     let f = setup.figures(&corr, &p);
     let (nch, k) = (setup.nch, setup.grid0.kernel_size);
     let laws: Vec<super::noise::PoissonGaussian> = data.curves.iter().map(|c| super::noise::PoissonGaussian::fit(c, setup.transfer)).collect();
-    let params = nch * (grid.tile_count() * (k * k - 1) + 1) + correction_params(&corr, nch);
+    let kernel_params = nch * (grid.tile_count() * (k * k - 1) + 1);
+    let params = kernel_params + correction_params(&corr, nch);
     Fit {
         model: Model { corrections: corr, grid, exposure },
         transfer: setup.transfer,
@@ -469,11 +497,34 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
         sq_channel: f.sq_channel,
         var_channel: f.var_channel,
         params,
+        kernel_dof: None,
+        kernel_params,
         noise_chi2: laws.iter().map(|l| l.chi2).sum(),
         noise_misfit: laws.iter().map(|l| l.misfit).fold(0.0, f64::max),
         reference: setup.reference,
         reference_highpass: f.reference_highpass,
     }
+}
+
+/// The kernels' effective degrees of freedom in `fit` (docs/diagnosis.md, "Effective degrees of
+/// freedom"): per channel, the Monte-Carlo divergence ([`kernel_divergence`]) of the kernel
+/// solver run with `settings`' budget from the fitted kernels, on the fit's own target and
+/// weights; summed over channels and clamped to `[0, nominal]`. Costs two kernel solves per
+/// channel. `seed` picks the probe.
+pub fn measure_kernel_dof(data: &Data, fit: &Fit, settings: FitSettings, seed: u64) -> f64 {
+    let corr = fit.model.corrections.clone();
+    let setup = Setup::new(data, &corr, &fit.model, &|_, _| true);
+    let mut p = setup.initial_params(&corr, &fit.model);
+    let g = gain_plane(&corr, setup.w, setup.h);
+    let kset = KernelFitSettings { iterations: settings.kernel_iterations, rounds: settings.rounds.max(1) };
+    let mut rng = crate::rng::Rng::new(seed);
+    let mut df = 0.0;
+    for c in 0..setup.nch {
+        p.variance_lin[c] = setup.update_variance(c, &p.a_parts[c], &p.u[c], &g, p.glare_amp[c], p.beta[c]);
+        let (y, wt) = setup.kernel_target(c, &g, &p);
+        df += kernel_divergence(&setup.ops[c], &y, &wt, &p.u[c], kset, &mut rng);
+    }
+    df.clamp(0.0, fit.kernel_params as f64)
 }
 
 /// The pixel sets of a fit: the evaluation set (a kernel radius inside the image), the clipped
@@ -679,11 +730,11 @@ impl<'a> Setup<'a> {
         }
     }
 
-    /// Channel `c`'s weights from the current prediction, then its kernels by projected FISTA
-    /// with the scalar parameters fixed.
-    fn kernel_step(&self, c: usize, corr: &Corrections, g: &Plane, p: &mut Params, kset: KernelFitSettings) {
+    /// Channel `c`'s kernel problem with the other parameters fixed: the target
+    /// `y = (open − β)/G − g_c·(G_σ * P̃)` and the weights `G²/Var` (0 off the data mask), with
+    /// `p.variance_lin[c]` as the variance.
+    fn kernel_target(&self, c: usize, g: &Plane, p: &Params) -> (Plane, Vec<f32>) {
         let (w, h) = (self.w, self.h);
-        p.variance_lin[c] = self.update_variance(c, &p.a_parts[c], &p.u[c], g, p.glare_amp[c], p.beta[c]);
         let (glare_amp, beta) = (p.glare_amp[c], p.beta[c]);
         let y = Plane::from_fn(w, h, |x, yy| {
             let i = yy * w + x;
@@ -692,6 +743,14 @@ impl<'a> Setup<'a> {
         let fitmask = &self.masks.fitmask[c];
         let var = &p.variance_lin[c];
         let wt: Vec<f32> = (0..w * h).map(|i| if fitmask[i] { g.data[i] * g.data[i] / var.data[i] } else { 0.0 }).collect();
+        (y, wt)
+    }
+
+    /// Channel `c`'s weights from the current prediction, then its kernels by projected FISTA
+    /// with the scalar parameters fixed.
+    fn kernel_step(&self, c: usize, corr: &Corrections, g: &Plane, p: &mut Params, kset: KernelFitSettings) {
+        p.variance_lin[c] = self.update_variance(c, &p.a_parts[c], &p.u[c], g, p.glare_amp[c], p.beta[c]);
+        let (y, wt) = self.kernel_target(c, g, p);
         if kset.iterations > 0 {
             let (nu, _s) = fit_kernels(&self.ops[c], &y, &wt, &p.u[c], kset);
             p.u[c] = nu;

@@ -117,6 +117,36 @@ pub fn fit_kernels(op: &KernelOperator, y: &Plane, weight: &[f32], init: &[Plane
     (kernels, s)
 }
 
+/// Probe step of [`kernel_divergence`], in noise standard deviations.
+pub const PROBE_EPS: f32 = 0.25;
+
+/// Monte-Carlo divergence of the kernel fit (docs/diagnosis.md, "Effective degrees of
+/// freedom"): with a Rademacher probe `b` on the weighted pixels and `σ = W^{-1/2}`,
+/// `df ≈ Σ_x b(x)·(m(y + ε·σ·b) − m(y))(x) / (ε·σ(x))`, where `m(y) = A·U(y)` is the prediction
+/// of [`fit_kernels`] run with `settings` from `init` on target `y`. Both solves start from
+/// `init`, so what the budget leaves unconverged cancels; `ε` is [`PROBE_EPS`]. The expectation
+/// over `b` is the trace of the whitened fit's Jacobian, the effective parameter count of a
+/// (locally) linear smoother: `E[χ²] = N − df` on data the model describes.
+pub fn kernel_divergence(op: &KernelOperator, y: &Plane, weight: &[f32], init: &[Plane], settings: KernelFitSettings, rng: &mut crate::rng::Rng) -> f64 {
+    let b: Vec<f32> = weight.iter().map(|_| if rng.next_u32() & 1 == 0 { -1.0 } else { 1.0 }).collect();
+    let mut yp = y.clone();
+    for ((v, w), bb) in yp.data.iter_mut().zip(weight).zip(&b) {
+        if *w > 0.0 {
+            *v += PROBE_EPS * bb / w.sqrt();
+        }
+    }
+    let (ua, _) = fit_kernels(op, y, weight, init, settings);
+    let (ub, _) = fit_kernels(op, &yp, weight, init, settings);
+    let (pa, pb) = (op.apply_planes(&ua), op.apply_planes(&ub));
+    let mut df = 0.0f64;
+    for i in 0..weight.len() {
+        if weight[i] > 0.0 {
+            df += (b[i] * (pb.data[i] - pa.data[i]) * weight[i].sqrt()) as f64;
+        }
+    }
+    df / PROBE_EPS as f64
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -144,5 +174,33 @@ mod tests {
             let e = crate::estimate::relative_error(&a.map(|v| v / 1.7), b);
             assert!(e < 0.05, "{e}");
         }
+    }
+
+    /// Kernels with no zero entry (the non-negativity is inactive) fitted to convergence: the
+    /// fit is a linear least-squares projection, so its divergence is its parameter count,
+    /// `T·(k² − 1) + 1` (one sum per tile, and the common sum free). A budget of a few
+    /// iterations responds to much less of the noise.
+    #[test]
+    fn divergence_counts_the_free_kernel_values() {
+        let (w, h, k) = (120, 90, 5);
+        let mut r = Rng::new(5);
+        let sharp = Plane::from_fn(w, h, |_, _| r.uniform() as f32);
+        let mut truth = grid(w, h, k, 6);
+        for kk in truth.kernels[0].iter_mut() {
+            *kk = kk.map(|v| v + 0.02);
+            let s = kk.sum() as f32;
+            kk.scale(1.0 / s);
+        }
+        let op = KernelOperator::new(&sharp, &truth, usize::MAX);
+        let y = op.apply_planes(&truth.kernels[0]);
+        let sigma = 0.01f32;
+        let wt = vec![1.0 / (sigma * sigma); w * h];
+        let nominal = (6 * (k * k - 1) + 1) as f64;
+        let probe = |iterations: usize, seed: u64| kernel_divergence(&op, &y, &wt, &truth.kernels[0], KernelFitSettings { iterations, rounds: 2 }, &mut Rng::new(seed));
+        let converged = (0..4).map(|s| probe(400, s)).sum::<f64>() / 4.0;
+        assert!((converged / nominal - 1.0).abs() < 0.2, "divergence {converged:.1} vs {nominal}");
+        let early = probe(2, 0);
+        eprintln!("divergence: converged {converged:.1} of {nominal}, 2 iterations {early:.1}");
+        assert!(early < 0.5 * converged, "2 iterations: {early:.1}, converged {converged:.1}");
     }
 }

@@ -115,7 +115,10 @@ pub struct Figures {
     pub reduced_chi2: f64,
     pub chi2: f64,
     pub pixels: usize,
+    /// Nominal parameter count (BIC's penalty).
     pub parameters: usize,
+    /// Effective parameter count the reduced χ² subtracts (docs/diagnosis.md).
+    pub effective_parameters: f64,
     pub bic: f64,
     /// Residual RMS, stored axis.
     pub rms: f64,
@@ -126,16 +129,16 @@ pub struct Figures {
 
 impl Figures {
     pub fn of(fit: &Fit) -> Figures {
-        let nch = fit.chi2_channel.len().max(1);
         Figures {
             reduced_chi2: fit.reduced_chi2(),
             chi2: fit.chi2(),
             pixels: fit.n(),
             parameters: fit.params,
+            effective_parameters: fit.effective_params(),
             bic: fit.bic(),
             rms: fit.rms(),
             noise_rms: fit.noise_rms(),
-            reduced_chi2_channel: fit.chi2_channel.iter().zip(&fit.n_channel).map(|(c, n)| c / (*n as f64 - fit.params as f64 / nch as f64).max(1.0)).collect(),
+            reduced_chi2_channel: fit.reduced_chi2_channel(),
         }
     }
 }
@@ -205,6 +208,9 @@ pub struct Diagnosis {
     /// The corrected profile.
     pub profile: Profile,
     pub open: Image,
+    /// Wall-clock seconds per stage: base estimate, base fit (with its degrees-of-freedom
+    /// probe), effect search (rounds, polish, probes), cross-validation.
+    pub stage_seconds: Vec<(&'static str, f64)>,
 }
 
 fn sum_planes(ps: &[Plane]) -> Plane {
@@ -228,19 +234,43 @@ pub fn diagnose(open: &Image, pinhole: &Image, profile: Option<&Profile>, opts: 
     if dims(open) != dims(pinhole) {
         return Err(DiagnoseError::Mismatch { open: dims(open), pinhole: dims(pinhole) });
     }
+    let mut clock = Stages::default();
     let base_profile = base_profile(open, pinhole, profile, opts)?;
+    clock.lap("base estimate");
     let (mut data, base, repeat_noise) = base_model(open, pinhole, &base_profile, opts);
+    clock.lap("base fit");
     let base_analysis = analyse(&base);
     if opts.progress {
-        eprintln!("base model: reduced χ² {:.3} (noise floor {:.3e} RMS)", base.reduced_chi2(), base.noise_rms());
+        eprintln!("base model: reduced χ² {:.3} (noise floor {:.3e} RMS; {} pixels, {} parameters, {:.0} effective)", base.reduced_chi2(), base.noise_rms(), base.n(), base.params, base.effective_params());
     }
     let search = add_effects(&mut data, base.clone(), base_analysis.clone(), repeat_noise, opts);
+    clock.lap("effect search");
     let (current, final_analysis, effects, rounds) = (search.current, search.analysis, search.effects, search.rounds);
     let verdict = verdict(&effects, &current, &final_analysis, opts);
     let cross_validation = cross_validate(&data, &current, opts.candidate_fit);
+    clock.lap("cross-validation");
     let noise = noise_reports(&data, &current, open, repeat_noise);
     let out_profile = corrected_profile(&base_profile, &current, open, &verdict)?;
-    Ok(Diagnosis { noise, base, base_analysis, final_fit: current, final_analysis, effects, rounds, verdict, cross_validation, profile: out_profile, open: open.clone() })
+    Ok(Diagnosis { noise, base, base_analysis, final_fit: current, final_analysis, effects, rounds, verdict, cross_validation, profile: out_profile, open: open.clone(), stage_seconds: clock.laps })
+}
+
+/// Wall-clock laps of [`diagnose`]'s stages.
+struct Stages {
+    start: std::time::Instant,
+    laps: Vec<(&'static str, f64)>,
+}
+
+impl Default for Stages {
+    fn default() -> Self {
+        Self { start: std::time::Instant::now(), laps: Vec::new() }
+    }
+}
+
+impl Stages {
+    fn lap(&mut self, name: &'static str) {
+        self.laps.push((name, self.start.elapsed().as_secs_f64()));
+        self.start = std::time::Instant::now();
+    }
 }
 
 /// The given profile (checked against the captures), or one estimated from them.
@@ -278,9 +308,19 @@ fn base_model(open: &Image, pinhole: &Image, base_profile: &Profile, opts: &Diag
         Some(r) => r.clone(),
         None => residual_curves(open, &provisional),
     };
-    let base = fit::fit(&data, &provisional.model.corrections, &provisional.model, FitSettings { rounds: 1, kernel_iterations: opts.base_fit.kernel_iterations });
+    let mut base = fit::fit(&data, &provisional.model.corrections, &provisional.model, FitSettings { rounds: 1, kernel_iterations: opts.base_fit.kernel_iterations });
+    measure_dof(&data, &mut base, opts, 0);
     (data, base, repeat_noise.is_some())
 }
+
+/// Measures `f`'s effective kernel degrees of freedom ([`fit::measure_kernel_dof`]) with the
+/// base fit's budget; `round` seeds the probe.
+fn measure_dof(data: &Data, f: &mut Fit, opts: &DiagnoseOptions, round: u64) {
+    f.kernel_dof = Some(fit::measure_kernel_dof(data, f, opts.base_fit, DOF_PROBE_SEED + round));
+}
+
+/// Seed of the divergence probe (any fixed value: the run stays reproducible).
+const DOF_PROBE_SEED: u64 = 0x00d0_f5eed;
 
 /// The noise curve of each channel from a fit's residual.
 fn residual_curves(open: &Image, f: &Fit) -> Vec<NoiseCurve> {
@@ -313,7 +353,8 @@ fn add_effects(data: &mut Data, base: Fit, base_analysis: Analysis, repeat_noise
         }
         let before = Figures::of(&s.current);
         // polish the winner with the base budget
-        let polished = fit::fit(data, &f.model.corrections, &f.model, opts.base_fit);
+        let mut polished = fit::fit(data, &f.model.corrections, &f.model, opts.base_fit);
+        polished.inherit_dof(&s.current);
         let f = if polished.chi2() <= f.chi2() { polished } else { f };
         let parameters = candidates::parameters_json(cand.name, &f.model.corrections);
         s.effects.push(FoundEffect { name: cand.name.to_string(), evidence: cand.evidence, location: cand.location, parameters, before, after: Figures::of(&f), delta_bic: dbic });
@@ -323,11 +364,13 @@ fn add_effects(data: &mut Data, base: Fit, base_analysis: Analysis, repeat_noise
             data.curves = residual_curves(&data.open, &f);
         }
         s.current = fit::fit(data, &f.model.corrections, &f.model, FitSettings { rounds: 1, kernel_iterations: opts.candidate_fit.kernel_iterations });
+        measure_dof(data, &mut s.current, opts, s.rounds.len() as u64);
         s.analysis = analyse(&s.current);
     }
     if !s.effects.is_empty() {
         // a last polish of the final model with a larger budget
-        let polished = fit::fit(data, &s.current.model.corrections, &s.current.model, FitSettings { rounds: 2, kernel_iterations: 2 * opts.base_fit.kernel_iterations });
+        let mut polished = fit::fit(data, &s.current.model.corrections, &s.current.model, FitSettings { rounds: 2, kernel_iterations: 2 * opts.base_fit.kernel_iterations });
+        polished.inherit_dof(&s.current);
         if polished.chi2() < s.current.chi2() {
             s.current = polished;
             s.analysis = analyse(&s.current);
@@ -349,7 +392,8 @@ fn consistent(f: &Fit, opts: &DiagnoseOptions) -> bool {
 /// returns every score (the null refit first) and the best effect that beats the null refit's
 /// BIC and removes at least `min_gain` of its χ².
 fn search_round(data: &Data, current: &Fit, analysis: &Analysis, opts: &DiagnoseOptions) -> (Vec<CandidateScore>, Option<(candidates::Candidate, Fit, f64)>) {
-    let null = fit::fit(data, &current.model.corrections, &current.model, opts.candidate_fit);
+    let mut null = fit::fit(data, &current.model.corrections, &current.model, opts.candidate_fit);
+    null.inherit_dof(current);
     let mut scores = vec![CandidateScore { name: "(null refit)".into(), reduced_chi2: null.reduced_chi2(), parameters: serde_json::Value::Null, delta_bic: 0.0, note: "the current model refitted with the candidates' budget".into() }];
     let mut best: Option<(candidates::Candidate, Fit, f64)> = None;
     let proposed = candidates::propose(data, current, analysis);
@@ -357,7 +401,8 @@ fn search_round(data: &Data, current: &Fit, analysis: &Analysis, opts: &Diagnose
     let total = |f: &Fit| f.chi2() + f.noise_chi2;
     for cand in proposed {
         bar.inc(1);
-        let f = fit::fit(data, &cand.corrections, cand.init.as_ref().unwrap_or(&current.model), opts.candidate_fit);
+        let mut f = fit::fit(data, &cand.corrections, cand.init.as_ref().unwrap_or(&current.model), opts.candidate_fit);
+        f.inherit_dof(current);
         let dbic = f.bic() - null.bic();
         let gain = (total(&null) - total(&f)) / total(&null).max(1e-300);
         scores.push(CandidateScore { name: cand.name.to_string(), parameters: candidates::parameters_json(cand.name, &f.model.corrections), reduced_chi2: f.reduced_chi2(), delta_bic: dbic, note: format!("removes {:.1}% of χ²", 100.0 * gain) });

@@ -23,6 +23,7 @@ use super::noise::srgb_slope;
 use crate::image::{Plane, Transfer};
 use crate::optics::capture::{render, Blur, Glare, Rendered, Sensor, Shot, Similarity};
 use crate::optics::lens::{mono_band, LensModel};
+use crate::optics::psf_grid::PsfGrid;
 use crate::rng::Rng;
 use crate::target::TargetSpec;
 use serde_json::json;
@@ -46,11 +47,15 @@ pub struct CaseSpec {
     pub kernel_size: usize,
     /// Tile grid the truth PSFs are rendered on (matching the estimator's tiles for clean data).
     pub grid: (usize, usize),
+    /// Truth PSFs for the wide-open capture instead of the simulator's lens at `f_number`
+    /// (e.g. a real design's profile from the lens test bed); its size, channel count and
+    /// kernel size must match the other fields.
+    pub truth_psfs: Option<PsfGrid>,
 }
 
 impl Default for CaseSpec {
     fn default() -> Self {
-        Self { width: 256, height: 192, channels: 1, f_number: 5.6, kernel_size: 15, grid: (3, 2) }
+        Self { width: 256, height: 192, channels: 1, f_number: 5.6, kernel_size: 15, grid: (3, 2), truth_psfs: None }
     }
 }
 
@@ -189,6 +194,9 @@ pub fn render_case(effect: Option<&str>, seed: u64, spec: &CaseSpec) -> Result<C
         pinhole_frames: 1,
         moved: None,
     };
+    if let Some(g) = &spec.truth_psfs {
+        s.open_shot.blur = Blur::Grid(g.clone());
+    }
     let mut truth = conceal(effect, &mut rng, spec, &lens, &mut s)?;
     // one camera records both captures: the reference shares the wide-open capture's encoding
     // (`pin_sensor` is cloned before the effect is chosen, so `tone_curve` must reach it here)

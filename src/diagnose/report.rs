@@ -161,8 +161,8 @@ fn curve_points(c: &Curve, msq: bool) -> Vec<(f64, f64)> {
 
 fn figures_row(name: &str, f: &Figures) -> String {
     format!(
-        "<tr><td>{name}</td><td>{:.4}</td><td>{:.3e}</td><td>{:.3e}</td><td>{}</td><td>{:.1}</td></tr>",
-        f.reduced_chi2, f.rms, f.noise_rms, f.parameters, f.bic
+        "<tr><td>{name}</td><td>{:.4}</td><td>{:.3e}</td><td>{:.3e}</td><td>{} ({:.0} effective)</td><td>{:.1}</td></tr>",
+        f.reduced_chi2, f.rms, f.noise_rms, f.parameters, f.effective_parameters, f.bic
     )
 }
 
@@ -184,7 +184,7 @@ fn html(d: &Diagnosis, src: &Sources) -> String {
     let mut h = String::from("<!doctype html><html lang=\"en\"><meta charset=\"utf-8\"><title>lensrig diagnosis</title><style>body{font-family:sans-serif;margin:2em;max-width:1400px}table{border-collapse:collapse;margin:.6em 0}td,th{border:1px solid #ccc;padding:3px 9px;text-align:left}img{image-rendering:pixelated;border:1px solid #ccc;max-width:48%}.plot{margin:4px}.effect{border-left:4px solid #2471a3;padding-left:1em;margin:1em 0}code{background:#eee;padding:1px 4px}</style><body>");
     let _ = write!(h, "<h1>lensrig diagnosis</h1><p>Wide-open <code>{}</code>, pinhole <code>{}</code>, profile <code>{}</code>.</p>", esc(&src.open), esc(&src.pinhole), esc(src.profile.as_deref().unwrap_or("estimated here")));
     let _ = write!(h, "<h2 id=\"verdict\">Verdict</h2><p><b>{}</b></p>", esc(&d.verdict));
-    h.push_str("<h2>Fit</h2><table><tr><th>model</th><th>reduced χ²</th><th>residual RMS</th><th>noise floor RMS</th><th>parameters</th><th>BIC</th></tr>");
+    h.push_str("<h2>Fit</h2><table><tr><th>model</th><th>reduced χ²</th><th>residual RMS</th><th>noise floor RMS</th><th>parameters (nominal)</th><th>BIC</th></tr>");
     h.push_str(&figures_row("base", &d.base_figures()));
     for e in &d.effects {
         h.push_str(&figures_row(&format!("+ {}", e.name), &e.after));

@@ -211,3 +211,43 @@ fn locate_recovers_the_mock_distortion_from_the_pinhole_capture() {
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A rig that is not the mock states where the target sits on the sensor (`[target.layout]`);
+/// `calibrate` registers from there. Here the mock rig is given a layout that is 3 % off in
+/// scale and 1–1.5 cells off in position: the distortion is still measured (against the
+/// mock's truth, within 0.2 px over the frame). A layout far off (2× the scale) is reported as
+/// not measured, and the calibration still completes. A bad layout value is refused by name.
+#[test]
+fn calibrate_measures_distortion_from_the_configured_target_layout() {
+    let dir = tmp("layout");
+    let base = |t: String| t.replace("positions = [-20.0, -40.0, -60.0]", "positions = [-20.0]").replace("frames_to_average = 16", "frames_to_average = 2").replace("[plan.flat]\nstage_mm = -90.0", "");
+    // the mock's own layout: pixels_per_cell 1.6, cell (7 − stage·1.0, 5) at pixel (0, 0)
+    let layout = |ppc: f64, u: f64, v: f64| format!("\n[target.layout]\npixels_per_cell = {ppc}\norigin = [{u}, {v}]\ncells_per_mm = 1.0\n");
+    let with_layout = |name: &str, ppc: f64, u: f64, v: f64| config_variant(&dir.join(name), |t| base(t) + &layout(ppc, u, v));
+    let cfg = with_layout("near", 1.55, 8.5, 4.0);
+    assert!(std::fs::read_to_string(&cfg).unwrap().contains("[target.layout]"), "the variant did not take");
+    let out = dir.join("near-out");
+    ok(&["calibrate", "--rig", cfg.to_str().unwrap(), "--out", out.to_str().unwrap(), "--quiet"]);
+    let s: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    let d = &s["distortion"];
+    let max = d["field_error_max_px"].as_f64().unwrap_or_else(|| panic!("no distortion measured: {d}"));
+    eprintln!("layout 3 % off: ptlens a {} b {} c {}, field error max {max:.3} px", d["a"], d["b"], d["c"]);
+    assert!(max <= 0.2, "{d}");
+    assert!(std::fs::read_to_string(out.join("lens.xml")).unwrap().contains("<distortion model=\"ptlens\""));
+    // far off: not measured, not fatal
+    let far = with_layout("far", 3.2, 8.5, 4.0);
+    let out2 = dir.join("far-out");
+    ok(&["calibrate", "--rig", far.to_str().unwrap(), "--out", out2.to_str().unwrap(), "--quiet"]);
+    let s2: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out2.join("summary.json")).unwrap()).unwrap();
+    assert!(s2["distortion"]["error"].as_str().is_some_and(|e| e.contains("target not found")), "{}", s2["distortion"]);
+    assert!(!std::fs::read_to_string(out2.join("lens.xml")).unwrap().contains("<distortion"));
+    assert!(std::fs::read_to_string(out2.join("index.html")).unwrap().contains("Not measured: target not found"));
+    // bad values and unknown keys are refused, naming the key
+    let bad = with_layout("bad", -1.0, 8.5, 4.0);
+    let e = fails(&["check-config", bad.to_str().unwrap()]);
+    assert!(e.contains("target.layout.pixels_per_cell"), "{e}");
+    let unknown = config_variant(&dir.join("unknown"), |t| base(t) + &layout(1.6, 7.0, 5.0) + "scale = 2\n");
+    let e = fails(&["check-config", unknown.to_str().unwrap()]);
+    assert!(e.contains("scale"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

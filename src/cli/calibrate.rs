@@ -13,12 +13,14 @@
 //! taken at one focus). The report shows the measured relative illumination (against the
 //! mock's truth on a mock rig).
 //!
-//! Distortion: when the rig's target file and its nominal layout on the sensor are known (a
-//! mock rig: `[lens] pixels_per_cell` and the stage offset), the first stage position's pinhole
+//! Distortion: when the rig's target file and its nominal layout on the sensor are known
+//! (`[target.layout]` in the rig config, or on a mock rig without it the simulated lens's
+//! `pixels_per_cell` and stage offset), the first stage position's pinhole
 //! capture (its G channel, or the channel mean) is registered to the target file
 //! ([`lensrig::target::locate`]) and lensfun's ptlens
 //! fit is stored as `profiles/<key>/distortion.toml`; `lens.xml` then carries
-//! `<distortion model="ptlens">`. The report shows the fit (against the mock's truth).
+//! `<distortion model="ptlens">`. The report shows the fit (and, on a mock rig, its error
+//! against the simulator's truth).
 
 use super::args::{EstimateArgs, RigArgs};
 use super::capture::capture_session;
@@ -233,9 +235,24 @@ fn lensfun_section(out: &Path, session_dir: &Path, rec: &SessionRecord, ests: &[
 /// `summary.json` entry. A registration that fails is reported, not fatal.
 fn distortion_section(out: &Path, session_dir: &Path, cfg: &RigConfig, ests: &[(PairRecord, Estimate)], optics: Option<&MockOptics>) -> Result<(String, serde_json::Value)> {
     let mut html = String::from("<h2>Geometric distortion</h2>");
-    let (Some((p, _)), Some(t), Some(o)) = (ests.first(), cfg.target.as_ref(), optics) else {
-        html.push_str("<p>Not measured: registering the pinhole capture to the target file needs the target (<code>[target]</code>) and its nominal layout on the sensor, known today on a mock rig only.</p>");
+    let (Some((p, _)), Some(t)) = (ests.first(), cfg.target.as_ref()) else {
+        html.push_str("<p>Not measured: registering the pinhole capture to the target file needs the target (<code>[target]</code>).</p>");
         return Ok((html, serde_json::Value::Null));
+    };
+    // the nominal layout: the config's [target.layout], else the mock lens's own
+    let nominal = match (&t.layout, optics) {
+        (Some(l), _) => {
+            let (u0, v0) = l.origin_at(p.stage_mm);
+            Nominal { pixels_per_cell: l.pixels_per_cell, u0, v0 }
+        }
+        (None, Some(o)) => {
+            let (u0, v0) = o.target_origin(p.stage_mm);
+            Nominal { pixels_per_cell: o.pixels_per_cell, u0, v0 }
+        }
+        (None, None) => {
+            html.push_str("<p>Not measured: registering the pinhole capture to the target file needs the target's nominal layout on the sensor (<code>[target.layout]</code> in the rig config).</p>");
+            return Ok((html, serde_json::Value::Null));
+        }
     };
     let spec = TargetSpec::load(&t.path).with_context(|| format!("cannot read the target {}", t.path.display()))?;
     let path = session_dir.join(&p.dir).join(&p.pinhole);
@@ -253,8 +270,7 @@ fn distortion_section(out: &Path, session_dir: &Path, cfg: &RigConfig, ests: &[(
             m
         }
     };
-    let (u0, v0) = o.target_origin(p.stage_mm);
-    let fit = match locate(&mean, &spec, &Nominal { pixels_per_cell: o.pixels_per_cell, u0, v0 }, &LocateOptions::default()) {
+    let fit = match locate(&mean, &spec, &nominal, &LocateOptions::default()) {
         Ok(f) => f,
         Err(e) => {
             html.push_str(&format!("<p>Not measured: {e}.</p>"));
@@ -263,27 +279,32 @@ fn distortion_section(out: &Path, session_dir: &Path, cfg: &RigConfig, ests: &[(
     };
     let rec = MeasuredDistortion::of(&fit, &path, &t.path);
     rec.save(&out.join("profiles").join(&p.key))?;
-    let truth = o.distortion.unwrap_or_default();
-    let (max, rms) = field_difference(&fit.ptlens, &truth, fit.width, fit.height);
-    let (w, h) = (fit.width as f64 - 1.0, fit.height as f64 - 1.0);
-    let corner = |d: &lensrig::optics::distortion::PtLens| {
-        let (x, y) = d.displacement_px(0.0, 0.0, fit.width, fit.height);
-        x.hypot(y)
-    };
     html.push_str(&format!(
         "<p>lensfun <code>ptlens</code> from the pinhole capture of <code>{}</code> registered to the target file: a {:.5}, b {:.5}, c {:.5} ({} of {} tiles, RMS residual {:.3} px; {:.3} px per target cell, rotation {:.3}°). Displacement in the corner {:.2} px. Stored in <code>profiles/{}/distortion.toml</code>.</p>",
-        p.key, fit.ptlens.a, fit.ptlens.b, fit.ptlens.c, fit.tiles_used, fit.tiles.len(), fit.rms_residual_px, fit.pixels_per_cell, fit.rotation_deg, corner(&fit.ptlens), p.key
+        p.key, fit.ptlens.a, fit.ptlens.b, fit.ptlens.c, fit.tiles_used, fit.tiles.len(), fit.rms_residual_px, fit.pixels_per_cell, fit.rotation_deg, corner_px(&fit.ptlens, fit.width, fit.height), p.key
     ));
-    html.push_str(&format!(
-        "<p>Against the simulator's truth (a {}, b {}, c {}; corner displacement {:.2} px): displacement field error max {:.3} px, RMS {:.3} px over the {:.0}×{:.0} frame.</p>",
-        truth.a, truth.b, truth.c, corner(&truth), max, rms, w + 1.0, h + 1.0
-    ));
-    let json = serde_json::json!({
+    let mut json = serde_json::json!({
         "file": format!("profiles/{}/distortion.toml", p.key), "a": fit.ptlens.a, "b": fit.ptlens.b, "c": fit.ptlens.c,
         "tiles_used": fit.tiles_used, "tiles": fit.tiles.len(), "rms_residual_px": fit.rms_residual_px,
-        "truth": [truth.a, truth.b, truth.c], "field_error_max_px": max, "field_error_rms_px": rms,
     });
+    if let Some(o) = optics {
+        let truth = o.distortion.unwrap_or_default();
+        let (max, rms) = field_difference(&fit.ptlens, &truth, fit.width, fit.height);
+        html.push_str(&format!(
+            "<p>Against the simulator's truth (a {}, b {}, c {}; corner displacement {:.2} px): displacement field error max {:.3} px, RMS {:.3} px over the {}×{} frame.</p>",
+            truth.a, truth.b, truth.c, corner_px(&truth, fit.width, fit.height), max, rms, fit.width, fit.height
+        ));
+        json["truth"] = serde_json::json!([truth.a, truth.b, truth.c]);
+        json["field_error_max_px"] = serde_json::json!(max);
+        json["field_error_rms_px"] = serde_json::json!(rms);
+    }
     Ok((html, json))
+}
+
+/// The displacement (pixels) a distortion gives the frame's top-left corner.
+fn corner_px(d: &lensrig::optics::distortion::PtLens, width: usize, height: usize) -> f64 {
+    let (x, y) = d.displacement_px(0.0, 0.0, width, height);
+    x.hypot(y)
 }
 
 pub fn run(a: &CalibrateArgs) -> Result<()> {

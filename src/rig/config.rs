@@ -233,6 +233,37 @@ impl Default for RetryConfig {
 pub struct TargetConfig {
     /// The target description file (resolved against the config's directory by [`load`]).
     pub path: PathBuf,
+    /// Where the target sits on the sensor, roughly (`[target.layout]`): what registering the
+    /// pinhole capture to the target file starts from, so `calibrate` can measure distortion.
+    #[serde(default)]
+    pub layout: Option<TargetLayout>,
+}
+
+/// `[target.layout]`: the nominal layout of the target's noise field on the sensor. Units are
+/// the target's noise cells (`u` along its width, `v` along its height, cell `(0, 0)` the
+/// noise field's top-left corner) and sensor pixels (`x` right, `y` down, pixel centres at
+/// integers). At stage position `s` mm, sensor pixel `(x, y)` sees about cell
+/// `u = origin[0] − cells_per_mm·s + x / pixels_per_cell`, `v = origin[1] + y / pixels_per_cell`
+/// (lens distortion, what is measured, moves it from there).
+/// The registration locks within ±8 % of `pixels_per_cell` and a few cells of `origin`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TargetLayout {
+    /// Sensor pixels per target noise cell (magnification), at the stage positions.
+    pub pixels_per_cell: f64,
+    /// Target cell `(u, v)` at sensor pixel `(0, 0)` with the stage at 0 mm.
+    pub origin: [f64; 2],
+    /// Target cells the view moves along `u` per mm of stage travel (0 when the stage
+    /// refocuses instead of sliding the target).
+    #[serde(default)]
+    pub cells_per_mm: f64,
+}
+
+impl TargetLayout {
+    /// The target cell `(u0, v0)` at sensor pixel `(0, 0)` with the stage at `stage_mm`.
+    pub fn origin_at(&self, stage_mm: f64) -> (f64, f64) {
+        (self.origin[0] - self.cells_per_mm * stage_mm, self.origin[1])
+    }
 }
 
 fn default_pixel_format() -> String {
@@ -450,6 +481,17 @@ impl RigConfig {
         if let Some(t) = &self.target {
             if t.path.as_os_str().is_empty() {
                 return bad("target.path", "is empty".into());
+            }
+            if let Some(l) = &t.layout {
+                if !(l.pixels_per_cell.is_finite() && l.pixels_per_cell > 0.0) {
+                    return bad("target.layout.pixels_per_cell", format!("{} must be a finite number > 0", l.pixels_per_cell));
+                }
+                if !l.origin.iter().all(|v| v.is_finite()) {
+                    return bad("target.layout.origin", format!("{:?} must be two finite numbers (target cells)", l.origin));
+                }
+                if !l.cells_per_mm.is_finite() {
+                    return bad("target.layout.cells_per_mm", format!("{} must be finite", l.cells_per_mm));
+                }
             }
         }
         Ok(())

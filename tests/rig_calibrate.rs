@@ -251,3 +251,37 @@ fn calibrate_measures_distortion_from_the_configured_target_layout() {
     assert!(e.contains("scale"), "{e}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A stage that refocuses (`[axes.stage] focus_distance_m`): `calibrate` collects its
+/// calibrations as one profile set keyed like lensfun, which `deblur --distance` reads (here
+/// between the two calibrations, so it blends them and says so). The mock's stage slides the
+/// target rather than refocusing, so this checks the set's plumbing; interpolation accuracy
+/// against a held-out calibration is `profile::set`'s test. A count that does not match the
+/// positions is refused by key.
+#[test]
+fn calibrate_collects_a_refocusing_stage_as_a_profile_set() {
+    let dir = tmp("set");
+    let edit = |t: String, d: &str| {
+        t.replace("positions = [-20.0, -40.0, -60.0]", &format!("positions = [-20.0, -40.0]\nfocus_distance_m = {d}"))
+            .replace("frames_to_average = 16", "frames_to_average = 2")
+            .replace("[plan.flat]\nstage_mm = -90.0", "")
+    };
+    let cfg = config_variant(&dir, |t| edit(t, "[0.7, 0.9]"));
+    let out = dir.join("out");
+    ok(&["calibrate", "--rig", cfg.to_str().unwrap(), "--out", out.to_str().unwrap(), "--quiet"]);
+    let set = lensrig::profile::set::ProfileSet::load(&out.join("profiles")).unwrap();
+    let got: Vec<(f64, f64, &str)> = set.calibration.iter().map(|c| (c.distance, c.aperture, c.profile.as_str())).collect();
+    assert_eq!(got, vec![(0.7, 5.6, "000-stage-X-20.000"), (0.9, 5.6, "001-stage-X-40.000")]);
+    assert!(set.calibration.iter().all(|c| c.focal > 0.0));
+    assert!(std::fs::read_to_string(out.join("index.html")).unwrap().contains("profiles/index.toml"));
+    let photo = out.join("session/pairs/000-stage-X-20.000/open.png");
+    let restored = dir.join("restored.png");
+    let o = common::run(&["deblur", "--profile", out.join("profiles").to_str().unwrap(), "--distance", "0.8", "--aperture", "5.6", "--in", photo.to_str().unwrap(), "--out", restored.to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(err.contains("interpolated") && restored.is_file(), "{err}");
+    let bad = config_variant(&dir.join("bad"), |t| edit(t, "[0.7]"));
+    let e = fails(&["check-config", bad.to_str().unwrap()]);
+    assert!(e.contains("axes.stage.focus_distance_m"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -26,6 +26,7 @@ use super::args::{EstimateArgs, RigArgs};
 use super::capture::capture_session;
 use super::export::{crop_factor, lensfun_export, FlatField};
 use super::report::{facts_of, RigFacts};
+use lensrig::profile::set::{Calibration, ProfileSet};
 use anyhow::{Context, Result};
 use clap::Args;
 use lensrig::estimate::session::estimate_session;
@@ -301,6 +302,39 @@ fn distortion_section(out: &Path, session_dir: &Path, cfg: &RigConfig, ests: &[(
     Ok((html, json))
 }
 
+/// When the stage refocuses (`[axes.stage] focus_distance_m`), collects the calibrations as a
+/// profile set, `profiles/index.toml` keyed like lensfun (focal length, f-number, focus
+/// distance), which `deblur --profile DIR/profiles --distance D --aperture N` and `report` read.
+fn profile_set_section(out: &Path, cfg: &RigConfig, ests: &[(PairRecord, Estimate)], facts: &RigFacts) -> Result<(String, serde_json::Value)> {
+    let s = &cfg.axes.stage;
+    let Some(dist) = &s.focus_distance_m else {
+        return Ok((String::new(), serde_json::Value::Null));
+    };
+    let mut html = String::from("<h2>Profile set</h2>");
+    let (Some(focal), Some(aperture)) = (facts.focal_length_mm, facts.f_number_open) else {
+        html.push_str("<p>No profile set: the rig config gives no focal length or wide-open f-number (<code>[lens] focal_length_mm</code>, <code>f_number_open</code>).</p>");
+        return Ok((html, serde_json::Value::Null));
+    };
+    let mut cals = Vec::new();
+    for (p, _) in ests {
+        // the position's index in the plan gives its focus distance
+        let Some(i) = s.positions.iter().position(|v| (v - p.stage_mm).abs() < 1e-6) else { continue };
+        cals.push(Calibration { focal, aperture, distance: dist[i], profile: p.key.clone() });
+    }
+    if cals.is_empty() {
+        return Ok((html + "<p>No profile set: no calibration matches a stage position.</p>", serde_json::Value::Null));
+    }
+    let dir = out.join("profiles");
+    ProfileSet::new(cals.clone()).save(&dir).with_context(|| format!("cannot write the profile set in {}", dir.display()))?;
+    let rows: String = cals.iter().map(|c| format!("<tr><td>{}</td><td>{}</td><td>f/{}</td><td>{} mm</td></tr>", c.profile, c.distance, c.aperture, c.focal)).collect();
+    html.push_str(&format!(
+        "<p><code>profiles/index.toml</code>: {} calibration(s). <code>lensrig deblur --profile profiles --distance D --aperture N</code> blends the two nearest in 1/distance, or takes the nearest and says which.</p><table><tr><th>profile</th><th>distance (m)</th><th>aperture</th><th>focal</th></tr>{rows}</table>",
+        cals.len()
+    ));
+    let json = serde_json::json!({ "file": "profiles/index.toml", "calibrations": cals.iter().map(|c| serde_json::json!({"profile": c.profile, "distance_m": c.distance, "aperture": c.aperture, "focal_mm": c.focal})).collect::<Vec<_>>() });
+    Ok((html, json))
+}
+
 /// The displacement (pixels) a distortion gives the frame's top-left corner.
 fn corner_px(d: &lensrig::optics::distortion::PtLens, width: usize, height: usize) -> f64 {
     let (x, y) = d.displacement_px(0.0, 0.0, width, height);
@@ -342,11 +376,13 @@ pub fn run(a: &CalibrateArgs) -> Result<()> {
     }
     let (dist_html, dist_json) = distortion_section(&a.out, &session_dir, &cfg, &ests, optics.as_ref())?;
     let (lens_html, lens_json) = lensfun_section(&a.out, &session_dir, &rec, &ests, &facts, optics.as_ref())?;
+    let (set_html, set_json) = profile_set_section(&a.out, &cfg, &ests, &facts)?;
     html.push_str(&dist_html);
     html.push_str(&lens_html);
+    html.push_str(&set_html);
     let seconds = t0.elapsed().as_secs_f64();
     let summary = serde_json::json!({
-        "rig": a.rig.rig.display().to_string(), "session": "session", "pairs": pairs_json, "distortion": dist_json, "lensfun": lens_json,
+        "rig": a.rig.rig.display().to_string(), "session": "session", "pairs": pairs_json, "distortion": dist_json, "lensfun": lens_json, "profile_set": set_json,
         "mock_f_number_open": optics.as_ref().map(|o| o.f_number_open),
         "mock_f_number_pinhole": optics.as_ref().map(|o| o.f_number_pinhole),
         "capture_seconds": t_capture, "seconds": seconds,

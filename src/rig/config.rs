@@ -156,6 +156,10 @@ pub struct StageAxis {
     pub positions: Vec<f64>,
     pub min: f64,
     pub max: f64,
+    /// Focus distance (metres) at each position, when the stage refocuses: `calibrate` then
+    /// collects the calibrations as a profile set (`profiles/index.toml`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub focus_distance_m: Option<Vec<f64>>,
 }
 
 /// `[plan]`.
@@ -459,6 +463,14 @@ impl RigConfig {
         }
         if let Some(v) = s.positions.iter().find(|v| !(**v >= s.min && **v <= s.max)) {
             return bad("axes.stage.positions", format!("{v} mm is outside [{}, {}]", s.min, s.max));
+        }
+        if let Some(d) = &s.focus_distance_m {
+            if d.len() != s.positions.len() {
+                return bad("axes.stage.focus_distance_m", format!("has {} values for {} positions (one focus distance per position)", d.len(), s.positions.len()));
+            }
+            if let Some(v) = d.iter().find(|v| !(v.is_finite() && **v > 0.0)) {
+                return bad("axes.stage.focus_distance_m", format!("{v} must be a finite distance > 0 (metres)"));
+            }
         }
         Ok(())
     }

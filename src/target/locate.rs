@@ -27,6 +27,7 @@ use super::{render_noise_scene_mapped, TargetSpec};
 use crate::estimate::register::phase_correlation;
 use crate::image::Plane;
 use crate::optics::distortion::{centre, radius_norm, PtLens};
+use rayon::prelude::*;
 
 /// Where the rig expects the target: undistorted pixel `(x, y)` shows cell coordinates
 /// `(u0 + x / pixels_per_cell, v0 + y / pixels_per_cell)`.
@@ -176,19 +177,20 @@ fn coarse_lock(cap: &Plane, spec: &TargetSpec, nominal: &Nominal, o: &LocateOpti
 fn measure_tiles(cap: &Plane, spec: &TargetSpec, l: &Nominal, th: &[f64; 7], o: &LocateOptions) -> Vec<TileMatch> {
     let (w, h) = (cap.width, cap.height);
     let t = o.tile;
-    let mut tiles = Vec::new();
-    for y0 in (0..=h - t).step_by(o.stride) {
-        for x0 in (0..=w - t).step_by(o.stride) {
+    let origins: Vec<(usize, usize)> = (0..=h - t).step_by(o.stride).flat_map(|y0| (0..=w - t).step_by(o.stride).map(move |x0| (x0, y0))).collect();
+    // tiles are independent: in parallel, collected in raster order
+    origins
+        .par_iter()
+        .map(|&(x0, y0)| {
             let (dx, dy, q) = match_window(cap, spec, x0, y0, t, |x, y| {
                 let (mx, my) = unpredict(th, (x, y), w, h);
                 cells(l, mx, my)
             });
             let (x, y) = (x0 as f64 + t as f64 / 2.0 - 0.5, y0 as f64 + t as f64 / 2.0 - 0.5);
             let (mx, my) = unpredict(th, (x - dx, y - dy), w, h);
-            tiles.push(TileMatch { x, y, dx: x - mx, dy: y - my, ncc: q, used: q >= o.min_ncc });
-        }
-    }
-    tiles
+            TileMatch { x, y, dx: x - mx, dy: y - my, ncc: q, used: q >= o.min_ncc }
+        })
+        .collect()
 }
 
 /// The inverse of [`predict`]: the expected-scene position shown at sensor pixel `p`.

@@ -120,22 +120,7 @@ fn lensfun_reads_the_export_and_corrects_like_lensrig() {
     // every tile centre, plus the corners and the centre
     let mut pts: Vec<(f64, f64)> = grid.centers.iter().map(|c| (c[0], c[1])).collect();
     pts.extend([(0.0, 0.0), (W as f64 - 1.0, H as f64 - 1.0), ((W as f64 - 1.0) / 2.0, (H as f64 - 1.0) / 2.0)]);
-    let mut child = Command::new(&probe)
-        .args([x.to_str().unwrap_or_default(), "lensrig", "Test singlet", "18", &W.to_string(), &H.to_string(), "16", "5.6", "1000"])
-        .stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("probe");
-    {
-        let mut stdin = child.stdin.take().expect("stdin");
-        for (x, y) in &pts {
-            writeln!(stdin, "{x} {y}").expect("write");
-        }
-    }
-    let o = child.wait_with_output().expect("probe output");
-    let stdout = String::from_utf8_lossy(&o.stdout);
-    assert!(o.status.success(), "probe: {} {}", stdout, String::from_utf8_lossy(&o.stderr));
+    let stdout = run_probe(&probe, &x, "Test singlet", "18", (W, H), &pts);
     assert!(stdout.contains("flags tca=1 vignetting=1"), "lensfun did not apply both corrections: {stdout}");
     let (mut tca_err, mut vig_err, mut n_tca, mut n_vig) = (0.0f64, 0.0f64, 0, 0);
     for line in stdout.lines() {
@@ -187,22 +172,8 @@ fn calibrate_with_a_flat_step_exports_vignetting_lensfun_applies() {
     };
     let crop = text.lines().find_map(|l| l.trim().strip_prefix("<cropfactor>")).and_then(|l| l.strip_suffix("</cropfactor>")).expect("cropfactor").to_string();
     let pts = [(0.0, 0.0), (383.0, 287.0), (191.5, 143.5), (0.0, 143.5), (191.5, 0.0), (300.0, 50.0), (50.0, 250.0)];
-    let mut child = Command::new(&probe)
-        .args([xml.to_str().unwrap_or_default(), "lensrig", "Simple lens", &crop, "384", "288", "16", "5.6", "1000"])
-        .stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("probe");
-    {
-        let mut stdin = child.stdin.take().expect("stdin");
-        for (x, y) in &pts {
-            writeln!(stdin, "{x} {y}").expect("write");
-        }
-    }
-    let o = child.wait_with_output().expect("probe output");
-    let stdout = String::from_utf8_lossy(&o.stdout);
-    assert!(o.status.success() && stdout.contains("vignetting=1"), "probe: {stdout} {}", String::from_utf8_lossy(&o.stderr));
+    let stdout = run_probe(&probe, &xml, "Simple lens", &crop, (384, 288), &pts);
+    assert!(stdout.contains("vignetting=1"), "probe: {stdout}");
     let mut worst = 0.0f64;
     let mut n = 0;
     for line in stdout.lines().filter(|l| l.starts_with("vig ")) {
@@ -228,10 +199,11 @@ fn calibrate_with_a_flat_step_exports_vignetting_lensfun_applies() {
     assert!(nd == pts.len() && dworst <= 0.2, "lensfun's distortion differs from the mock's truth by {dworst} px ({nd} points)");
 }
 
-/// Runs the probe on `xml` for lens `model` at `pts` (16 mm, f/5.6, 1000 m); its stdout.
-fn run_probe(probe: &Path, xml: &Path, model: &str, crop: &str, pts: &[(f64, f64)]) -> String {
+/// Runs the probe on `xml` for lens `model` on a `size` image at `pts` (16 mm, f/5.6,
+/// 1000 m); its stdout.
+fn run_probe(probe: &Path, xml: &Path, model: &str, crop: &str, size: (usize, usize), pts: &[(f64, f64)]) -> String {
     let mut child = Command::new(probe)
-        .args([xml.to_str().unwrap_or_default(), "lensrig", model, crop, &W.to_string(), &H.to_string(), "16", "5.6", "1000"])
+        .args([xml.to_str().unwrap_or_default(), "lensrig", model, crop, &size.0.to_string(), &size.1.to_string(), "16", "5.6", "1000"])
         .stdin(Stdio::piped())
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
@@ -296,7 +268,7 @@ fn lensfun_applies_the_exported_distortion_like_lensrig() {
         }
     };
     let pts: Vec<(f64, f64)> = (0..=8).flat_map(|j| (0..=12).map(move |i| (i as f64 * (W as f64 - 1.0) / 12.0, j as f64 * (H as f64 - 1.0) / 8.0))).collect();
-    let stdout = run_probe(&probe, &x, "Test singlet", "18", &pts);
+    let stdout = run_probe(&probe, &x, "Test singlet", "18", (W, H), &pts);
     assert!(stdout.contains("distortion=1"), "lensfun did not apply the distortion: {stdout}");
     let (mut fwd, mut back, mut shift, mut n) = (0.0f64, 0.0f64, 0.0f64, 0);
     for line in stdout.lines().filter(|l| l.starts_with("dist ")) {

@@ -18,6 +18,7 @@ use super::fit::Fit;
 use crate::image::filter::gaussian_blur;
 use crate::image::spectrum::{band_centre, radial_power_sums, Range};
 use crate::image::Plane;
+use crate::solve::dense::gauss_jordan;
 use serde::Serialize;
 
 /// One dependence curve.
@@ -257,7 +258,7 @@ pub fn analyse(fit: &Fit) -> Analysis {
     let names = ["intensity", "radius", "position_in_tile", "gradient", "large_scale_brightness"];
     let curves = names.iter().enumerate().map(|(j, n)| binned(n, &feats[j], 10, j != 1 && j != 2)).collect();
     let hist = Histogram::of(&all_z);
-    let planar = solve3(ata, atb).unwrap_or([0.0; 3]);
+    let planar = gauss_jordan(ata, atb, 1e-12).unwrap_or([0.0; 3]);
     let spectrum = mean_spectrum(fit);
     let worst = tiles.iter().max_by(|a, b| a.reduced_chi2.total_cmp(&b.reduced_chi2)).cloned();
     Analysis {
@@ -274,27 +275,6 @@ pub fn analyse(fit: &Fit) -> Analysis {
         worst,
         spectrum,
     }
-}
-
-fn solve3(mut a: [[f64; 3]; 3], mut b: [f64; 3]) -> Option<[f64; 3]> {
-    for i in 0..3 {
-        let piv = (i..3).max_by(|&x, &y| a[x][i].abs().total_cmp(&a[y][i].abs()))?;
-        if a[piv][i].abs() < 1e-12 {
-            return None;
-        }
-        a.swap(i, piv);
-        b.swap(i, piv);
-        for r in 0..3 {
-            if r != i {
-                let f = a[r][i] / a[i][i];
-                for k in 0..3 {
-                    a[r][k] -= f * a[i][k];
-                }
-                b[r] -= f * b[i];
-            }
-        }
-    }
-    Some([b[0] / a[0][0], b[1] / a[1][1], b[2] / a[2][2]])
 }
 
 /// The curve called `name`.

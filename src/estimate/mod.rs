@@ -519,11 +519,11 @@ fn choose_kernel_size(open: &[Plane], pin: &[Plane], opts: &EstimateOptions) -> 
     let all = vec![true; w * h];
     let spots = [((w - tsz) / 2, (h - tsz) / 2), (0, 0), (w - tsz, 0), (0, h - tsz), (w - tsz, h - tsz)];
     let jobs: Vec<(usize, (usize, usize))> = (0..open.len()).flat_map(|c| spots.iter().map(move |&s| (c, s))).collect();
+    let ratio: Vec<f32> = open.iter().zip(pin).map(|(o, p)| (o.sum() / p.sum().max(1e-30)) as f32).collect();
     let radius = jobs
         .par_iter()
         .map(|&(c, (x0, y0))| {
-            let s = (open[c].sum() / pin[c].sum().max(1e-30)) as f32;
-            let data = tile_data(&open[c], &pin[c], &all, s, (x0, x0 + tsz, y0, y0 + tsz), probe_k);
+            let data = tile_data(&open[c], &pin[c], &all, ratio[c], (x0, x0 + tsz, y0, y0 + tsz), probe_k);
             let st = TileSettings { kernel_size: probe_k, lambda: None, lambda_scale: opts.lambda_scale as f32, noise_sigma: None, mu_relative: 1.0, max_iterations: 150, tolerance: 1e-3 };
             support_radius(&solve_tile(&data, &st, |_, _| true).kernel, SUPPORT_ENERGY)
         })
@@ -537,7 +537,7 @@ fn choose_kernel_size(open: &[Plane], pin: &[Plane], opts: &EstimateOptions) -> 
 /// radius `r` and `n(r)` its pixel count, the floor `f` is the median of `m(r)` over the outer
 /// quarter of the radii (`r ≥ 3c/4`, `c = (k − 1)/2`), and the radius is the smallest `r` with
 /// `Σ_{ρ ≤ r} n(ρ)(m(ρ) − f) ≥ frac · Σ_ρ n(ρ)(m(ρ) − f)`. The raw encircled energy
-/// ([`energy_radius`]) counts the floor, which adds ~1 % of the energy per 10 rings of a
+/// counts the floor, which adds ~1 % of the energy per 10 rings of a
 /// 127-px probe, and picks nearly the whole probe.
 pub fn support_radius(k: &Plane, frac: f64) -> f64 {
     let c = k.width / 2;
@@ -563,27 +563,6 @@ pub fn support_radius(k: &Plane, frac: f64) -> f64 {
         acc >= frac * total
     })
     .unwrap_or(c) as f64
-}
-
-/// Radius (about the kernel centre, Chebyshev distance) holding `frac` of the energy.
-pub fn energy_radius(k: &Plane, frac: f64) -> f64 {
-    let c = (k.width / 2) as isize;
-    let total = k.sum();
-    if total <= 0.0 {
-        return 0.0;
-    }
-    for r in 0..=c {
-        let mut s = 0.0;
-        for y in (c - r)..=(c + r) {
-            for x in (c - r)..=(c + r) {
-                s += k.get(x as usize, y as usize) as f64;
-            }
-        }
-        if s >= frac * total {
-            return r as f64;
-        }
-    }
-    c as f64
 }
 
 /// A progress bar on stderr, or a hidden one.
@@ -661,6 +640,27 @@ mod tests {
         let s = p.sum() as f32;
         p.scale(1.0 / s);
         p
+    }
+
+    /// The raw encircled energy: radius (about the kernel centre, Chebyshev distance) holding `frac` of the energy.
+    fn energy_radius(k: &Plane, frac: f64) -> f64 {
+        let c = (k.width / 2) as isize;
+        let total = k.sum();
+        if total <= 0.0 {
+            return 0.0;
+        }
+        for r in 0..=c {
+            let mut s = 0.0;
+            for y in (c - r)..=(c + r) {
+                for x in (c - r)..=(c + r) {
+                    s += k.get(x as usize, y as usize) as f64;
+                }
+            }
+            if s >= frac * total {
+                return r as f64;
+            }
+        }
+        c as f64
     }
 
     /// A disc of radius 6 on a flat floor (as TV leaves in a probe) has a support radius of 6,

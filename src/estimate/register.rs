@@ -17,6 +17,7 @@
 use crate::image::Plane;
 use crate::optics::capture::{warp_similarity, Similarity};
 use crate::profile::RegistrationInfo;
+use crate::solve::dense::gauss_jordan;
 use crate::solve::fft::Fft2;
 
 /// Which global motion to fit.
@@ -135,7 +136,7 @@ pub fn register(open: &Plane, pinhole: &Plane, model: RegistrationModel) -> Regi
                         }
                     }
                 }
-                solve4(ata, atb).unwrap_or([0.0; 4])
+                gauss_jordan(ata, atb, 1e-12).unwrap_or([0.0; 4])
             }
             _ => {
                 let n = s.len().max(1) as f64;
@@ -168,27 +169,6 @@ pub fn register(open: &Plane, pinhole: &Plane, model: RegistrationModel) -> Regi
         info: RegistrationInfo { model: name.into(), matrix: [1.0 + p[0], -p[1], p[1], 1.0 + p[0]], translation: [p[2], p[3]], residual_px: rms },
         samples,
     }
-}
-
-fn solve4(mut a: [[f64; 4]; 4], mut b: [f64; 4]) -> Option<[f64; 4]> {
-    for i in 0..4 {
-        let piv = (i..4).max_by(|&x, &y| a[x][i].abs().total_cmp(&a[y][i].abs()))?;
-        if a[piv][i].abs() < 1e-12 {
-            return None;
-        }
-        a.swap(i, piv);
-        b.swap(i, piv);
-        for r in 0..4 {
-            if r != i {
-                let f = a[r][i] / a[i][i];
-                for k in 0..4 {
-                    a[r][k] -= f * a[i][k];
-                }
-                b[r] -= f * b[i];
-            }
-        }
-    }
-    Some([b[0] / a[0][0], b[1] / a[1][1], b[2] / a[2][2], b[3] / a[3][3]])
 }
 
 /// Applies the fitted registration to a pinhole plane so it lines up with the wide-open one.

@@ -6,6 +6,7 @@
 pub mod admm;
 pub mod cg;
 pub mod conv;
+pub mod dense;
 pub mod fft;
 pub mod fista;
 pub mod operator;

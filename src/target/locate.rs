@@ -27,6 +27,7 @@ use super::{render_noise_scene_mapped, TargetSpec};
 use crate::estimate::register::phase_correlation;
 use crate::image::Plane;
 use crate::optics::distortion::{centre, radius_norm, PtLens};
+use crate::solve::dense::gauss_jordan;
 use rayon::prelude::*;
 
 /// Where the rig expects the target: undistorted pixel `(x, y)` shows cell coordinates
@@ -226,32 +227,6 @@ fn residuals(th: &[f64; 7], tiles: &[&TileMatch], w: usize, h: usize) -> Vec<f64
         .collect()
 }
 
-/// Solves the 7 × 7 system `m·x = r` (Gauss–Jordan, partial pivoting).
-fn solve7(mut m: [[f64; 7]; 7], mut r: [f64; 7]) -> Option<[f64; 7]> {
-    for i in 0..7 {
-        let piv = (i..7).max_by(|&a, &b| m[a][i].abs().total_cmp(&m[b][i].abs()))?;
-        if m[piv][i].abs() < 1e-300 {
-            return None;
-        }
-        m.swap(i, piv);
-        r.swap(i, piv);
-        for k in 0..7 {
-            if k != i {
-                let f = m[k][i] / m[i][i];
-                for j in i..7 {
-                    m[k][j] -= f * m[i][j];
-                }
-                r[k] -= f * r[i];
-            }
-        }
-    }
-    let mut x = [0.0; 7];
-    for i in 0..7 {
-        x[i] = r[i] / m[i][i];
-    }
-    Some(x)
-}
-
 /// Step 3: Gauss–Newton (numerical Jacobian) from the identity, no distortion.
 fn fit(tiles: &[&TileMatch], w: usize, h: usize) -> [f64; 7] {
     let mut th = [0.0f64; 7];
@@ -276,7 +251,7 @@ fn fit(tiles: &[&TileMatch], w: usize, h: usize) -> [f64; 7] {
                 }
             }
         }
-        let Some(step) = solve7(m, g) else { break };
+        let Some(step) = gauss_jordan(m, g, 1e-300) else { break };
         th.iter_mut().zip(step).for_each(|(t, s)| *t += s);
         if step.iter().all(|s| s.abs() < 1e-10) {
             break;

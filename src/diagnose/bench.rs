@@ -70,11 +70,8 @@ pub fn bench_case(effect: Option<&str>, seed: u64, spec: &CaseSpec, opts: &Diagn
     let t = std::time::Instant::now();
     let opts = DiagnoseOptions { pinhole_variance_scale: 1.0 / case.pinhole_frames as f64, ..opts.clone() };
     let d = diagnose(&case.open.image, &case.pinhole.image, None, &opts)?;
-    let named = d.effects.first().map_or("no mismatch".to_string(), |e| e.name.clone());
-    let correct = match effect {
-        Some(e) => named == e,
-        None => d.effects.is_empty(),
-    };
+    let set = effect.map(super::proof::effect_set).transpose()?.unwrap_or_default();
+    let (named, correct) = score_names(&set, &d);
     let ratio = floor_ratio(&case, &d.final_fit.predicted, &d.final_fit.eval);
     let recovered = match (correct, d.effects.first()) {
         (true, Some(e)) => recovered_text(&e.parameters, &case.truth),
@@ -93,6 +90,24 @@ pub fn bench_case(effect: Option<&str>, seed: u64, spec: &CaseSpec, opts: &Diagn
         render_seconds,
     };
     Ok((row, d, case))
+}
+
+/// The "named" column and whether it is correct: one concealed effect must be named first; a
+/// set must be named exactly, in any order, and no other effect with it (all names, `+`-joined);
+/// clean data must name none.
+fn score_names(set: &[&str], d: &Diagnosis) -> (String, bool) {
+    let names: Vec<&str> = d.effects.iter().map(|e| e.name.as_str()).collect();
+    match set.len() {
+        0 => ("no mismatch".to_string(), names.is_empty()),
+        1 => (names.first().map_or("no mismatch".to_string(), |n| n.to_string()), names.first() == set.first()),
+        _ => {
+            let text = if names.is_empty() { "no mismatch".to_string() } else { names.join("+") };
+            let (mut a, mut b) = (names.clone(), set.to_vec());
+            a.sort_unstable();
+            b.sort_unstable();
+            (text, a == b)
+        }
+    }
 }
 
 /// Options the proof suite uses (small kernels, few iterations).

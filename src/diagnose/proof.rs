@@ -1,7 +1,22 @@
 //! Proof cases: calibration pairs rendered by the simulator ([`crate::optics::capture`]) with one
-//! catalogue effect concealed at a randomised, realistic magnitude, or none (clean), plus the
-//! truth the tests and the benchmark compare the diagnosis against. Nothing here is used by the
-//! diagnosis itself.
+//! catalogue effect concealed at a randomised, realistic magnitude, a set of them
+//! (`"vignetting+black_level"`: each drawn in turn from the same seed's generator), or none
+//! (clean), plus the truth the tests and the benchmark compare the diagnosis against (the
+//! effects' parameters merged into one object; their keys are distinct). Nothing here is used
+//! by the diagnosis itself.
+//!
+//! # Target tilt (`target_tilt`)
+//! The printed target tilts by `θ` (1.5–3°) about an axis in its plane through the optical axis
+//! between the two captures (a target on a stand, rocked when the aperture changes). The
+//! reference then sees the plane through a homography: with `a` the centred pixel coordinate
+//! across the axis (unit normal `n = (cos φ, sin φ)` in the image), `b` the one along it, and
+//! `f` the focal length in pixels, the reference pixel `(a, b)` sees the point
+//! `(a / cos θ, b) / (1 − a·tan θ / f)` of the wide-open view. The proof images are small
+//! stand-ins for a webcam frame, so `f` is that of a 50° horizontal field of view across the
+//! case's width (`f = (w/2) / tan 25°`, 274 px at 256 px), not the simulator lens's
+//! 16 mm / 5 µm. To first order this is the perspective row `(g, h) = (tan θ / f)·n` of
+//! [`super::model`]'s `target_tilt` (the `1/cos θ` stretch, 0.14 % at 3°, is left to the
+//! kernels).
 //!
 //! # Scene
 //! The printed noise target ([`crate::target`]) framed by a dimmer background (the paper does
@@ -29,12 +44,30 @@ use crate::target::TargetSpec;
 use serde_json::json;
 
 /// The effects the proof suite conceals, in catalogue order.
-pub const CONCEALED: [&str; 9] = ["vignetting", "illumination_gradient", "tone_curve", "black_level", "veiling_glare", "misregistration", "saturation", "psf_field_variation", "pinhole_diffraction"];
+pub const CONCEALED: [&str; 10] = ["vignetting", "illumination_gradient", "tone_curve", "black_level", "veiling_glare", "misregistration", "target_tilt", "saturation", "psf_field_variation", "pinhole_diffraction"];
 
-/// An effect name that is not one of [`CONCEALED`].
+/// The pairs of effects concealed together (issue 17: real rigs rarely have one flaw).
+pub const PAIRS: [&str; 3] = ["vignetting+black_level", "veiling_glare+tone_curve", "misregistration+pinhole_diffraction"];
+
+/// An effect name that is not one of [`CONCEALED`] (or a set with one such name, or with a
+/// name twice).
 #[derive(Debug, thiserror::Error)]
-#[error("unknown effect '{0}' (expected one of {list})", list = CONCEALED.join(", "))]
+#[error("unknown effect '{0}' (expected one of {list}, or several joined by '+')", list = CONCEALED.join(", "))]
 pub struct UnknownEffect(pub String);
+
+/// The effects of a case name: `"a+b"` → `["a", "b"]` (each one of [`CONCEALED`], none twice).
+///
+/// # Errors
+/// An unknown or repeated name.
+pub fn effect_set(effect: &str) -> Result<Vec<&str>, UnknownEffect> {
+    let set: Vec<&str> = effect.split('+').map(str::trim).collect();
+    for (i, e) in set.iter().enumerate() {
+        if !CONCEALED.contains(e) || set[..i].contains(e) {
+            return Err(UnknownEffect(effect.to_string()));
+        }
+    }
+    Ok(set)
+}
 
 /// Size and optics of a proof case.
 #[derive(Clone, Debug)]
@@ -92,6 +125,48 @@ pub fn scene_moved(w: usize, h: usize, seed: u64, m: Option<Similarity>, pixels_
 /// constant, so the blurred pattern at a point is exact: `Σ_cells value·Δ_xΦ·Δ_yΦ` (the
 /// Gaussian's mass over the cell, separable). `sigma_px = 0` is the sharp pattern.
 pub fn scene_moved_soft(w: usize, h: usize, seed: u64, m: Option<Similarity>, pixels_per_cell: f64, sigma_px: f64) -> Plane {
+    scene_viewed(w, h, seed, &View { moved: m, tilt: None }, pixels_per_cell, sigma_px)
+}
+
+/// How the reference's camera sees the scene relative to the wide-open capture's.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct View {
+    /// The camera's move (see [`scene_moved`]).
+    pub moved: Option<Similarity>,
+    /// The target's tilt (module docs, "Target tilt").
+    pub tilt: Option<Tilt>,
+}
+
+/// A target tilted by `theta_deg` about an in-plane axis whose normal in the image is at
+/// `axis_deg`, seen with a focal length of `focal_px` pixels (module docs).
+#[derive(Clone, Copy, Debug)]
+pub struct Tilt {
+    pub theta_deg: f64,
+    pub axis_deg: f64,
+    pub focal_px: f64,
+}
+
+impl Tilt {
+    /// The point of the untilted view (centred pixels) that centred reference pixel `q` sees.
+    pub fn map(&self, q: (f64, f64)) -> (f64, f64) {
+        let (th, phi) = (self.theta_deg.to_radians(), self.axis_deg.to_radians());
+        let (nx, ny) = (phi.cos(), phi.sin());
+        let (a, b) = (q.0 * nx + q.1 * ny, -q.0 * ny + q.1 * nx);
+        let den = 1.0 - a * th.tan() / self.focal_px;
+        let (a2, b2) = (a / th.cos() / den, b / den);
+        (a2 * nx - b2 * ny, a2 * ny + b2 * nx)
+    }
+    /// The first-order perspective row `(g, h) = (tan θ / f)·n` (module docs).
+    pub fn perspective(&self) -> [f64; 2] {
+        let (th, phi) = (self.theta_deg.to_radians(), self.axis_deg.to_radians());
+        let k = th.tan() / self.focal_px;
+        [k * phi.cos(), k * phi.sin()]
+    }
+}
+
+/// [`scene_moved_soft`] through a [`View`]: the tilt first (the reference pixel onto the
+/// untilted view), then the camera's move.
+pub fn scene_viewed(w: usize, h: usize, seed: u64, view: &View, pixels_per_cell: f64, sigma_px: f64) -> Plane {
     let spec = TargetSpec::new("A4", 300, 4, seed).ok();
     let (x0, x1, y0, y1) = (0.12 * w as f64, 0.80 * w as f64, 0.10 * h as f64, 0.86 * h as f64);
     let edge = |v: f64, a: f64, b: f64| {
@@ -99,7 +174,7 @@ pub fn scene_moved_soft(w: usize, h: usize, seed: u64, m: Option<Similarity>, pi
         s(v - a) * s(b - v)
     };
     let (cx, cy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
-    let m = m.unwrap_or_default();
+    let m = view.moved.unwrap_or_default();
     let th = m.rotation_deg.to_radians();
     let (a, b) = ((1.0 + m.scale) * th.cos(), (1.0 + m.scale) * th.sin());
     let (ppc, u0, v0) = (pixels_per_cell, 7.0, 5.0);
@@ -108,8 +183,8 @@ pub fn scene_moved_soft(w: usize, h: usize, seed: u64, m: Option<Similarity>, pi
         let mut acc = 0.0f32;
         for j in 0..ss {
             for i in 0..ss {
-                let qx = x as f64 + (i as f64 + 0.5) / ss as f64 - 0.5 - cx;
-                let qy = y as f64 + (j as f64 + 0.5) / ss as f64 - 0.5 - cy;
+                let q = (x as f64 + (i as f64 + 0.5) / ss as f64 - 0.5 - cx, y as f64 + (j as f64 + 0.5) / ss as f64 - 0.5 - cy);
+                let (qx, qy) = view.tilt.map_or(q, |t| t.map(q));
                 let (sx, sy) = (a * qx - b * qy + cx + m.dx, b * qx + a * qy + cy + m.dy);
                 let (u, v) = (u0 + (sx + 0.5) / ppc, v0 + (sy + 0.5) / ppc);
                 let n = spec.as_ref().map_or(0.5, |s| if sigma_px > 0.0 { soft_noise(s, u, v, sigma_px / ppc) } else { s.noise_at(u, v) });
@@ -160,15 +235,17 @@ struct Setup {
     pin_shot: Shot,
     pin_sensor: Sensor,
     pinhole_frames: usize,
-    /// Under `misregistration`, the camera's move between the captures.
-    moved: Option<Similarity>,
+    /// Under `misregistration` and `target_tilt`, how the reference sees the scene.
+    view: View,
 }
 
-/// Renders a proof case: `effect` (one of [`CONCEALED`]) or `None` for clean data.
+/// Renders a proof case: `effect` (one of [`CONCEALED`], or several joined by `+`, see
+/// [`effect_set`]) or `None` for clean data.
 ///
 /// # Errors
 /// An unknown effect name.
 pub fn render_case(effect: Option<&str>, seed: u64, spec: &CaseSpec) -> Result<Case, UnknownEffect> {
+    let set = effect.map(effect_set).transpose()?.unwrap_or_default();
     let (w, h) = (spec.width, spec.height);
     let mut lens = LensModel::demo(w, h);
     if spec.channels == 1 {
@@ -183,7 +260,8 @@ pub fn render_case(effect: Option<&str>, seed: u64, spec: &CaseSpec) -> Result<C
     // the sampled image instead keeps the aliasing of each pose's sampling, which differs
     // between the poses, and no resampling model reproduces it (it held the fit at ~2.7× the
     // floor even with the true similarity and kernels).
-    let soft_sigma = if effect == Some("misregistration") { 1.0 } else { 0.0 };
+    // (`target_tilt` moves the reference's geometry as well)
+    let soft_sigma = if set.iter().any(|e| ["misregistration", "target_tilt"].contains(e)) { 1.0 } else { 0.0 };
     let sc: Vec<Plane> = vec![scene_moved_soft(w, h, seed, None, ppc, soft_sigma); lens.bands.len()];
     let sensor = Sensor::default();
     let mut s = Setup {
@@ -192,19 +270,25 @@ pub fn render_case(effect: Option<&str>, seed: u64, spec: &CaseSpec) -> Result<C
         open_shot: Shot::lens(spec.f_number, 0.7, spec.grid.0, spec.grid.1, spec.kernel_size),
         pin_shot: Shot::ideal(0.7),
         pinhole_frames: 1,
-        moved: None,
+        view: View::default(),
     };
     if let Some(g) = &spec.truth_psfs {
         s.open_shot.blur = Blur::Grid(g.clone());
     }
-    let mut truth = conceal(effect, &mut rng, spec, &lens, &mut s)?;
+    let mut truth = json!({});
+    for e in &set {
+        let t = conceal(Some(e), &mut rng, spec, &lens, &mut s)?;
+        if let (Some(all), Some(one)) = (truth.as_object_mut(), t.as_object()) {
+            all.extend(one.clone());
+        }
+    }
     // one camera records both captures: the reference shares the wide-open capture's encoding
     // (`pin_sensor` is cloned before the effect is chosen, so `tone_curve` must reach it here)
     s.pin_sensor.transfer = s.sensor.transfer;
     let mut open = render(&sc, &lens, &s.open_shot, &s.sensor, &mut Rng::new(seed * 2 + 1));
-    let pin_scene: Vec<Plane> = match s.moved {
-        Some(m) => vec![scene_moved_soft(w, h, seed, Some(m), ppc, soft_sigma); lens.bands.len()],
-        None => sc.clone(),
+    let pin_scene: Vec<Plane> = match s.view {
+        View { moved: None, tilt: None } => sc.clone(),
+        v => vec![scene_viewed(w, h, seed, &v, ppc, soft_sigma); lens.bands.len()],
     };
     let mut pinhole = render(&pin_scene, &lens, &s.pin_shot, &s.pin_sensor, &mut Rng::new(seed * 2 + 2));
     if let (Some(pg), Some(t)) = (&pinhole.psfs, truth.as_object_mut()) {
@@ -250,8 +334,15 @@ fn conceal(effect: Option<&str>, rng: &mut Rng, spec: &CaseSpec, lens: &LensMode
         }
         Some("misregistration") => {
             let m = Similarity { dx: signed(rng, 0.3, 2.0), dy: signed(rng, 0.3, 2.0), rotation_deg: signed(rng, 0.25, 0.6), scale: signed(rng, 0.002, 0.005) };
-            s.moved = Some(m);
+            s.view.moved = Some(m);
             json!({"dx": m.dx, "dy": m.dy, "rotation_deg": m.rotation_deg, "scale": m.scale})
+        }
+        Some("target_tilt") => {
+            let focal_px = 0.5 * spec.width as f64 / 25f64.to_radians().tan();
+            let t = Tilt { theta_deg: signed(rng, 1.5, 3.0), axis_deg: rng.range(0.0, 180.0), focal_px };
+            s.view.tilt = Some(t);
+            let [g, h] = t.perspective();
+            json!({"theta_deg": t.theta_deg, "axis_deg": t.axis_deg, "focal_px": focal_px, "g": g, "h": h})
         }
         Some("saturation") => {
             let e = rng.range(1.6, 2.2);

@@ -50,6 +50,10 @@ pub struct DiagnoseArgs {
     /// At most this many effects are added.
     #[arg(long, default_value_t = 4)]
     pub max_effects: usize,
+    /// Catalogue effects never proposed, comma-separated (e.g. `target_tilt`: the verdict on
+    /// such a pair as if the catalogue did not model it).
+    #[arg(long, value_delimiter = ',')]
+    pub exclude_effect: Vec<String>,
     /// Benchmark: run the proof suite over this many seeds and print the table.
     #[arg(long, hide = true)]
     pub bench_seeds: Option<u64>,
@@ -80,7 +84,7 @@ pub struct DiagnoseArgs {
 impl DiagnoseArgs {
     /// The diagnosis options these arguments select.
     pub fn options(&self) -> DiagnoseOptions {
-        DiagnoseOptions { estimate: self.estimation.options(), max_effects: self.max_effects, progress: !self.quiet, ..Default::default() }
+        DiagnoseOptions { estimate: self.estimation.options(), max_effects: self.max_effects, progress: !self.quiet, excluded: self.exclude_effect.clone(), ..Default::default() }
     }
 }
 
@@ -192,6 +196,7 @@ fn print_row(r: &BenchRow) {
 fn bench(a: &DiagnoseArgs, seeds: u64) -> Result<()> {
     let spec = bench_spec(a)?;
     let mut opts = proof_options(&spec);
+    opts.excluded = a.exclude_effect.clone();
     if spec.width != CaseSpec::default().width || spec.height != CaseSpec::default().height {
         // the estimator's own tiling at other sizes; progress on stderr
         opts.estimate.tile = None;

@@ -9,6 +9,7 @@
 //! | `black_level` | `+ β_c` | 1 per channel |
 //! | `veiling_glare` | `(1 − f)·K*P + f·G_σ*P` | 1 per channel + σ |
 //! | `misregistration` | similarity (rotation, scale) between the captures | 2 beyond the base translation |
+//! | `target_tilt` | homography `ψ(d) = L·d / (1 + g·dx + h·dy)`: a keystone, the target tilted between the captures ([`super::tilt`]) | 2 |
 //! | `saturation` | clipped pixels censored, reference-clipped pixels out of the data term | 1 |
 //! | `psf_field_variation` | a finer kernel grid (twice the tiles per axis, at most one tile per two kernel widths; may be proposed again) | the extra kernels |
 //! | `pinhole_diffraction` | the reference restored by the Wiener filter of its band-averaged Airy ⊛ Gaussian PSF ([`super::diffraction`]) | 2 (the Airy radius, channels scaling by wavelength; the Gaussian `σ_a` of the residual aberrations); reported with the MTF50 they imply |
@@ -71,15 +72,24 @@ pub fn centroid_similarity(current: &Fit) -> Option<[f64; 2]> {
 /// The registration with `A − I = [[p0, −p1], [p1, p0]]` and the current model's kernels moved
 /// to it (see [`similarity_from_kernels`]); also the corner displacement.
 pub fn similarity_model(current: &Fit, base: &crate::profile::RegistrationInfo, p: [f64; 2]) -> (crate::profile::RegistrationInfo, Model, f64) {
-    let g = &current.model.grid;
     let (w, h) = (current.normalized[0].width as f64, current.normalized[0].height as f64);
     let (cx, cy) = ((w - 1.0) / 2.0, (h - 1.0) / 2.0);
     let info = crate::profile::RegistrationInfo { model: "similarity".into(), matrix: [1.0 + p[0], -p[1], p[1], 1.0 + p[0]], translation: [base.translation[0].round(), base.translation[1].round()], residual_px: 0.0 };
     let corner = 0.5 * (w * w + h * h).sqrt() * (p[0] * p[0] + p[1] * p[1]).sqrt();
+    let init = moved_kernels(current, &|x, y| {
+        let (x, y) = (x - cx, y - cy);
+        (p[0] * x - p[1] * y, p[1] * x + p[0] * y)
+    });
+    (info, init, corner)
+}
+
+/// The current model with each kernel's content moved by minus `disp(x, y)`, the displacement
+/// at its tile centre `(x, y)` (pixels, image coordinates), clamped at 0 and renormalised.
+pub fn moved_kernels(current: &Fit, disp: &dyn Fn(f64, f64) -> (f64, f64)) -> Model {
+    let g = &current.model.grid;
     let mut init = current.model.clone();
     for t in 0..g.tile_count() {
-        let (x, y) = (g.centers[t][0] - cx, g.centers[t][1] - cy);
-        let (dx, dy) = (p[0] * x - p[1] * y, p[1] * x + p[0] * y);
+        let (dx, dy) = disp(g.centers[t][0], g.centers[t][1]);
         for c in 0..g.channels.len() {
             // content moves by −d: sample at q + d
             let k = crate::optics::capture::warp_similarity(&g.kernels[c][t], &crate::optics::capture::Similarity { dx, dy, ..Default::default() });
@@ -88,7 +98,7 @@ pub fn similarity_model(current: &Fit, base: &crate::profile::RegistrationInfo, 
             init.grid.kernels[c][t] = k.map(|v| v / s);
         }
     }
-    (info, init, corner)
+    init
 }
 
 /// Refines a similarity: the scale by a golden-section search of χ² (quick fits), the rotation
@@ -147,8 +157,16 @@ fn channel_list(data: &Data) -> String {
 }
 
 /// The candidates for extending `current`, in catalogue order (each effect only while the
-/// current model lacks it; `psf_field_variation` while the grid can still grow).
-pub fn propose(data: &Data, current: &Fit, a: &Analysis) -> Vec<Candidate> {
+/// current model lacks it; `psf_field_variation` while the grid can still grow), without the
+/// effects named in `excluded` (e.g. to show what the diagnosis says of an effect before the
+/// catalogue models it).
+pub fn propose(data: &Data, current: &Fit, a: &Analysis, excluded: &[String]) -> Vec<Candidate> {
+    let mut out = propose_all(data, current, a, &|name| !excluded.iter().any(|e| e == name));
+    out.retain(|c| !excluded.iter().any(|e| e == c.name));
+    out
+}
+
+fn propose_all(data: &Data, current: &Fit, a: &Analysis, wanted: &dyn Fn(&str) -> bool) -> Vec<Candidate> {
     let c0 = &current.model.corrections;
     let mut out = Vec::new();
     if c0.vignetting.is_none() {
@@ -168,6 +186,9 @@ pub fn propose(data: &Data, current: &Fit, a: &Analysis) -> Vec<Candidate> {
     }
     if c0.misregistration.is_none() {
         out.extend(misregistration_candidate(data, current, a));
+    }
+    if wanted("target_tilt") {
+        out.extend(super::tilt::tilt_candidate(data, current, a));
     }
     if c0.saturation.is_none() {
         out.extend(saturation_candidate(data, current, a));
@@ -362,6 +383,14 @@ pub fn parameters_json(name: &str, c: &Corrections) -> serde_json::Value {
                 let (a11, a21) = (info.matrix[0], info.matrix[2]);
                 v["rotation_deg"] = json!(a21.atan2(a11).to_degrees());
                 v["scale"] = json!((a11 * a11 + a21 * a21).sqrt() - 1.0);
+            }
+            v
+        }),
+        "target_tilt" => serde_json::to_value(c.target_tilt).map(|mut v| {
+            if let Some(t) = c.target_tilt {
+                // the tilt this means at a focal length of f pixels: tan θ = f·|(g, h)|
+                v["tan_theta_per_focal_px"] = json!(t.g.hypot(t.h));
+                v["axis_normal_deg"] = json!(t.h.atan2(t.g).to_degrees());
             }
             v
         }),

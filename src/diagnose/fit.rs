@@ -171,6 +171,9 @@ pub fn correction_params(c: &Corrections, channels: usize) -> usize {
     if c.misregistration.is_some() {
         p += 2;
     }
+    if c.target_tilt.is_some() {
+        p += 2;
+    }
     if c.veiling_glare.is_some() {
         p += channels + 1;
     }
@@ -569,13 +572,13 @@ fn linear_open(data: &Data, corr: &Corrections, transfer: Transfer) -> (Vec<Plan
     // misregistration: the (band-limited) data onto the reference geometry, with the
     // interpolation's effect on its noise variance
     let mut noise_factor: Option<Plane> = None;
-    if let Some(info) = &corr.misregistration {
-        let inv = super::model::invert2(super::model::misregistration_map(info));
+    // (and under `target_tilt`: [`super::model::reference_map`])
+    if let Some(inv) = super::model::reference_map(corr).and_then(|m| m.inverse()) {
         let mut factor = None;
         open_lin = open_lin
             .iter()
             .map(|p| {
-                let (q, f) = super::model::resample(p, inv);
+                let (q, f) = super::model::resample_map(p, &inv);
                 factor = Some(f);
                 q
             })
@@ -823,7 +826,7 @@ impl<'a> Setup<'a> {
         let (w, h) = (self.w, self.h);
         let data = self.data;
         let clip = corr.saturation.map(|s| s.clip_level);
-        let back = corr.misregistration.as_ref().map(super::model::misregistration_map);
+        let back = super::model::reference_map(corr);
         let (a, u, glare_amp, beta) = (&p.a_parts[c], &p.u[c], p.glare_amp[c], p.beta[c]);
         let mut vl = self.update_variance(c, a, u, g, glare_amp, beta);
         let mut mlin = Plane::from_fn(w, h, |x, y| {
@@ -852,9 +855,9 @@ impl<'a> Setup<'a> {
                     vl.data[i] - nf.data[i] * o + o
                 });
             }
-            mlin = super::model::resample(&mlin, m).0;
-            vl = super::model::resample(&vl, m).0;
-            hp = super::model::resample(&hp, m).0;
+            mlin = super::model::resample_map(&mlin, &m).0;
+            vl = super::model::resample_map(&vl, &m).0;
+            hp = super::model::resample_map(&hp, &m).0;
         }
         let m = &self.masks;
         let sat = m.saturation.then_some((&m.clipped_open[c][..], &m.pin_clipped[c][..]));

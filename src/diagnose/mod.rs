@@ -33,6 +33,7 @@ pub mod proof;
 pub mod report;
 pub mod session;
 pub mod simulate;
+pub mod tilt;
 
 use crate::estimate::register::{self, RegistrationModel};
 use crate::estimate::{estimate, EstimateError, EstimateOptions};
@@ -90,6 +91,9 @@ pub struct DiagnoseOptions {
     /// Progress on stderr: the base estimate's bars, one bar per round over the candidates,
     /// and a line per added effect.
     pub progress: bool,
+    /// Catalogue effects never proposed (e.g. `target_tilt`, to show the verdict on a tilted
+    /// target before the catalogue modelled it).
+    pub excluded: Vec<String>,
 }
 
 impl Default for DiagnoseOptions {
@@ -105,6 +109,7 @@ impl Default for DiagnoseOptions {
             pinhole_variance_scale: 1.0,
             repeat_noise: None,
             progress: false,
+            excluded: Vec::new(),
         }
     }
 }
@@ -396,7 +401,7 @@ fn search_round(data: &Data, current: &Fit, analysis: &Analysis, opts: &Diagnose
     null.inherit_dof(current);
     let mut scores = vec![CandidateScore { name: "(null refit)".into(), reduced_chi2: null.reduced_chi2(), parameters: serde_json::Value::Null, delta_bic: 0.0, note: "the current model refitted with the candidates' budget".into() }];
     let mut best: Option<(candidates::Candidate, Fit, f64)> = None;
-    let proposed = candidates::propose(data, current, analysis);
+    let proposed = candidates::propose(data, current, analysis, &opts.excluded);
     let bar = crate::estimate::progress_bar(opts.progress, proposed.len() as u64, "testing effects");
     let total = |f: &Fit| f.chi2() + f.noise_chi2;
     for cand in proposed {

@@ -9,6 +9,14 @@
 //!    `aberration_sigma_px`; [`super::diffraction`]).
 //! 2. `misregistration` — the reference is resampled onto the wide-open geometry with the fitted
 //!    similarity (`matrix`, `translation`; the convention of [`crate::profile::RegistrationInfo`]).
+//!    `target_tilt` — the target tilted between the captures: a homography whose perspective
+//!    row `(g, h)` (per pixel) maps wide-open pixel `p` to the reference pixel
+//!    `ψ(p) = c + L·d / (1 + g·dx + h·dy)`, `d = p − c`, `c` the image centre and `L` the
+//!    similarity's linear part under `misregistration` (else `I`). For a plane tilted by `θ`
+//!    about an in-plane axis through the optical axis, `(g, h) = (tan θ / f)·n` with `f` the
+//!    focal length in pixels and `n` the unit normal of the axis in the image; the displacement
+//!    `p − ψ(p) ≈ d·(g·dx + h·dy)` grows with the square of the distance from the centre (a
+//!    keystone), which no similarity and no tile-wise kernel follows. See [`reference_map`].
 //! 3. **blur** — `A = Σ_t w_t·(K_t * L_p)`, the profile's kernels (sum 1), hat-interpolated.
 //!    `psf_field_variation` records the finer grid (`columns`, `rows`) the kernels were refitted
 //!    on; the kernels themselves are the profile's `[psf]`.
@@ -25,7 +33,7 @@
 //! Every correction is optional; an empty table is the base model of docs/method.md §6.
 
 use crate::estimate::register;
-use crate::image::resample::{warp_with_variance, Affine, Interpolation};
+use crate::image::resample::{warp_projective_with_variance, warp_with_variance, Affine, Interpolation, Projective};
 use crate::image::{Image, Plane, Transfer};
 use crate::image::filter::gaussian_blur;
 use crate::optics::forward::blur_channel;
@@ -115,6 +123,16 @@ impl DiffractionCorrection {
     }
 }
 
+/// The perspective row of the homography between the captures (`target_tilt`, module docs).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TiltCorrection {
+    /// Per pixel, across x.
+    pub g: f64,
+    /// Per pixel, across y.
+    pub h: f64,
+}
+
 /// Per-channel offsets.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -132,6 +150,8 @@ pub struct Corrections {
     pub pinhole_diffraction: Option<DiffractionCorrection>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub misregistration: Option<RegistrationInfo>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub target_tilt: Option<TiltCorrection>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub psf_field_variation: Option<FieldCorrection>,
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -167,6 +187,9 @@ impl Corrections {
         }
         if self.misregistration.is_some() {
             v.push("misregistration");
+        }
+        if self.target_tilt.is_some() {
+            v.push("target_tilt");
         }
         if self.psf_field_variation.is_some() {
             v.push("psf_field_variation");
@@ -251,6 +274,25 @@ pub fn reference_planes(pinhole: &Image, transfer: Transfer, registration: &Regi
 pub fn misregistration_map(info: &RegistrationInfo) -> [f64; 4] {
     let (a, b) = (info.matrix[0], info.matrix[2]);
     [2.0 - a, b, -b, 2.0 - a]
+}
+
+/// The map `ψ` from wide-open pixels to reference pixels under `misregistration` (its linear
+/// part, [`misregistration_map`]) and `target_tilt` (module docs, step 2); `None` when the
+/// model has neither. The fit resamples the wide-open data through its inverse onto the
+/// reference geometry and the prediction back through it.
+pub fn reference_map(c: &Corrections) -> Option<Projective> {
+    if c.misregistration.is_none() && c.target_tilt.is_none() {
+        return None;
+    }
+    let matrix = c.misregistration.as_ref().map_or([1.0, 0.0, 0.0, 1.0], misregistration_map);
+    let perspective = c.target_tilt.map_or([0.0, 0.0], |t| [t.g, t.h]);
+    Some(Projective { matrix, shift: [0.0, 0.0], perspective })
+}
+
+/// Resamples `p` at `map(q)` for every pixel `q` (Lanczos-4, mirror boundaries); also returns
+/// `Σw²` of the interpolation weights (see [`resample`]).
+pub fn resample_map(p: &Plane, map: &Projective) -> (Plane, Plane) {
+    warp_projective_with_variance(p, map, Interpolation::Lanczos4)
 }
 
 /// Resamples `p` at `M·(q − c) + c` for every pixel `q` (Lanczos-4, mirror boundaries); also
@@ -346,9 +388,8 @@ pub fn apply_corrections(profile: &Profile, sharp: &Image) -> Result<Image, Corr
         })
         .collect();
     let mut linear = predict_linear(&c, &profile.grid, &profile.meta.exposure_ratio, &reference);
-    if let Some(info) = &c.misregistration {
-        let m = misregistration_map(info);
-        linear = linear.iter().map(|p| resample(p, m).0).collect();
+    if let Some(m) = reference_map(&c) {
+        linear = linear.iter().map(|p| resample_map(p, &m).0).collect();
     }
     for (ch, p) in linear.iter_mut().enumerate() {
         let b = bl(ch);

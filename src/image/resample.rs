@@ -1,8 +1,10 @@
-//! Resampling a plane through an affine map about its centre: the one warp of the crate.
+//! Resampling a plane through an affine (or projective) map about its centre: the one warp of
+//! the crate.
 //!
 //! Output pixel `q` takes the value of `p` at `s = M·(q − c) + c + t` (`c` the plane's centre
 //! `((w−1)/2, (h−1)/2)`, pixel values sampled at pixel centres), so the content moves by the
-//! inverse of that map. Reads outside the plane are mirrored ([`super::reflect_index`]).
+//! inverse of that map. A [`Projective`] map divides by `1 + g·(q − c)` first:
+//! `s = (M·(q − c) + t) / (1 + g·(q − c)) + c`. Reads outside the plane are mirrored ([`super::reflect_index`]).
 //! Two separable interpolators: Keys cubic (4 taps, a = −0.5, [`super::filter::keys_cubic`]) and
 //! Lanczos-4 (8 taps, weights renormalised to sum 1). Weights and sums in `f64`.
 
@@ -87,18 +89,57 @@ fn sample(p: &Plane, x: f64, y: f64, interp: Interpolation) -> (f32, f64) {
     ((acc / (sxw * syw)) as f32, q)
 }
 
+/// A projective map about the plane's centre: `s = (matrix·d + shift) / (1 + perspective·d) + c`
+/// with `d = q − c` (module docs); a zero `perspective` is the [`Affine`] map.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Projective {
+    pub matrix: [f64; 4],
+    pub shift: [f64; 2],
+    /// `[g, h]`, per pixel.
+    pub perspective: [f64; 2],
+}
+
+impl From<Affine> for Projective {
+    fn from(a: Affine) -> Self {
+        Self { matrix: a.matrix, shift: a.shift, perspective: [0.0, 0.0] }
+    }
+}
+
+impl Projective {
+    /// The inverse map (`shift` must be zero: the maps the crate inverts are about the centre):
+    /// `d = M⁻¹·s' / (1 − g·M⁻¹·s')` for `s' = s − c`. `None` when `M` is singular or `shift`
+    /// is not zero.
+    pub fn inverse(&self) -> Option<Projective> {
+        let m = self.matrix;
+        let det = m[0] * m[3] - m[1] * m[2];
+        if det.abs() < 1e-12 || self.shift != [0.0, 0.0] {
+            return None;
+        }
+        let inv = [m[3] / det, -m[1] / det, -m[2] / det, m[0] / det];
+        let [g, h] = self.perspective;
+        Some(Projective { matrix: inv, shift: [0.0, 0.0], perspective: [-(g * inv[0] + h * inv[2]), -(g * inv[1] + h * inv[3])] })
+    }
+}
+
 /// Resamples `p` through `map` (see the module docs); also returns, per pixel, `Σw²` of the
 /// interpolation weights (the factor on white noise's variance).
 pub fn warp_with_variance(p: &Plane, map: &Affine, interp: Interpolation) -> (Plane, Plane) {
+    warp_projective_with_variance(p, &Projective::from(*map), interp)
+}
+
+/// [`warp_with_variance`] through a [`Projective`] map.
+pub fn warp_projective_with_variance(p: &Plane, map: &Projective, interp: Interpolation) -> (Plane, Plane) {
     let (cx, cy) = ((p.width as f64 - 1.0) / 2.0, (p.height as f64 - 1.0) / 2.0);
     let m = map.matrix;
+    let [g, h] = map.perspective;
     let mut out = Plane::new(p.width, p.height);
     let mut wsq = Plane::new(p.width, p.height);
     for y in 0..p.height {
         for x in 0..p.width {
             let (dx, dy) = (x as f64 - cx, y as f64 - cy);
-            let sx = m[0] * dx + m[1] * dy + cx + map.shift[0];
-            let sy = m[2] * dx + m[3] * dy + cy + map.shift[1];
+            let den = 1.0 + g * dx + h * dy;
+            let sx = (m[0] * dx + m[1] * dy + map.shift[0]) / den + cx;
+            let sy = (m[2] * dx + m[3] * dy + map.shift[1]) / den + cy;
             let (v, q) = sample(p, sx, sy, interp);
             out.data[y * p.width + x] = v;
             wsq.data[y * p.width + x] = q as f32;
@@ -153,5 +194,32 @@ mod tests {
         let half = Affine { matrix: [1.0, 0.0, 0.0, 1.0], shift: [0.5, 0.0] };
         let (_, q) = warp_with_variance(&p, &half, Interpolation::Lanczos4);
         assert!(q.get(20, 15) < 0.9, "{}", q.get(20, 15));
+    }
+
+    /// A projective warp followed by its inverse returns the (smooth) plane; the inverse's
+    /// composition with the map is the identity on points.
+    #[test]
+    fn projective_inverse_round_trip() {
+        let map = Projective { matrix: [1.003, -0.004, 0.004, 1.003], shift: [0.0, 0.0], perspective: [2e-4, -1.5e-4] };
+        let inv = map.inverse().unwrap();
+        let apply = |m: &Projective, d: (f64, f64)| {
+            let den = 1.0 + m.perspective[0] * d.0 + m.perspective[1] * d.1;
+            ((m.matrix[0] * d.0 + m.matrix[1] * d.1) / den, (m.matrix[2] * d.0 + m.matrix[3] * d.1) / den)
+        };
+        for d in [(40.0, -30.0), (-60.0, 25.0), (0.0, 0.0)] {
+            let back = apply(&inv, apply(&map, d));
+            assert!((back.0 - d.0).abs() < 1e-9 && (back.1 - d.1).abs() < 1e-9, "{d:?} -> {back:?}");
+        }
+        let p = Plane::from_fn(96, 64, |x, y| ((x as f32 * 0.21).sin() * (y as f32 * 0.17).cos()) + 1.0);
+        let there = warp_projective_with_variance(&p, &map, Interpolation::Lanczos4).0;
+        let back = warp_projective_with_variance(&there, &inv, Interpolation::Lanczos4).0;
+        let mut worst = 0.0f32;
+        for y in 12..52 {
+            for x in 12..84 {
+                worst = worst.max((back.get(x, y) - p.get(x, y)).abs());
+            }
+        }
+        assert!(worst < 2e-3, "round trip error {worst}");
+        assert!(Projective { shift: [1.0, 0.0], ..map }.inverse().is_none());
     }
 }

@@ -30,6 +30,7 @@ pub mod kernels;
 pub mod model;
 pub mod noise;
 pub mod proof;
+pub mod prune;
 pub mod report;
 pub mod session;
 pub mod simulate;
@@ -372,6 +373,15 @@ fn add_effects(data: &mut Data, base: Fit, base_analysis: Analysis, repeat_noise
         measure_dof(data, &mut s.current, opts, s.rounds.len() as u64);
         s.analysis = analyse(&s.current);
     }
+    // backward elimination: drop effects a later one made redundant ([`prune`])
+    while let Some((name, f)) = prune::weakest_redundant(data, &s.current, opts) {
+        if opts.progress {
+            eprintln!("{name} is redundant with the effects found after it: removed (reduced χ² {:.3} → {:.3})", s.current.reduced_chi2(), f.reduced_chi2());
+        }
+        s.effects.retain(|e| e.name != name);
+        s.current = f;
+        s.analysis = analyse(&s.current);
+    }
     if !s.effects.is_empty() {
         // a last polish of the final model with a larger budget
         let mut polished = fit::fit(data, &s.current.model.corrections, &s.current.model, FitSettings { rounds: 2, kernel_iterations: 2 * opts.base_fit.kernel_iterations });
@@ -438,8 +448,13 @@ fn verdict(effects: &[FoundEffect], current: &Fit, final_analysis: &Analysis, op
             .filter(|c| c.msq_range() > 0.3 || c.mean_range() > 0.3)
             .map(|c| format!("{} (mean z spans {:.2}, z² spans {:.2})", c.name, c.mean_range(), c.msq_range()))
             .collect();
+        let partial = if effects.is_empty() {
+            String::new()
+        } else {
+            format!(" after {} (the catalogue's nearest effects; they do not reach the floor)", effects.iter().map(|e| e.name.as_str()).collect::<Vec<_>>().join(", "))
+        };
         format!(
-            "unexplained: reduced χ² {:.3} remains (noise law misfit {:.0}%); {}; residual depends on {}; excess kurtosis {:.2}",
+            "unexplained: reduced χ² {:.3} remains{partial} (noise law misfit {:.0}%); {}; residual depends on {}; excess kurtosis {:.2}",
             current.reduced_chi2(),
             100.0 * current.noise_misfit,
             analysis::where_text(final_analysis),

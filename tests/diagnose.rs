@@ -1,7 +1,8 @@
 //! The diagnosis proof suite: for each catalogue effect, a pair rendered by the simulator with
 //! that effect concealed at a randomised magnitude; the report must name it first, end within
 //! 1.10× of the true noise floor, and recover its parameters; clean data must give "no
-//! mismatch". Plus the report files, the corrected profile, the CLI entry point and the HTML
+//! mismatch". Pairs of effects concealed together must both be named; a target tilt with its
+//! model left out of the catalogue must be reported "unexplained", and named once it is in. Plus the report files, the corrected profile, the CLI entry point and the HTML
 //! in a headless browser.
 
 mod common;
@@ -191,6 +192,78 @@ fn pinhole_diffraction_is_named_and_its_mtf_estimated() {
     assert!(r > 0.0 && r < 2.0 * c.truth["airy_radius_px"].as_f64().unwrap(), "Airy radius {r}");
     assert!(e.parameters["aberration_sigma_px"].as_f64().is_some_and(|v| (0.0..=1.5).contains(&v)), "{}", e.parameters);
     assert!(row.floor_ratio <= FLOOR, "final residual {:.3}× the floor", row.floor_ratio);
+}
+
+/// Two effects concealed together (issue 17): both named first, in either order, and the fit
+/// at the floor. `extra`: whether another effect may follow them (see
+/// `misregistration_and_pinhole_diffraction_are_both_named`).
+fn check_pair(pair: &str, seed: u64, extra: bool) -> (Diagnosis, lensrig::diagnose::proof::Case) {
+    let (row, d, c) = case(Some(pair), seed);
+    let all: Vec<&str> = d.effects.iter().map(|e| e.name.as_str()).collect();
+    assert!(extra || all.len() == 2, "{pair} (seed {seed}): named {all:?}; rounds {:?}", d.rounds);
+    let mut named: Vec<&str> = all[..all.len().min(2)].to_vec();
+    named.sort_unstable();
+    let mut want: Vec<&str> = pair.split('+').collect();
+    want.sort_unstable();
+    assert_eq!(named, want, "{pair} (seed {seed}, truth {}): rounds {:?}", c.truth, d.rounds);
+    assert!(row.correct, "{pair}: bench row {row:?}");
+    assert!(d.verdict.starts_with("explained"), "{}", d.verdict);
+    assert!(row.floor_ratio <= FLOOR, "{pair}: final residual {:.3}× the true noise floor", row.floor_ratio);
+    (d, c)
+}
+
+#[test]
+fn vignetting_and_black_level_are_both_named() {
+    let (d, c) = check_pair("vignetting+black_level", 12, false);
+    let e = d.effects.iter().find(|e| e.name == "black_level").unwrap();
+    let (got, want) = (e.parameters["offset"][0].as_f64().unwrap(), c.truth["offset"][0].as_f64().unwrap());
+    assert!((got - want).abs() < 0.005, "offset {got} vs {want}");
+}
+
+#[test]
+fn veiling_glare_and_tone_curve_are_both_named() {
+    check_pair("veiling_glare+tone_curve", 12, false);
+}
+
+/// Both named first. A third, small additive term may follow: on bench seeds 21–23 an offset
+/// of 0.0008–0.0018 of full scale (`black_level`, or `veiling_glare` at the widest halo
+/// searched, which over this field is the same) was accepted after them (cause not found;
+/// docs/diagnosis.md); it is bounded here.
+#[test]
+fn misregistration_and_pinhole_diffraction_are_both_named() {
+    let (d, _) = check_pair("misregistration+pinhole_diffraction", 12, true);
+    for e in &d.effects[2..] {
+        let small = e.parameters["offset"][0].as_f64().map_or(true, |o| o.abs() < 0.003) && e.parameters["fraction"].as_f64().map_or(true, |f| f < 0.02);
+        assert!(["black_level", "veiling_glare"].contains(&e.name.as_str()) && small, "third effect {} {}", e.name, e.parameters);
+    }
+}
+
+/// A target tilted between the captures (a keystone) with `target_tilt` left out of the
+/// catalogue: the verdict is "unexplained", says where the residual is and what it depends
+/// on, and the fit stays above the floor (a finer kernel grid, the nearest catalogue effect,
+/// follows the keystone only at its tile centres).
+#[test]
+fn target_tilt_is_unexplained_without_its_model() {
+    let spec = CaseSpec::default();
+    let mut opts = proof_options(&spec);
+    opts.excluded = vec!["target_tilt".into()];
+    let (row, d, c) = bench_case(Some("target_tilt"), 13, &spec, &opts).expect("diagnosis runs");
+    assert!(d.verdict.starts_with("unexplained"), "{} (truth {})", d.verdict, c.truth);
+    assert!(d.verdict.contains("worst at tile") && d.verdict.contains("residual depends on"), "{}", d.verdict);
+    assert!(d.effects.iter().all(|e| e.name != "target_tilt"));
+    assert!(row.floor_ratio > FLOOR, "final residual {:.3}× the floor: the excluded effect was absorbed", row.floor_ratio);
+}
+
+/// The same pair with `target_tilt` in the catalogue: named first, the perspective row within
+/// 10% of the rendered one, and the fit at the floor.
+#[test]
+fn target_tilt_is_named_and_its_keystone_recovered() {
+    let (d, c) = check_named("target_tilt", 13);
+    let p = &d.effects[0].parameters;
+    let (g, h) = (c.truth["g"].as_f64().unwrap(), c.truth["h"].as_f64().unwrap());
+    let err = (p["g"].as_f64().unwrap() - g).hypot(p["h"].as_f64().unwrap() - h) / g.hypot(h);
+    assert!(err < 0.10, "perspective row {p} vs truth {}", c.truth);
+    assert!(d.verdict.starts_with("explained"), "{}", d.verdict);
 }
 
 /// The report files, the corrected profile through `apply_corrections`, the CLI entry point,

@@ -611,4 +611,28 @@ mod tests {
         let (stored, linear) = (clean.pinhole.image.planes[0].mean(), clean.pinhole.clean[0].mean());
         assert!((stored - linear).abs() < 0.01, "clean pinhole: stored {stored:.4} vs linear {linear:.4}");
     }
+
+    /// The rendered tilt is the model's `target_tilt` homography (`ψ(d) = d / (1 + g·d)`,
+    /// [`super::super::model::reference_map`]) to first order: mapping a corner through the
+    /// model and back through the renderer's exact map returns it within the `1/cos θ`
+    /// stretch the model leaves out, while the keystone itself moves it by pixels.
+    #[test]
+    fn tilt_is_the_models_homography_to_first_order() {
+        use crate::diagnose::model::{reference_map, Corrections, TiltCorrection};
+        let t = Tilt { theta_deg: 3.0, axis_deg: 30.0, focal_px: 274.5 };
+        let [g, h] = t.perspective();
+        let map = reference_map(&Corrections { target_tilt: Some(TiltCorrection { g, h }), ..Default::default() }).expect("a map");
+        let stretch = (1.0 / 3f64.to_radians().cos() - 1.0) * 160.0;
+        for d in [(127.5, 95.5), (-127.5, 95.5), (60.0, -80.0)] {
+            let den = 1.0 + map.perspective[0] * d.0 + map.perspective[1] * d.1;
+            let psi = (d.0 / den, d.1 / den);
+            let back = t.map(psi);
+            let err = (back.0 - d.0).hypot(back.1 - d.1);
+            let keystone = (psi.0 - d.0).hypot(psi.1 - d.1);
+            assert!(err <= stretch + 0.02, "{d:?}: round trip off by {err:.3} px (stretch {stretch:.3})");
+            if d.0.abs() > 100.0 {
+                assert!(keystone > 1.5, "{d:?}: keystone {keystone:.2} px");
+            }
+        }
+    }
 }

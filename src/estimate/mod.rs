@@ -190,6 +190,31 @@ pub fn default_tile(k: usize, w: usize, h: usize) -> usize {
     (9 * k / 5).max(32).min(w.min(h))
 }
 
+/// Largest relative change of the kernel between neighbouring PSF centres the grid allows
+/// ([`lens_tile`]).
+pub const GRID_CHANGE: f64 = 0.15;
+
+/// Spacing of the PSF centres tied to the lens (docs/estimation.md "Grid"): neighbouring centres
+/// differ by at most [`GRID_CHANGE`] at the measured variation rate `g`, so the spacing is
+/// `GRID_CHANGE / g`, bounded below by [`default_tile`] (1.8 kernels) and above by half the
+/// shorter image side (at least 2 × 2 centres).
+pub fn lens_tile(k: usize, variation: f64, w: usize, h: usize) -> usize {
+    let lo = default_tile(k, w, h);
+    let hi = (w.min(h) / 2).max(lo);
+    if std::env::var_os("KACC_DEBUG").is_some() {
+        eprintln!("lens_tile k {k} variation {variation:.3e} -> {:.0} (bounds {lo}..{hi})", GRID_CHANGE / variation);
+    }
+    let change = std::env::var("KACC_GRID_CHANGE").ok().and_then(|v| v.parse::<f64>().ok()).unwrap_or(GRID_CHANGE);
+    if change <= 0.0 {
+        return lo;
+    }
+    if variation.is_finite() && variation > 0.0 {
+        ((change / variation).round() as usize).clamp(lo, hi)
+    } else {
+        hi
+    }
+}
+
 /// Default fit window for a kernel size: enough data for a well-posed fit (≥ 4 kernels across).
 pub fn default_window(k: usize, w: usize, h: usize) -> usize {
     (4 * k).max(96).min(w.max(h))
@@ -314,11 +339,12 @@ struct Layout {
 impl Layout {
     fn choose(open_lin: &[Plane], pin_reg: &[Plane], opts: &EstimateOptions) -> Result<Layout, EstimateError> {
         let (w, h) = (open_lin[0].width, open_lin[0].height);
-        let k = match opts.kernel_size {
-            Some(k) => k,
-            None => choose_kernel_size(open_lin, pin_reg, opts)?,
+        let probe = match (opts.kernel_size, opts.tile) {
+            (Some(k), Some(_)) => FieldProbe { kernel: k, variation: 0.0 },
+            (fixed, _) => probe_field(open_lin, pin_reg, fixed, opts)?,
         };
-        let tile = opts.tile.unwrap_or_else(|| default_tile(k, w, h));
+        let k = probe.kernel;
+        let tile = opts.tile.unwrap_or_else(|| lens_tile(k, probe.variation, w, h));
         if tile < k {
             return Err(EstimateError::TileTooSmall { tile, kernel: k });
         }
@@ -508,11 +534,28 @@ pub const SUPPORT_ENERGY: f64 = 0.99;
 /// Margin on the support radius: `r_k = ⌈SUPPORT_MARGIN · r_99 + 2⌉`, `k = 2 r_k + 1`.
 pub const SUPPORT_MARGIN: f64 = 1.15;
 
+/// What the probe kernels measured (docs/estimation.md "Kernel size", "Grid").
+#[derive(Clone, Copy, Debug)]
+pub struct FieldProbe {
+    /// Kernel size (odd, pixels).
+    pub kernel: usize,
+    /// Field variation rate `g` (relative L2 change of the kernel per pixel of field distance,
+    /// [`variation_rate`]).
+    pub variation: f64,
+}
+
 /// Picks the kernel size from probe estimates (docs/estimation.md "Kernel size"): a generous
 /// probe kernel on five spots (centre and the four corners) of every channel, in parallel; each
 /// probe's main-lobe support ([`support_radius`]); the largest over channels and spots, with
 /// margin ([`SUPPORT_MARGIN`]), clamped to `[7, probe]`.
 fn choose_kernel_size(open: &[Plane], pin: &[Plane], opts: &EstimateOptions) -> Result<usize, EstimateError> {
+    probe_field(open, pin, None, opts).map(|p| p.kernel)
+}
+
+/// Probe kernels on five spots (centre, then the four corners) of every channel: the kernel
+/// size ([`choose_kernel_size`]; `fixed` when given) and the field variation rate
+/// ([`variation_rate`]) of the kernels cropped to that size.
+fn probe_field(open: &[Plane], pin: &[Plane], fixed: Option<usize>, opts: &EstimateOptions) -> Result<FieldProbe, EstimateError> {
     let (w, h) = (open[0].width, open[0].height);
     let probe_k = ((w.min(h) / 6) | 1).clamp(9, 127);
     let tsz = (w.min(h) / 3).max(probe_k * 2).min(w.min(h));
@@ -520,16 +563,37 @@ fn choose_kernel_size(open: &[Plane], pin: &[Plane], opts: &EstimateOptions) -> 
     let spots = [((w - tsz) / 2, (h - tsz) / 2), (0, 0), (w - tsz, 0), (0, h - tsz), (w - tsz, h - tsz)];
     let jobs: Vec<(usize, (usize, usize))> = (0..open.len()).flat_map(|c| spots.iter().map(move |&s| (c, s))).collect();
     let ratio: Vec<f32> = open.iter().zip(pin).map(|(o, p)| (o.sum() / p.sum().max(1e-30)) as f32).collect();
-    let radius = jobs
+    let probes: Vec<Plane> = jobs
         .par_iter()
         .map(|&(c, (x0, y0))| {
             let data = tile_data(&open[c], &pin[c], &all, ratio[c], (x0, x0 + tsz, y0, y0 + tsz), probe_k);
             let st = TileSettings { kernel_size: probe_k, lambda: None, lambda_scale: opts.lambda_scale as f32, noise_sigma: None, mu_relative: 1.0, max_iterations: 150, tolerance: 1e-3 };
-            support_radius(&solve_tile(&data, &st, |_, _| true).kernel, SUPPORT_ENERGY)
+            solve_tile(&data, &st, |_, _| true).kernel
         })
-        .reduce(|| 1.0, f64::max);
-    let k = 2 * (SUPPORT_MARGIN * radius + 2.0).ceil() as usize + 1;
-    Ok(k.clamp(7, probe_k))
+        .collect();
+    let kernel = fixed.unwrap_or_else(|| {
+        let radius = probes.iter().map(|p| support_radius(p, SUPPORT_ENERGY)).fold(1.0, f64::max);
+        (2 * (SUPPORT_MARGIN * radius + 2.0).ceil() as usize + 1).clamp(7, probe_k)
+    });
+    let centres: Vec<[f64; 2]> = spots.iter().map(|&(x, y)| [x as f64 + tsz as f64 / 2.0, y as f64 + tsz as f64 / 2.0]).collect();
+    let variation = probes.chunks(spots.len()).map(|p| variation_rate(p, &centres, kernel)).fold(0.0, f64::max);
+    Ok(FieldProbe { kernel, variation })
+}
+
+/// Field variation rate of one channel from its probes (`probes[0]` at the centre spot, the
+/// rest at the corners, `centres` in pixels), each cropped to `k × k` about its centre:
+/// `g = mean_i ‖b_i − b_0‖ / (‖b_0‖ · |x_i − x_0|)`, relative change per pixel.
+pub fn variation_rate(probes: &[Plane], centres: &[[f64; 2]], k: usize) -> f64 {
+    let b0 = testbed::embed_centered(&probes[0], k);
+    let rates: Vec<f64> = probes[1..]
+        .iter()
+        .zip(&centres[1..])
+        .map(|(p, c)| {
+            let d = ((c[0] - centres[0][0]).powi(2) + (c[1] - centres[0][1]).powi(2)).sqrt().max(1.0);
+            relative_error(&testbed::embed_centered(p, k), &b0) / d
+        })
+        .collect();
+    rates.iter().sum::<f64>() / rates.len().max(1) as f64
 }
 
 /// Main-lobe support of a probe kernel: the Chebyshev radius about the centre holding `frac`

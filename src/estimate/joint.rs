@@ -29,7 +29,7 @@ use crate::solve::fista::{fista, Composite, FistaOptions, Stall};
 use crate::solve::operator::LinearOperator;
 use crate::solve::power::{kernel_start, power_iteration, remove_block_means};
 use crate::solve::primal_dual::{SplitOptions, Stats};
-use crate::solve::prox::{prox_tv_simplex_on, tv_dual_len};
+use crate::solve::prox::{prox_tv_simplex, tv_dual_len};
 use rayon::prelude::*;
 
 struct JointProblem {
@@ -43,8 +43,6 @@ struct JointProblem {
     pred: Vec<f32>,
     /// The TV duals of the prox, carried over between steps (warm starts).
     q: Vec<f32>,
-    /// Per kernel, where it may be nonzero (empty: everywhere; the debias stage).
-    support: Vec<Vec<bool>>,
 }
 
 impl JointProblem {
@@ -96,10 +94,9 @@ impl Composite for JointProblem {
     /// The TV–simplex prox of every kernel (in parallel), duals warm-started.
     fn prox(&mut self, l: f32, v: &[f32], x: &mut [f32]) {
         let (k, k2, d) = (self.k, self.k * self.k, tv_dual_len(self.k));
-        let (lambda, totals, support) = (&self.lambda, &self.totals, &self.support);
-        x.par_chunks_mut(k2).zip(v.par_chunks(k2)).zip(self.q.par_chunks_mut(d)).enumerate().for_each(|(t, ((xb, vb), qb))| {
-            let s = support.get(t).filter(|s| !s.is_empty()).map(Vec::as_slice);
-            prox_tv_simplex_on(vb, qb, lambda[t] / l, totals[t], k, PROX_ITERATIONS, s, xb);
+        let (lambda, totals) = (&self.lambda, &self.totals);
+        x.par_chunks_mut(k2).zip(v.par_chunks(k2)).zip(self.q.par_chunks_mut(d)).zip(lambda.par_iter().zip(totals.par_iter())).for_each(|(((xb, vb), qb), (&lam, &tot))| {
+            prox_tv_simplex(vb, qb, lam / l, tot, k, PROX_ITERATIONS, xb);
         });
     }
 }
@@ -137,7 +134,7 @@ fn build_problem(open: &Plane, sharp: &Plane, valid: &[bool], grid: &PsfGrid, ke
     let lambda: Vec<f32> = fits.iter().enumerate().take(grid.tile_count()).map(|(t, &(l0, n0, _))| l0 * (op.weighted_count(t, &mask) / n0.max(1) as f64).sqrt() as f32).collect();
     let totals: Vec<f32> = kernels.iter().map(|p| p.sum() as f32).collect();
     let q = vec![0.0f32; grid.tile_count() * tv_dual_len(grid.kernel_size)];
-    JointProblem { k: grid.kernel_size, blurred: open.data.clone(), mask, lambda, totals, pred: vec![0.0; open.width * open.height], q, op, support: vec![] }
+    JointProblem { k: grid.kernel_size, blurred: open.data.clone(), mask, lambda, totals, pred: vec![0.0; open.width * open.height], q, op }
 }
 
 /// Refines `kernels` (one channel, in the grid's tile order) in place. `fits[t] = (λ, N, σ̂)`
@@ -179,60 +176,11 @@ pub fn refine_channel(
     let rest = SplitOptions { max_iterations: opts.max_iterations.saturating_sub(st1.iterations), ..opts.clone() };
     let mut stats = run_fista(&mut p, &mut x, &rest, l_f, progress);
     stats.iterations += st1.iterations;
-    if let Some(d) = Debias::from_env() {
-        let st3 = debias(&mut p, &mut x, &d, opts, l_f, progress);
-        if st3.iterations > 0 {
-            stats = Stats { iterations: stats.iterations + st3.iterations, ..st3 };
-        }
-    }
     let f = if stats.iterations > st1.iterations { stats.primal_objective } else { p.normal(&x, &mut g, true) };
     for (kp, xb) in kernels.iter_mut().zip(x.chunks(k * k)) {
         kp.data.copy_from_slice(xb);
     }
     (stats, (2.0 * f / count as f64).sqrt())
-}
-
-/// The debias stage (docs/estimation.md "Debiasing"): TV shrinks the kernel's plateaus and rims
-/// toward its mean and spreads a floor around it. The stage keeps the support the TV fit
-/// selected, `S_t = dilate({b_t > τ · max b_t}, ρ)`, confines each kernel to it and refits with
-/// the TV weight reduced to `δ · λ_t`.
-#[derive(Clone, Copy, Debug)]
-pub struct Debias {
-    /// `τ`: support threshold relative to the kernel's peak.
-    pub threshold: f32,
-    /// `ρ`: dilation of the support (pixels).
-    pub dilation: usize,
-    /// `δ`: TV weight of the refit relative to the fit's.
-    pub lambda: f32,
-    pub iterations: usize,
-}
-
-impl Debias {
-    fn from_env() -> Option<Debias> {
-        let get = |n: &str, d: f64| std::env::var(n).ok().and_then(|v| v.parse::<f64>().ok()).unwrap_or(d);
-        let lambda = get("KACC_DEBIAS_LAMBDA", -1.0);
-        (lambda >= 0.0).then(|| Debias { threshold: get("KACC_DEBIAS_THRESH", 0.01) as f32, dilation: get("KACC_DEBIAS_DILATE", 2.0) as usize, lambda: lambda as f32, iterations: get("KACC_DEBIAS_ITERS", 20.0) as usize })
-    }
-}
-
-/// The support of a kernel: `dilate({b > τ · max b}, ρ)`.
-fn kernel_support(b: &[f32], k: usize, d: &Debias) -> Vec<bool> {
-    let peak = b.iter().copied().fold(0.0f32, f32::max);
-    let core: Vec<bool> = b.iter().map(|&v| v > d.threshold * peak).collect();
-    crate::estimate::dilate(&core, k, k, d.dilation)
-}
-
-/// Runs the debias stage ([`Debias`]) on `x` (all kernels of the channel).
-fn debias(p: &mut JointProblem, x: &mut [f32], d: &Debias, opts: &SplitOptions, l_f: f32, progress: &indicatif::ProgressBar) -> Stats {
-    let k2 = p.k * p.k;
-    p.support = x.chunks(k2).map(|b| kernel_support(b, p.k, d)).collect();
-    for (b, s) in x.chunks_mut(k2).zip(&p.support) {
-        b.iter_mut().zip(s).for_each(|(v, &on)| if !on { *v = 0.0 });
-    }
-    p.lambda.iter_mut().for_each(|l| *l *= d.lambda);
-    p.q.iter_mut().for_each(|q| *q *= d.lambda);
-    let o = SplitOptions { max_iterations: d.iterations, min_iterations: 5, tolerance: opts.tolerance };
-    run_fista(p, x, &o, l_f, progress)
 }
 
 #[cfg(test)]

@@ -29,17 +29,6 @@ pub fn project_simplex(v: &mut [f32], total: f32) {
     v.iter_mut().for_each(|x| *x = (*x as f64 - theta).max(0.0) as f32);
 }
 
-/// Projection of `v` (in place) onto `{b ≥ 0, Σ b = total, b = 0 where !support}`: the
-/// [`project_simplex`] of the support's entries, zeros elsewhere.
-pub fn project_simplex_on(v: &mut [f32], support: &[bool], total: f32) {
-    let mut on: Vec<f32> = v.iter().zip(support).filter(|p| *p.1).map(|p| *p.0).collect();
-    project_simplex(&mut on, total);
-    let mut it = on.into_iter();
-    for (x, &s) in v.iter_mut().zip(support) {
-        *x = if s { it.next().unwrap_or(0.0) } else { 0.0 };
-    }
-}
-
 /// Forward differences of a `k × k` kernel that is zero outside its support, on the
 /// `(k+1) × (k+1)` grid of positions `-1..k` (so the steps into and out of the support count):
 /// `out = [dx; dy]`.
@@ -111,15 +100,6 @@ pub fn project_tv_dual(y: &mut [f32], radius: f32) {
 /// `‖K‖² ≤ 8`. `q` ([`tv_dual_len`] long) is the warm start and is updated in place;
 /// `iterations` dual steps. Kernel-sized work only.
 pub fn prox_tv_simplex(v: &[f32], q: &mut [f32], gamma: f32, total: f32, k: usize, iterations: usize, out: &mut [f32]) {
-    prox_tv_simplex_on(v, q, gamma, total, k, iterations, None, out);
-}
-
-/// [`prox_tv_simplex`] with the kernel further confined to `support` (`true` where a
-/// coefficient may be nonzero; `None`: everywhere): the simplex becomes
-/// `{x ≥ 0, 1ᵀx = total, x = 0 off the support}`, whose projection is the simplex projection
-/// of the support's entries.
-#[allow(clippy::too_many_arguments)]
-pub fn prox_tv_simplex_on(v: &[f32], q: &mut [f32], gamma: f32, total: f32, k: usize, iterations: usize, support: Option<&[bool]>, out: &mut [f32]) {
     let d = q.len();
     let mut kx = vec![0.0f32; d];
     let mut ktq = vec![0.0f32; k * k];
@@ -129,10 +109,7 @@ pub fn prox_tv_simplex_on(v: &[f32], q: &mut [f32], gamma: f32, total: f32, k: u
         for ((o, &a), &b) in out.iter_mut().zip(v).zip(&ktq) {
             *o = a - b;
         }
-        match support {
-            Some(s) => project_simplex_on(out, s, total),
-            None => project_simplex(out, total),
-        }
+        project_simplex(out, total);
         if it == iterations {
             break;
         }

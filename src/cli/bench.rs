@@ -303,9 +303,6 @@ fn run_testbed(a: &BenchArgs, dir: &Path) -> Result<()> {
         let truth_profile = Profile { meta: est.profile.meta.clone(), grid: l.truth.clone() };
         let cv_truth = cross_validation(&truth_profile, &pair2, margin)?;
         let all: Vec<f64> = errors.iter().flatten().copied().collect();
-        if std::env::var_os("KACC_RADIAL").is_some() {
-            debug_radial(g, &l.truth);
-        }
         if a.bootstrap > 0 {
             print_bootstrap(a.bootstrap, &est, &opts, &errors, &l.name);
         }
@@ -331,32 +328,3 @@ fn run_testbed(a: &BenchArgs, dir: &Path) -> Result<()> {
     Ok(())
 }
 
-/// TEMPORARY diagnosis: ring means of the centre tile's kernel, estimate vs truth.
-fn debug_radial(g: &PsfGrid, truth: &PsfGrid) {
-    let t = g.tile_count() / 2;
-    let [x, y] = g.centers[t];
-    for (c, ch) in g.channels.iter().enumerate() {
-        let tk = truth.kernel_at(c, x, y);
-        let n = g.kernel_size.max(tk.width);
-        let e = lensrig::estimate::testbed::embed_centered(&g.kernels[c][t], n);
-        let tr = lensrig::estimate::testbed::embed_centered(&tk, n);
-        let cc = n / 2;
-        let mut rows = vec![(0.0f64, 0.0f64, 0.0f64, 0usize); cc + 1];
-        for yy in 0..n {
-            for xx in 0..n {
-                let r = (((xx as f64 - cc as f64).powi(2) + (yy as f64 - cc as f64).powi(2)).sqrt().round() as usize).min(cc);
-                let (a, b) = (e.get(xx, yy) as f64, tr.get(xx, yy) as f64);
-                rows[r].0 += a;
-                rows[r].1 += b;
-                rows[r].2 += (a - b).powi(2);
-                rows[r].3 += 1;
-            }
-        }
-        let tot: f64 = tr.data.iter().map(|v| (*v as f64).powi(2)).sum();
-        let mut s = format!("radial {ch} tile {t}:");
-        for (r, row) in rows.iter().enumerate().step_by(3) {
-            s += &format!(" r{r}:{:.2e}/{:.2e}/{:.1}%", row.0 / row.3 as f64, row.1 / row.3 as f64, 100.0 * (row.2 / tot).sqrt());
-        }
-        println!("{s}");
-    }
-}

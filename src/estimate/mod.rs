@@ -206,15 +206,8 @@ pub const MAX_CENTRES: usize = 300;
 pub fn lens_tile(k: usize, variation: f64, w: usize, h: usize) -> usize {
     let lo = default_tile(k, w, h).max(((w * h) as f64 / MAX_CENTRES as f64).sqrt().ceil() as usize).min(w.min(h));
     let hi = (w.min(h) / 2).max(lo);
-    if std::env::var_os("KACC_DEBUG").is_some() {
-        eprintln!("lens_tile k {k} variation {variation:.3e} -> {:.0} (bounds {lo}..{hi})", GRID_CHANGE / variation);
-    }
-    let change = std::env::var("KACC_GRID_CHANGE").ok().and_then(|v| v.parse::<f64>().ok()).unwrap_or(GRID_CHANGE);
-    if change <= 0.0 {
-        return lo;
-    }
     if variation.is_finite() && variation > 0.0 {
-        ((change / variation).round() as usize).clamp(lo, hi)
+        ((GRID_CHANGE / variation).round() as usize).clamp(lo, hi)
     } else {
         hi
     }
@@ -254,19 +247,14 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
     check_texture("wide-open", &open_lin, &open.channels)?;
     check_texture("pinhole", &pin_lin, &open.channels)?;
     let (reg, pin_reg, pin_sat_reg) = register_pair(&open_lin, &pin_lin, pinhole, opts);
-    kacc_cpu("registration");
     let layout = Layout::choose(&open_lin, &pin_reg, opts)?;
-    kacc_cpu("layout (probes)");
     let data = valid_data(open, &open_lin, &pin_reg, &pin_sat_reg, layout.kernel, opts)?;
     let (mut kernels, mut info, tile_fits) = fit_windows(&open_lin, &pin_reg, &data, &layout, opts);
-    kacc_cpu("window fits");
     if opts.joint_iterations > 0 {
-        let p = std::env::var("KACC_SPREAD_P").ok().and_then(|v| v.parse::<f64>().ok()).unwrap_or(SPREAD_EXPONENT);
-        let factors = spread_factors(&kernels, p);
+        let factors = spread_factors(&kernels, SPREAD_EXPONENT);
         let scaled: TileFits = tile_fits.iter().zip(&factors).map(|(f, g)| f.iter().zip(g).map(|(&(l, n, s), &x)| (l * x as f32, n, s)).collect()).collect();
         refine_jointly(&open_lin, &pin_reg, &data, &layout, &open.channels, &scaled, &mut kernels, &mut info, opts);
     }
-    kacc_cpu("joint");
     // the noise level per channel: median over tiles of the least-squares residual level
     let noise: Vec<f64> = tile_fits
         .iter()
@@ -581,6 +569,7 @@ pub struct FieldProbe {
     pub variation: f64,
 }
 
+#[cfg(test)]
 /// Picks the kernel size from probe estimates (docs/estimation.md "Kernel size"): a generous
 /// probe kernel on five spots (centre and the four corners) of every channel, in parallel; each
 /// probe's main-lobe support ([`support_radius`]); the largest over channels and spots, with
@@ -590,7 +579,7 @@ fn choose_kernel_size(open: &[Plane], pin: &[Plane], opts: &EstimateOptions) -> 
 }
 
 /// Probe kernels on five spots (centre, then the four corners) of every channel: the kernel
-/// size ([`choose_kernel_size`]; `fixed` when given) and the field variation rate
+/// size (docs/estimation.md "Kernel size"; `fixed` when given) and the field variation rate
 /// ([`variation_rate`]) of the kernels cropped to that size.
 fn probe_field(open: &[Plane], pin: &[Plane], fixed: Option<usize>, opts: &EstimateOptions) -> Result<FieldProbe, EstimateError> {
     let (w, h) = (open[0].width, open[0].height);
@@ -871,13 +860,3 @@ mod tests {
     }
 }
 
-/// TEMPORARY: CPU seconds so far, printed under KACC_DEBUG.
-fn kacc_cpu(stage: &str) {
-    if std::env::var_os("KACC_DEBUG").is_none() {
-        return;
-    }
-    let s = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
-    let rest = s.rfind(')').map_or("", |i| &s[i + 2..]);
-    let f: Vec<f64> = rest.split_whitespace().filter_map(|x| x.parse().ok()).collect();
-    eprintln!("cpu after {stage}: {:.1} s", f.get(10).copied().unwrap_or(0.0) / 100.0 + f.get(11).copied().unwrap_or(0.0) / 100.0);
-}

@@ -12,8 +12,9 @@ pub struct EstimateArgs {
     /// simulator's suggestion).
     #[arg(long)]
     pub kernel: Option<usize>,
-    /// Spacing of the PSF centres in pixels; default: about 1.8 kernels (each centre is fitted
-    /// on a window of about four kernels, then all kernels jointly).
+    /// Spacing of the PSF centres in pixels; default: from how fast the PSF changes across the
+    /// field (between 1.8 kernels and half the shorter side; each centre is fitted on a window
+    /// of about four kernels, then all kernels jointly).
     #[arg(long)]
     pub tile: Option<usize>,
     /// Fit window side around each PSF centre; default: chosen by `estimate`.

@@ -3,8 +3,9 @@
 //!
 //! Cases from the core issue: a 1024×768 RGB pair with 63-pixel kernels on a fixed 4×3 grid, and
 //! (with `--large`) a 4000×3000 RGB pair on a fixed 8×6 grid; each case is also timed on the
-//! grid `estimate` picks by default (`--tile` unset: 9×7 for 63 px at 1024×768), which is what
-//! users get and what the speed goal of issue 16 is about. The grid column says which. Pairs are rendered with the lens
+//! grid `estimate` picks by default (`--tile` unset: the spacing tied to the lens,
+//! [`lensrig::estimate::lens_tile`]), which is what users get and what the speed goal of issue
+//! 16 is about. The grid column says which. Pairs are rendered with the lens
 //! simulator's PSFs on a coarse field grid (rendering is not what is timed), with an ideal
 //! pinhole reference; only `estimate` is timed, on all cores rayon sees. Each case is timed with
 //! the per-window fits alone (`--joint-iterations 0`) and with the joint refinement
@@ -83,7 +84,7 @@ fn render_case(c: &Case) -> Result<(Image, Image, PsfGrid)> {
 }
 
 /// Times one estimate and prints its table row. `default_grid`: the grid `estimate` picks by
-/// default for the kernel (`--tile` unset: [`lensrig::estimate::default_tile`], what users get)
+/// default for the kernel (`--tile` unset: [`lensrig::estimate::lens_tile`], what users get)
 /// instead of the case's fixed grid.
 fn time_row(a: &BenchArgs, c: &Case, open: &Image, pin: &Image, truth: &PsfGrid, joint: usize, default_grid: bool) -> Result<()> {
     let mut opts = a.estimation.options();
@@ -326,3 +327,4 @@ fn run_testbed(a: &BenchArgs, dir: &Path) -> Result<()> {
     }
     Ok(())
 }
+

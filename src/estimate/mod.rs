@@ -190,6 +190,29 @@ pub fn default_tile(k: usize, w: usize, h: usize) -> usize {
     (9 * k / 5).max(32).min(w.min(h))
 }
 
+/// Largest relative change of the kernel between neighbouring PSF centres the grid allows
+/// ([`lens_tile`]).
+pub const GRID_CHANGE: f64 = 0.1;
+
+/// Most PSF centres the default grid places ([`lens_tile`]): it bounds the cost of large images
+/// (a 4000×3000 capture gets at most 20 × 15 centres; 1024×768 is not affected).
+pub const MAX_CENTRES: usize = 300;
+
+/// Spacing of the PSF centres tied to the lens (docs/estimation.md "Grid"): neighbouring centres
+/// differ by at most [`GRID_CHANGE`] at the measured variation rate `g`, so the spacing is
+/// `GRID_CHANGE / g`, bounded below by [`default_tile`] (1.8 kernels) and by the spacing that places
+/// [`MAX_CENTRES`] centres, and above by half the
+/// shorter image side (at least 2 × 2 centres).
+pub fn lens_tile(k: usize, variation: f64, w: usize, h: usize) -> usize {
+    let lo = default_tile(k, w, h).max(((w * h) as f64 / MAX_CENTRES as f64).sqrt().ceil() as usize).min(w.min(h));
+    let hi = (w.min(h) / 2).max(lo);
+    if variation.is_finite() && variation > 0.0 {
+        ((GRID_CHANGE / variation).round() as usize).clamp(lo, hi)
+    } else {
+        hi
+    }
+}
+
 /// Default fit window for a kernel size: enough data for a well-posed fit (≥ 4 kernels across).
 pub fn default_window(k: usize, w: usize, h: usize) -> usize {
     (4 * k).max(96).min(w.max(h))
@@ -228,7 +251,9 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
     let data = valid_data(open, &open_lin, &pin_reg, &pin_sat_reg, layout.kernel, opts)?;
     let (mut kernels, mut info, tile_fits) = fit_windows(&open_lin, &pin_reg, &data, &layout, opts);
     if opts.joint_iterations > 0 {
-        refine_jointly(&open_lin, &pin_reg, &data, &layout, &open.channels, &tile_fits, &mut kernels, &mut info, opts);
+        let factors = spread_factors(&kernels, SPREAD_EXPONENT);
+        let scaled: TileFits = tile_fits.iter().zip(&factors).map(|(f, g)| f.iter().zip(g).map(|(&(l, n, s), &x)| (l * x as f32, n, s)).collect()).collect();
+        refine_jointly(&open_lin, &pin_reg, &data, &layout, &open.channels, &scaled, &mut kernels, &mut info, opts);
     }
     // the noise level per channel: median over tiles of the least-squares residual level
     let noise: Vec<f64> = tile_fits
@@ -314,11 +339,12 @@ struct Layout {
 impl Layout {
     fn choose(open_lin: &[Plane], pin_reg: &[Plane], opts: &EstimateOptions) -> Result<Layout, EstimateError> {
         let (w, h) = (open_lin[0].width, open_lin[0].height);
-        let k = match opts.kernel_size {
-            Some(k) => k,
-            None => choose_kernel_size(open_lin, pin_reg, opts)?,
+        let probe = match (opts.kernel_size, opts.tile) {
+            (Some(k), Some(_)) => FieldProbe { kernel: k, variation: 0.0 },
+            (fixed, _) => probe_field(open_lin, pin_reg, fixed, opts)?,
         };
-        let tile = opts.tile.unwrap_or_else(|| default_tile(k, w, h));
+        let k = probe.kernel;
+        let tile = opts.tile.unwrap_or_else(|| lens_tile(k, probe.variation, w, h));
         if tile < k {
             return Err(EstimateError::TileTooSmall { tile, kernel: k });
         }
@@ -432,6 +458,31 @@ fn fit_windows(open_lin: &[Plane], pin_reg: &[Plane], data: &ValidData, layout: 
     (kernels, info, fits)
 }
 
+/// Exponent `p` of the TV weight's scaling by the kernel's energy spread ([`spread_factors`]).
+pub const SPREAD_EXPONENT: f64 = 1.0;
+
+/// Bounds of the spread factor ([`spread_factors`]).
+pub const SPREAD_BOUNDS: (f64, f64) = (0.5, 3.0);
+
+/// The TV weight's factor per channel from its kernels' energy spread (docs/estimation.md
+/// "Prior scaled by spread"): `f_c = clamp(((r_c + 1) / (r̃ + 1))^p, 1/2, 3)`, with `r_c` the
+/// median over the channel's window fits of the main-lobe radius ([`support_radius`], 99 %) and
+/// `r̃` the median of `r_c` over the channels; every kernel of channel `c` gets `f_c`. TV costs
+/// `≈ 2/R` for a unit-sum disc of radius `R`, so one `λ` regularises a wide kernel far less than
+/// a compact one while its many small coefficients are the noisiest; a compact, structured
+/// kernel (a sharp core, rings) suffers TV's flattening most. Per channel, not per kernel: the
+/// radius of one noisy window fit is itself noisy (per kernel, the achromat's p90 rose from
+/// 9.7 % to 10.7 %).
+pub fn spread_factors(kernels: &[Vec<Plane>], p: f64) -> Vec<Vec<f64>> {
+    let median = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v.get(v.len() / 2).copied().unwrap_or(1.0)
+    };
+    let radii: Vec<f64> = kernels.iter().map(|ch| median(ch.iter().map(|b| support_radius(b, SUPPORT_ENERGY) + 1.0).collect())).collect();
+    let typical = median(radii.clone());
+    kernels.iter().zip(&radii).map(|(ch, &r)| vec![(r / typical).powf(p).clamp(SPREAD_BOUNDS.0, SPREAD_BOUNDS.1); ch.len()]).collect()
+}
+
 /// Refines all kernels of each channel jointly with the interpolated forward model
 /// ([`joint`]); the profile's per-tile figures then describe the refined kernels.
 #[allow(clippy::too_many_arguments)]
@@ -508,28 +559,68 @@ pub const SUPPORT_ENERGY: f64 = 0.99;
 /// Margin on the support radius: `r_k = ⌈SUPPORT_MARGIN · r_99 + 2⌉`, `k = 2 r_k + 1`.
 pub const SUPPORT_MARGIN: f64 = 1.15;
 
+/// What the probe kernels measured (docs/estimation.md "Kernel size", "Grid").
+#[derive(Clone, Copy, Debug)]
+pub struct FieldProbe {
+    /// Kernel size (odd, pixels).
+    pub kernel: usize,
+    /// Field variation rate `g` (relative L2 change of the kernel per pixel of field distance,
+    /// [`variation_rate`]).
+    pub variation: f64,
+}
+
+#[cfg(test)]
 /// Picks the kernel size from probe estimates (docs/estimation.md "Kernel size"): a generous
 /// probe kernel on five spots (centre and the four corners) of every channel, in parallel; each
 /// probe's main-lobe support ([`support_radius`]); the largest over channels and spots, with
 /// margin ([`SUPPORT_MARGIN`]), clamped to `[7, probe]`.
 fn choose_kernel_size(open: &[Plane], pin: &[Plane], opts: &EstimateOptions) -> Result<usize, EstimateError> {
+    probe_field(open, pin, None, opts).map(|p| p.kernel)
+}
+
+/// Probe kernels on five spots (centre, then the four corners) of every channel: the kernel
+/// size (docs/estimation.md "Kernel size"; `fixed` when given) and the field variation rate
+/// ([`variation_rate`]) of the kernels cropped to that size.
+fn probe_field(open: &[Plane], pin: &[Plane], fixed: Option<usize>, opts: &EstimateOptions) -> Result<FieldProbe, EstimateError> {
     let (w, h) = (open[0].width, open[0].height);
     let probe_k = ((w.min(h) / 6) | 1).clamp(9, 127);
-    let tsz = (w.min(h) / 3).max(probe_k * 2).min(w.min(h));
+    // the probe window: a third of the short side, at least 2 and at most 4 probe kernels
+    let tsz = (w.min(h) / 3).min(4 * probe_k).max(probe_k * 2).min(w.min(h));
     let all = vec![true; w * h];
     let spots = [((w - tsz) / 2, (h - tsz) / 2), (0, 0), (w - tsz, 0), (0, h - tsz), (w - tsz, h - tsz)];
     let jobs: Vec<(usize, (usize, usize))> = (0..open.len()).flat_map(|c| spots.iter().map(move |&s| (c, s))).collect();
     let ratio: Vec<f32> = open.iter().zip(pin).map(|(o, p)| (o.sum() / p.sum().max(1e-30)) as f32).collect();
-    let radius = jobs
+    let probes: Vec<Plane> = jobs
         .par_iter()
         .map(|&(c, (x0, y0))| {
             let data = tile_data(&open[c], &pin[c], &all, ratio[c], (x0, x0 + tsz, y0, y0 + tsz), probe_k);
             let st = TileSettings { kernel_size: probe_k, lambda: None, lambda_scale: opts.lambda_scale as f32, noise_sigma: None, mu_relative: 1.0, max_iterations: 150, tolerance: 1e-3 };
-            support_radius(&solve_tile(&data, &st, |_, _| true).kernel, SUPPORT_ENERGY)
+            solve_tile(&data, &st, |_, _| true).kernel
         })
-        .reduce(|| 1.0, f64::max);
-    let k = 2 * (SUPPORT_MARGIN * radius + 2.0).ceil() as usize + 1;
-    Ok(k.clamp(7, probe_k))
+        .collect();
+    let kernel = fixed.unwrap_or_else(|| {
+        let radius = probes.iter().map(|p| support_radius(p, SUPPORT_ENERGY)).fold(1.0, f64::max);
+        (2 * (SUPPORT_MARGIN * radius + 2.0).ceil() as usize + 1).clamp(7, probe_k)
+    });
+    let centres: Vec<[f64; 2]> = spots.iter().map(|&(x, y)| [x as f64 + tsz as f64 / 2.0, y as f64 + tsz as f64 / 2.0]).collect();
+    let variation = probes.chunks(spots.len()).map(|p| variation_rate(p, &centres, kernel)).fold(0.0, f64::max);
+    Ok(FieldProbe { kernel, variation })
+}
+
+/// Field variation rate of one channel from its probes (`probes[0]` at the centre spot, the
+/// rest at the corners, `centres` in pixels), each cropped to `k × k` about its centre:
+/// `g = mean_i ‖b_i − b_0‖ / (‖b_0‖ · |x_i − x_0|)`, relative change per pixel.
+pub fn variation_rate(probes: &[Plane], centres: &[[f64; 2]], k: usize) -> f64 {
+    let b0 = testbed::embed_centered(&probes[0], k);
+    let rates: Vec<f64> = probes[1..]
+        .iter()
+        .zip(&centres[1..])
+        .map(|(p, c)| {
+            let d = ((c[0] - centres[0][0]).powi(2) + (c[1] - centres[0][1]).powi(2)).sqrt().max(1.0);
+            relative_error(&testbed::embed_centered(p, k), &b0) / d
+        })
+        .collect();
+    rates.iter().sum::<f64>() / rates.len().max(1) as f64
 }
 
 /// Main-lobe support of a probe kernel: the Chebyshev radius about the centre holding `frac`
@@ -695,6 +786,55 @@ mod tests {
         assert!((25..=37).contains(&k), "kernel {k}");
     }
 
+    /// The variation rate is the mean relative change centre → corner per pixel: identical
+    /// probes give 0; corners whose kernel differs by a known relative L2 amount give that
+    /// amount over the distance; the probes are cropped to `k` first.
+    #[test]
+    fn variation_rate_is_relative_change_per_pixel() {
+        let g = |s: f32| unit_kernel(21, move |dx, dy| (-(dx * dx + dy * dy) / (2.0 * s * s)).exp());
+        let centres = [[100.0, 100.0], [0.0, 0.0], [200.0, 0.0], [0.0, 200.0], [200.0, 200.0]];
+        let same = vec![g(2.0); 5];
+        assert!(variation_rate(&same, &centres, 21) < 1e-12);
+        let mut varied = same.clone();
+        for p in &mut varied[1..] {
+            *p = g(2.5);
+        }
+        let d = relative_error(&g(2.5), &g(2.0));
+        let want = d / (2.0f64.sqrt() * 100.0);
+        assert!((variation_rate(&varied, &centres, 21) - want).abs() < 1e-9 * want.max(1e-9), "{} vs {want}", variation_rate(&varied, &centres, 21));
+        // a change only in the tails beyond k does not count
+        let mut tails = same.clone();
+        tails[1].data[0] += 0.05;
+        assert!(variation_rate(&tails, &centres, 11) < 1e-12);
+    }
+
+    /// The spread factor, per channel: a channel whose median kernel has twice the typical
+    /// channel's radius gets twice the TV weight on every kernel, the typical channel 1, a
+    /// channel of deltas the lower bound; `p = 0` turns it off.
+    #[test]
+    fn spread_factors_follow_the_channel_radius() {
+        let disc = |r: f32| unit_kernel(41, move |dx, dy| if dx.abs().max(dy.abs()) <= r { 1.0 } else { 0.0 });
+        let ks = vec![vec![disc(4.0), disc(4.0), disc(5.0)], vec![disc(9.0), disc(9.0), disc(0.0)], vec![disc(0.0)]];
+        let f = spread_factors(&ks, 1.0);
+        assert_eq!(f.iter().map(Vec::len).collect::<Vec<_>>(), vec![3, 3, 1]);
+        assert!(f[0].iter().all(|&x| (x - 1.0).abs() < 1e-12), "{f:?}");
+        assert!(f[1].iter().all(|&x| (x - 2.0).abs() < 1e-12), "{f:?}");
+        assert_eq!(f[2][0], SPREAD_BOUNDS.0);
+        assert!(spread_factors(&ks, 0.0).iter().flatten().all(|&x| x == 1.0));
+    }
+
+    /// The lens-tied spacing: `GRID_CHANGE / g` within [1.8 kernels, half the short side]; a
+    /// field that does not vary gets the coarsest grid, a quickly varying one the finest.
+    #[test]
+    fn lens_tile_follows_the_variation() {
+        let (k, w, h) = (31, 1024, 768);
+        assert_eq!(lens_tile(k, 0.0, w, h), 384);
+        assert_eq!(lens_tile(k, 1e-6, w, h), 384);
+        assert_eq!(lens_tile(k, 1.0, w, h), default_tile(k, w, h));
+        assert_eq!(lens_tile(k, GRID_CHANGE / 200.0, w, h), 200);
+        assert_eq!(lens_tile(k, f64::NAN, w, h), 384);
+    }
+
     #[test]
     fn dilate_matches_brute_force() {
         let (w, h) = (13, 9);
@@ -719,3 +859,4 @@ mod tests {
         assert!((s - 0.01).abs() < 0.0008, "{s}");
     }
 }
+

@@ -277,7 +277,7 @@ fn bootstrap_rows(replicates: usize, est: &lensrig::estimate::Estimate, opts: &E
         let ratios: Vec<f64> = pred.iter().zip(&errors[c]).map(|(p, m)| p / m.max(1e-12)).collect();
         let (p, m) = (med(&pred), med(&errors[c]));
         let ratio = p / m;
-        let pass = if ratio >= 1.0 / 1.5 && ratio <= 1.5 { "PASS" } else { "FAIL" };
+        let pass = if (1.0 / 1.5..=1.5).contains(&ratio) { "PASS" } else { "FAIL" };
         let q = |f: f64| quantile(&ratios, f).map_or("–".into(), |v| format!("{v:.2}"));
         rows.push(format!(
             "| {} | {} | {ch} | {:.2}% | {:.2}% / {:.2}% | {:.2}% | {ratio:.2} | {} / {} / {} | {pass} | {replicates} / {secs:.0} |",

@@ -9,10 +9,11 @@
 //!
 //! `j_r = p + √v_o(p) ⊙ n_r`,   `I_r = I + √v_p(I) ⊙ n'_r`,   `n_r, n'_r ~ N(0, 1)` per pixel,
 //!
-//! with `v_o(x) = g_o·x + σ_o²` the wide-open capture's Poisson–Gaussian law (the profile's
-//! `[noise]`, [`crate::profile::noise::NoiseLaw`]) and `v_p` the pinhole capture's law fitted
-//! on the registered pinhole planes ([`NoiseLaw::fit_image`]; a sub-pixel registration
-//! smooths their noise a little, and it is the registered planes' noise that enters the fit). Resampling the pinhole too
+//! with `v_o(x) = v_p(x) = g·x + σ²` the sensor's Poisson–Gaussian law (the profile's
+//! `[noise]`, fitted on the wide-open capture, [`crate::profile::noise::NoiseLaw`]): both
+//! captures come from the same sensor at the same gain. (Fitting the law on the pinhole capture
+//! itself fails: its sharp texture counts as noise. A first version did, and predicted five
+//! times the measured error on the test bed.) Resampling the pinhole too
 //! matters: it is dim (exposure ratio `s ≫ 1`), so its noise, amplified by `s`, enters the data
 //! term as errors in the variables. Each replicate pair goes through the same fit as the
 //! profile ([`super::estimate`] with the profile's kernel size and options: window fits, joint
@@ -181,15 +182,14 @@ pub fn bootstrap_window(td: &TileData, fitted: &Plane, open_var: impl Fn(f32) ->
     acc.finish()
 }
 
-/// The noise laws of the wide-open and the registered pinhole capture of `est`: the profile's
-/// law (else white noise at the measured level) and a law fitted on the pinhole planes (else
-/// white noise at their measured level).
-fn noise_laws(est: &Estimate, saturation: f32) -> (NoiseLaw, NoiseLaw) {
+/// The noise law of both captures of `est`: the profile's law (fitted on the wide-open
+/// capture), else white noise at the measured level. The pinhole capture is taken with the same
+/// sensor at the same gain, so the same law in full-scale units applies to it: it is dimmer, not
+/// noisier per unit signal. (The law cannot be fitted on the pinhole capture itself: its
+/// texture is sharp and the fit's local differences would count it as noise.)
+fn noise_law(est: &Estimate) -> NoiseLaw {
     let nc = est.open_linear.len();
-    let white = |planes: &[Plane]| NoiseLaw::new(vec![0.0; nc], planes.iter().map(super::noise_sigma).collect(), "given");
-    let open = est.profile.meta.noise.as_ref().and_then(|l| l.for_channels(nc).ok()).unwrap_or_else(|| white(&est.open_linear));
-    let pin = NoiseLaw::fit_image(&est.pinhole_registered, saturation).unwrap_or_else(|_| white(&est.pinhole_registered));
-    (open, pin)
+    est.profile.meta.noise.as_ref().and_then(|l| l.for_channels(nc).ok()).unwrap_or_else(|| NoiseLaw::new(vec![0.0; nc], est.noise_sigma.clone(), "given"))
 }
 
 /// Stored planes of linear planes: `transfer.encode(x + black_c)`.
@@ -207,12 +207,12 @@ fn encoded(planes: Vec<Plane>, like: &Estimate, black: &[f32]) -> Image {
 }
 
 /// One bootstrap pair around the fitted model of `est` (module docs), as stored images.
-fn replicate_pair(est: &Estimate, pred: &[Plane], laws: &(NoiseLaw, NoiseLaw), black: &[f32], rng: &mut Rng) -> (Image, Image) {
+fn replicate_pair(est: &Estimate, pred: &[Plane], law: &NoiseLaw, black: &[f32], rng: &mut Rng) -> (Image, Image) {
     let draw = |planes: &[Plane], law: &NoiseLaw, rng: &mut Rng| -> Vec<Plane> {
         planes.iter().enumerate().map(|(c, p)| Plane { width: p.width, height: p.height, data: add_noise(&p.data, |x| law.variance(c, x), rng) }).collect()
     };
-    let open = draw(pred, &laws.0, rng);
-    let pin = draw(&est.pinhole_registered, &laws.1, rng);
+    let open = draw(pred, law, rng);
+    let pin = draw(&est.pinhole_registered, law, rng);
     (encoded(open, est, black), encoded(pin, est, black))
 }
 
@@ -245,7 +245,7 @@ pub fn bootstrap_estimate(est: &Estimate, opts: &EstimateOptions, o: &BootstrapO
             blur_channel(&sharp, g, c)
         })
         .collect();
-    let laws = noise_laws(est, opts.saturation);
+    let law = noise_law(est);
     let ropts = EstimateOptions { kernel_size: Some(g.kernel_size), progress: false, ..opts.clone() };
     let zero = EstimateOptions { lambda_scale: 0.0, ..ropts.clone() };
     let black = &opts.black_level;
@@ -254,7 +254,7 @@ pub fn bootstrap_estimate(est: &Estimate, opts: &EstimateOptions, o: &BootstrapO
     let mut acc: Vec<Vec<Replicates>> = g.kernels.iter().zip(&unreg).map(|(ks, k0)| ks.iter().zip(k0).map(|(k, k0)| Replicates::new(k, k0)).collect()).collect();
     let mut rng = Rng::new(o.seed);
     for r in 1..=o.replicates.max(2) {
-        let (open, pin) = replicate_pair(est, &pred, &laws, black, &mut rng);
+        let (open, pin) = replicate_pair(est, &pred, &law, black, &mut rng);
         let (fit, fit0) = (estimate_like(&open, &pin, &ropts, g, r)?, estimate_like(&open, &pin, &zero, g, r)?);
         for ((a, ks), k0s) in acc.iter_mut().zip(&fit).zip(&fit0) {
             a.iter_mut().zip(ks.iter().zip(k0s)).for_each(|(a, (k, k0))| a.add(k, k0));

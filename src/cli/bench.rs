@@ -25,7 +25,7 @@ use super::args::EstimateArgs;
 use anyhow::{Context, Result};
 use clap::Args;
 use lensrig::diagnose::simulate::predict;
-use lensrig::estimate::bootstrap::{bootstrap_estimate, predicted_error, BootstrapOptions};
+use lensrig::estimate::bootstrap::{bootstrap_estimate, predicted_error, BootstrapOptions, KernelUncertainty};
 use lensrig::estimate::testbed::{errors_against_truth, quantile};
 use lensrig::estimate::{estimate, kernel_errors, median_max, EstimateOptions};
 use lensrig::image::{Image, Plane};
@@ -259,21 +259,41 @@ fn cross_validation(profile: &Profile, pair2: &(Rendered, Rendered), margin: usi
     Ok((res2 / var.max(1e-300)).sqrt())
 }
 
-/// Bootstraps the uncertainty of `est` and prints, per channel, the median predicted relative
-/// L2 error, the median measured one and their ratio (target within [1/1.5, 1.5]), with the
-/// bootstrap's wall seconds.
-fn print_bootstrap(replicates: usize, est: &lensrig::estimate::Estimate, opts: &EstimateOptions, errors: &[Vec<f64>], name: &str) {
+/// Bootstraps the uncertainty of `est` ([`bootstrap_estimate`]: both captures resampled, the
+/// whole pipeline per replicate, bias and variance) and prints one row per channel: the median
+/// predicted relative L2 error (‖u‖/‖b̂‖) with its standard-deviation-only and bias-only parts,
+/// the median measured error against the truth, the ratio of the medians, the per-kernel
+/// ratio's p10 / p50 / p90, and PASS when the ratio of the medians is within [1/1.5, 1.5].
+fn bootstrap_rows(replicates: usize, est: &lensrig::estimate::Estimate, opts: &EstimateOptions, errors: &[Vec<f64>], l: &TestLens) -> Result<Vec<String>> {
     let o = BootstrapOptions { replicates: replicates.max(2), ..BootstrapOptions::default() };
     let t0 = std::time::Instant::now();
-    let unc = bootstrap_estimate(est, opts, &o);
+    let unc = bootstrap_estimate(est, opts, &o)?;
     let secs = t0.elapsed().as_secs_f64();
     let g = &est.profile.grid;
+    let med = |v: &[f64]| quantile(v, 0.5).unwrap_or(f64::NAN);
+    let mut rows = Vec::new();
     for (c, ch) in g.channels.iter().enumerate() {
-        let pred: Vec<f64> = (0..g.tile_count()).map(|t| predicted_error(&unc[c][t], &g.kernels[c][t])).collect();
+        let part = |f: fn(&KernelUncertainty) -> &Plane| -> Vec<f64> { (0..g.tile_count()).map(|t| predicted_error(f(&unc[c][t]), &g.kernels[c][t])).collect() };
+        let (pred, std, bias) = (part(|u| &u.total), part(|u| &u.std), part(|u| &u.bias));
         let ratios: Vec<f64> = pred.iter().zip(&errors[c]).map(|(p, m)| p / m.max(1e-12)).collect();
-        let (p, m) = (quantile(&pred, 0.5).unwrap_or(f64::NAN), quantile(&errors[c], 0.5).unwrap_or(f64::NAN));
-        println!("bootstrap {name} {ch}: predicted {:.2}% measured {:.2}% ratio of medians {:.2}, per-kernel ratio median {:.2} ({replicates} replicates, {secs:.1} s)", p * 100.0, m * 100.0, p / m, quantile(&ratios, 0.5).unwrap_or(f64::NAN));
+        let (p, m) = (med(&pred), med(&errors[c]));
+        let ratio = p / m;
+        let pass = if (1.0 / 1.5..=1.5).contains(&ratio) { "PASS" } else { "FAIL" };
+        let q = |f: f64| quantile(&ratios, f).map_or("–".into(), |v| format!("{v:.2}"));
+        rows.push(format!(
+            "| {} | {} | {ch} | {:.2}% | {:.2}% / {:.2}% | {:.2}% | {ratio:.2} | {} / {} / {} | {pass} | {replicates} / {secs:.0} |",
+            l.name,
+            l.split.name(),
+            p * 100.0,
+            med(&std) * 100.0,
+            med(&bias) * 100.0,
+            m * 100.0,
+            q(0.1),
+            q(0.5),
+            q(0.9)
+        ));
     }
+    Ok(rows)
 }
 
 fn pct(v: Option<f64>) -> String {
@@ -288,6 +308,7 @@ fn run_testbed(a: &BenchArgs, dir: &Path) -> Result<()> {
     println!("machine: {} logical cores (rayon), {}; noise: full well {} e-, read {} e-", rayon::current_num_threads(), std::env::consts::ARCH, TESTBED_SENSOR.full_well_e, TESTBED_SENSOR.read_noise_e);
     println!("| lens | split | channel | kernel est / true | grid | median | p90 | max | cross-validation (÷ noise; true kernels) | seconds wall / CPU |");
     println!("| --- | --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: |");
+    let mut boot = Vec::new();
     for l in &lenses {
         let pair = testbed_pair(l, 1)?;
         let pair2 = testbed_pair(l, 2)?;
@@ -304,7 +325,9 @@ fn run_testbed(a: &BenchArgs, dir: &Path) -> Result<()> {
         let cv_truth = cross_validation(&truth_profile, &pair2, margin)?;
         let all: Vec<f64> = errors.iter().flatten().copied().collect();
         if a.bootstrap > 0 {
-            print_bootstrap(a.bootstrap, &est, &opts, &errors, &l.name);
+            let rows = bootstrap_rows(a.bootstrap, &est, &opts, &errors, l)?;
+            rows.iter().for_each(|r| eprintln!("{r}"));
+            boot.extend(rows);
         }
         let rows = g.channels.iter().map(String::as_str).zip(errors.iter().map(Vec::as_slice)).chain([("all", all.as_slice())]);
         for (ch, e) in rows {
@@ -324,6 +347,12 @@ fn run_testbed(a: &BenchArgs, dir: &Path) -> Result<()> {
                 if last { format!("{wall:.1} / {}", cpu.map_or("–".into(), |c| format!("{c:.1}"))) } else { String::new() },
             );
         }
+    }
+    if !boot.is_empty() {
+        println!("\nUncertainty calibration (predicted = ‖u‖/‖b̂‖ with u = √(bias² + var) per pixel; measured = error against the truth; medians over kernels; PASS: ratio of medians within [1/1.5, 1.5])");
+        println!("| lens | split | channel | predicted | std only / bias only | measured | ratio | per-kernel ratio p10 / p50 / p90 | check | replicates / seconds |");
+        println!("| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | --- | ---: |");
+        boot.iter().for_each(|r| println!("{r}"));
     }
     Ok(())
 }

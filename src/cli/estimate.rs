@@ -5,7 +5,7 @@ use super::args::EstimateArgs;
 use super::check_kernel;
 use anyhow::{bail, Result};
 use clap::Args;
-use lensrig::estimate::bootstrap::{bootstrap_estimate, BootstrapOptions};
+use lensrig::estimate::bootstrap::{bootstrap_estimate, totals, BootstrapOptions};
 use lensrig::estimate::register::RegistrationModel;
 use lensrig::profile::uncertainty::save_uncertainty;
 use lensrig::estimate::session::estimate_session;
@@ -43,9 +43,10 @@ pub struct EstimateCommandArgs {
     /// Exclude NaN/Inf pixels from the data term like saturated ones (default: refuse the image).
     #[arg(long)]
     pub mask_invalid: bool,
-    /// Per-kernel uncertainty by a parametric bootstrap over the fitted noise law with this many
-    /// replicates (0: off; 4-8 is typical; costs about replicates × 0.4 window fits), written as
-    /// psf-unc-<C>.tiff beside the profile.
+    /// Per-kernel uncertainty (root mean square error: bootstrap bias and standard deviation) by
+    /// a parametric bootstrap over both captures' noise laws with this many replicates (0: off;
+    /// 4-8 is typical; each replicate costs one more estimate), written as psf-unc-<C>.tiff
+    /// beside the profile.
     #[arg(long, default_value_t = 0)]
     pub bootstrap: usize,
     /// Hide the progress bar.
@@ -100,8 +101,8 @@ pub fn run(a: &EstimateCommandArgs) -> Result<()> {
     est.profile.save(&a.out)?;
     if a.bootstrap > 0 {
         let o = BootstrapOptions { replicates: a.bootstrap.max(2), ..BootstrapOptions::default() };
-        let unc = bootstrap_estimate(&est, &opts, &o);
-        save_uncertainty(&a.out, &est.profile.grid, &unc)?;
+        let unc = bootstrap_estimate(&est, &opts, &o)?;
+        save_uncertainty(&a.out, &est.profile.grid, &totals(&unc))?;
     }
     let m = &est.profile.meta;
     println!(

@@ -5,6 +5,7 @@
 use anyhow::{Context, Result};
 use clap::Args;
 use lensrig::profile::set::{is_set, load_profile_or_set, ProfileSet};
+use lensrig::profile::uncertainty::load_uncertainty;
 use lensrig::profile::Profile;
 use lensrig::rig::camera::mock::MockOptics;
 use lensrig::rig::config::{CameraKind, RigConfig};
@@ -60,8 +61,14 @@ pub fn facts_of(cfg: &RigConfig) -> RigFacts {
     f
 }
 
-fn one(p: &Profile, out: &Path, pitch: Option<f64>, title: &str) -> Result<()> {
-    let r = lensrig::report::write_report(out, p, pitch, title)?;
+/// Writes the report of `p`; `dir` is its directory when it is a stored profile (its
+/// `psf-unc-<C>.tiff` mosaics, if any, give the uncertainty maps), `None` for an interpolated one.
+fn one(p: &Profile, dir: Option<&Path>, out: &Path, pitch: Option<f64>, title: &str) -> Result<()> {
+    let unc = match dir {
+        Some(d) => load_uncertainty(d, &p.grid).with_context(|| format!("cannot read the uncertainty mosaics of {}", d.display()))?,
+        None => None,
+    };
+    let r = lensrig::report::write_report(out, p, unc.as_deref(), pitch, title)?;
     let a = &r.tiles[r.axis_tile];
     let figs: Vec<String> = r
         .channels
@@ -89,7 +96,8 @@ pub fn run(a: &ReportArgs) -> Result<()> {
         let set = ProfileSet::load(&a.profile)?;
         for c in &set.calibration {
             let p = Profile::load(&a.profile.join(&c.profile)).with_context(|| format!("cannot load {}", c.profile))?;
-            one(&p, &a.out.join(&c.profile), pitch, &format!("{} (f/{}, {} m, {} mm)", c.profile, c.aperture, c.distance, c.focal))?;
+            let dir = a.profile.join(&c.profile);
+            one(&p, Some(&dir), &a.out.join(&c.profile), pitch, &format!("{} (f/{}, {} m, {} mm)", c.profile, c.aperture, c.distance, c.focal))?;
         }
         return Ok(());
     }
@@ -97,5 +105,6 @@ pub fn run(a: &ReportArgs) -> Result<()> {
     if is_set(&a.profile) {
         eprintln!("profile set: {}", r.description);
     }
-    one(&r.profile, &a.out, pitch, &format!("lensrig report: {}", r.description))
+    let dir = if is_set(&a.profile) { None } else { Some(a.profile.as_path()) };
+    one(&r.profile, dir, &a.out, pitch, &format!("lensrig report: {}", r.description))
 }

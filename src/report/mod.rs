@@ -19,7 +19,8 @@
 //! position, channel, direction, frequency, MTF), `psf-<CH>.png` (each tile's kernel scaled to
 //! its peak, square-root display), `psf-rgb.png` (the channels as one colour image, when the
 //! profile has R, G and B), `mtf50-<CH>-{tan,sag}.svg`, `mtf-curves-<CH>.svg`,
-//! `lateral-colour.svg`.
+//! `lateral-colour.svg`; with the profile's uncertainty mosaics, `uncertainty-<CH>.svg` (field
+//! map of the predicted relative L2 error per kernel, per cent) and `uncertainty.csv`.
 
 pub mod colour;
 pub mod mtf;
@@ -90,6 +91,10 @@ pub struct ProfileReport {
     pub axis_tile: usize,
     /// Channel lateral colour is measured against (`G` when present, else the first).
     pub reference: usize,
+    /// Predicted relative L2 error per channel and tile (`‖u‖₂ / ‖b‖₂`,
+    /// [`crate::estimate::bootstrap::predicted_error`]) when the profile has uncertainty
+    /// mosaics ([`crate::profile::uncertainty`]); `None` otherwise.
+    pub uncertainty: Option<Vec<Vec<f64>>>,
 }
 
 /// Unit radial direction of a field point (x when on axis).
@@ -160,10 +165,18 @@ pub fn analyse(g: &PsfGrid, width: usize, height: usize, pitch_um: Option<f64>) 
         })
         .collect();
     let reference = g.channels.iter().position(|c| c == "G").unwrap_or(0);
-    ProfileReport { channels: g.channels.clone(), width, height, columns: g.columns, rows: g.rows, pitch_um, tiles, curves, axis_tile: nearest_tile(g, xm, ym), reference }
+    ProfileReport { channels: g.channels.clone(), width, height, columns: g.columns, rows: g.rows, pitch_um, tiles, curves, axis_tile: nearest_tile(g, xm, ym), reference, uncertainty: None }
 }
 
 impl ProfileReport {
+    /// Adds the predicted relative L2 error of every kernel of `g` from its uncertainty map
+    /// `unc[channel][tile]` (the `psf-unc-<C>.tiff` mosaics, [`crate::profile::uncertainty`]).
+    pub fn with_uncertainty(mut self, g: &PsfGrid, unc: &[Vec<Plane>]) -> Self {
+        let e = unc.iter().zip(&g.kernels).map(|(us, ks)| us.iter().zip(ks).map(|(u, k)| crate::estimate::bootstrap::predicted_error(u, k)).collect()).collect();
+        self.uncertainty = Some(e);
+        self
+    }
+
     /// Lateral colour of channel `c` at tile `t`: its centroid minus the reference's, px.
     pub fn lateral(&self, c: usize, t: usize) -> (f64, f64) {
         let a = self.tiles[t].centroid[c];
@@ -197,6 +210,20 @@ pub fn significant(v: f64, s: usize) -> String {
     let mag = v.abs().log10().floor() as i32;
     let d = (s as i32 - 1 - mag).max(0) as usize;
     format!("{v:.d$}")
+}
+
+/// `uncertainty.csv` (`tile,row,column,x_px,y_px,channel,predicted_relative_l2`, one row per
+/// tile and channel, the error to 4 significant figures), or `None` without uncertainty.
+pub fn uncertainty_csv(r: &ProfileReport) -> Option<String> {
+    let u = r.uncertainty.as_ref()?;
+    let mut s = String::from("tile,row,column,x_px,y_px,channel,predicted_relative_l2\n");
+    for (t, f) in r.tiles.iter().enumerate() {
+        for (c, ch) in r.channels.iter().enumerate() {
+            let v = u.get(c).and_then(|v| v.get(t)).copied().unwrap_or(f64::NAN);
+            let _ = writeln!(s, "{t},{},{},{},{},{ch},{}", t / r.columns.max(1), t % r.columns.max(1), fixed(f.x, 2), fixed(f.y, 2), significant(v, 4));
+        }
+    }
+    Some(s)
 }
 
 /// `mtf50.csv`: one row per tile and channel.
@@ -332,6 +359,7 @@ pub fn html_section(r: &ProfileReport, prefix: &str) -> String {
         let _ = write!(h, "<figure><img src=\"{prefix}mtf-curves-{ch}.svg\" alt=\"MTF curves {ch}\"><figcaption>{ch}</figcaption></figure>");
     }
     h.push_str("</div>");
+    h.push_str(&uncertainty_html(r, prefix));
     if r.channels.len() > 1 {
         let mx = (0..r.tiles.len())
             .flat_map(|t| (0..r.channels.len()).map(move |c| (c, t)))
@@ -345,17 +373,42 @@ pub fn html_section(r: &ProfileReport, prefix: &str) -> String {
     h
 }
 
+/// The uncertainty part of [`html_section`]: the per-channel field maps of the predicted
+/// relative L2 error, or a note that the profile has none.
+fn uncertainty_html(r: &ProfileReport, prefix: &str) -> String {
+    let mut h = String::from("<h4>Uncertainty</h4>");
+    let Some(u) = &r.uncertainty else {
+        h.push_str("<p>no uncertainty (estimate with --bootstrap N)</p>");
+        return h;
+    };
+    let all: Vec<f64> = u.iter().flatten().copied().filter(|v| v.is_finite()).collect();
+    let mut sorted = all.clone();
+    sorted.sort_by(f64::total_cmp);
+    let med = sorted.get(sorted.len() / 2).copied().unwrap_or(f64::NAN);
+    let _ = write!(h, "<p>Predicted relative L2 error of each kernel, ‖u‖₂ / ‖b‖₂ in per cent (u: the per-pixel root mean square error of psf-unc-&lt;C&gt;.tiff, bootstrap bias and standard deviation; docs/estimation.md \"Uncertainty\"); median {} %. Data: <a href=\"{prefix}uncertainty.csv\">uncertainty.csv</a>.</p><div class=row>", fixed(med * 100.0, 2));
+    for ch in &r.channels {
+        let _ = write!(h, "<figure><img src=\"{prefix}uncertainty-{ch}.svg\" alt=\"predicted kernel error map {ch}\"><figcaption>{ch}</figcaption></figure>");
+    }
+    h.push_str("</div>");
+    h
+}
+
 /// The page style shared by the report and `calibrate`'s index.
 pub const STYLE: &str = "body{font-family:sans-serif;margin:2em;max-width:1200px}img{image-rendering:pixelated;border:1px solid #ccc}figure{display:inline-block;margin:4px 8px}figcaption{text-align:center;font-size:85%}table.num td,table.num th{padding:3px 10px;text-align:right}div.row{display:flex;flex-wrap:wrap;align-items:flex-start}";
 
-/// Writes the report files of a profile into `dir` (created) and returns the analysis.
+/// Writes the report files of a profile into `dir` (created) and returns the analysis;
+/// `uncertainty` is the profile's `psf-unc-<C>.tiff` mosaics when it has them
+/// ([`crate::profile::uncertainty::load_uncertainty`]).
 ///
 /// # Errors
 /// A file that cannot be written.
-pub fn write_report(dir: &Path, p: &Profile, pitch_um: Option<f64>, title: &str) -> Result<ProfileReport, ReportError> {
+pub fn write_report(dir: &Path, p: &Profile, uncertainty: Option<&[Vec<Plane>]>, pitch_um: Option<f64>, title: &str) -> Result<ProfileReport, ReportError> {
     std::fs::create_dir_all(dir).map_err(io(dir))?;
     let g = &p.grid;
-    let r = analyse(g, p.meta.source.width, p.meta.source.height, pitch_um);
+    let mut r = analyse(g, p.meta.source.width, p.meta.source.height, pitch_um);
+    if let Some(u) = uncertainty {
+        r = r.with_uncertainty(g, u);
+    }
     write_assets(dir, g, &r)?;
     let html = format!("<!doctype html><meta charset=utf-8><title>{title}</title><style>{STYLE}</style><h1>{title}</h1>{}", html_section(&r, ""));
     let f = dir.join("index.html");
@@ -385,6 +438,13 @@ pub fn write_assets(dir: &Path, g: &PsfGrid, r: &ProfileReport) -> Result<(), Re
     }
     if r.channels.len() > 1 {
         files.push(("lateral-colour.svg".into(), svg::lateral_arrows(r)));
+    }
+    if let (Some(u), Some(csv)) = (&r.uncertainty, uncertainty_csv(r)) {
+        files.push(("uncertainty.csv".into(), csv));
+        for (ch, e) in r.channels.iter().zip(u) {
+            let pct: Vec<f64> = e.iter().map(|v| v * 100.0).collect();
+            files.push((format!("uncertainty-{ch}.svg"), svg::field_map(r, &pct, &format!("{ch} predicted kernel error (%)"))));
+        }
     }
     for (name, text) in files {
         let f = dir.join(name);
@@ -434,5 +494,36 @@ mod tests {
         for f in ["x/psf-rgb.png", "x/psf-B.png", "x/mtf50-G-sag.svg", "x/mtf-curves-R.svg", "x/lateral-colour.svg"] {
             assert!(html.contains(f), "{f}");
         }
+        assert!(html.contains("no uncertainty (estimate with --bootstrap N)"));
+    }
+
+    /// With uncertainty maps, the report writes one field map per channel and a CSV whose values
+    /// are the predicted error of each kernel (`‖u‖/‖b‖`), and the HTML shows the maps.
+    #[test]
+    fn uncertainty_field_map_holds_the_predicted_errors() {
+        let lens = LensModel::demo(192, 144);
+        let g = lens.psf_grid(5.6, 3, 2, 15);
+        let unc: Vec<Vec<Plane>> = (0..3).map(|c| (0..6).map(|t| g.kernels[c][t].map(|v| v * 0.01 * (1 + c + t) as f32)).collect()).collect();
+        let r = analyse(&g, 192, 144, None).with_uncertainty(&g, &unc);
+        let d = tempfile::tempdir().expect("tempdir");
+        write_assets(d.path(), &g, &r).expect("assets");
+        let csv = std::fs::read_to_string(d.path().join("uncertainty.csv")).expect("csv");
+        assert_eq!(csv.lines().count(), 1 + 6 * 3);
+        for line in csv.lines().skip(1) {
+            let f: Vec<&str> = line.split(',').collect();
+            let (t, c) = (f[0].parse::<usize>().expect("tile"), r.channels.iter().position(|n| n == f[5]).expect("channel"));
+            let want = crate::estimate::bootstrap::predicted_error(&unc[c][t], &g.kernels[c][t]);
+            assert!((want - 0.01 * (1 + c + t) as f64).abs() < 1e-6, "{want}");
+            assert!((f[6].parse::<f64>().expect("value") - want).abs() < 1e-3 * want, "{line}");
+        }
+        for (c, ch) in r.channels.iter().enumerate() {
+            let svg = std::fs::read_to_string(d.path().join(format!("uncertainty-{ch}.svg"))).expect("svg");
+            for t in 0..6 {
+                let v = fixed(crate::estimate::bootstrap::predicted_error(&unc[c][t], &g.kernels[c][t]) * 100.0, 3);
+                assert!(svg.contains(&format!(">{v}<")), "{ch} tile {t}: {v}");
+            }
+        }
+        let html = html_section(&r, "");
+        assert!(html.contains("uncertainty-G.svg") && !html.contains("no uncertainty"));
     }
 }

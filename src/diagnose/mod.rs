@@ -11,7 +11,9 @@
 //! 3. While the reduced χ² exceeds [`DiagnoseOptions::consistent`] (noise-model uncertainty
 //!    included): every catalogue effect not yet in the model is added in turn and refitted
 //!    from the current model ([`candidates`]); so is the current model itself with the same
-//!    budget (the *null refit*, so extra iterations are never credited to physics). The effect
+//!    budget (the *null refit*, so extra iterations are never credited to physics). These
+//!    screening fits keep about [`DiagnoseOptions::screen_pixels`] pixels per channel in their
+//!    data term ([`fit::fit_subset`]); only the winner is refitted on every pixel. The effect
 //!    with the lowest BIC (`χ² + p·ln N`) wins if it beats the null refit's BIC and removes at
 //!    least [`DiagnoseOptions::min_gain`] of its χ².
 //! 4. The final model's kernels and corrections form a profile ([`model`]); [`report`] writes
@@ -95,6 +97,11 @@ pub struct DiagnoseOptions {
     /// Catalogue effects never proposed (e.g. `target_tilt`, to show the verdict on a tilted
     /// target before the catalogue modelled it).
     pub excluded: Vec<String>,
+    /// The screening fits of the effect search (the null refit and every candidate) keep
+    /// about this many pixels per channel in their data term: a spread of blocks over the
+    /// field ([`fit::fit_subset`]). Only the winner is refitted on every pixel. Captures with
+    /// fewer pixels are screened on all of them.
+    pub screen_pixels: usize,
 }
 
 impl Default for DiagnoseOptions {
@@ -111,9 +118,14 @@ impl Default for DiagnoseOptions {
             repeat_noise: None,
             progress: false,
             excluded: Vec::new(),
+            screen_pixels: SCREEN_PIXELS,
         }
     }
 }
+
+/// Default of [`DiagnoseOptions::screen_pixels`]: at 45-px kernels on a 7 × 5 grid, about
+/// 2 pixels per kernel value, enough to rank candidates that all start from the current model.
+pub const SCREEN_PIXELS: usize = 150_000;
 
 /// Fit figures for the report.
 #[derive(Clone, Debug, Serialize)]
@@ -407,17 +419,22 @@ fn consistent(f: &Fit, opts: &DiagnoseOptions) -> bool {
 /// returns every score (the null refit first) and the best effect that beats the null refit's
 /// BIC and removes at least `min_gain` of its χ².
 fn search_round(data: &Data, current: &Fit, analysis: &Analysis, opts: &DiagnoseOptions) -> (Vec<CandidateScore>, Option<(candidates::Candidate, Fit, f64)>) {
-    let mut null = fit::fit(data, &current.model.corrections, &current.model, opts.candidate_fit);
-    null.inherit_dof(current);
+    let proposed = candidates::propose(data, current, analysis, &opts.excluded);
+    // one step per screening fit (the null refit, then each candidate), counted when done, so
+    // the bar's rate and ETA are those of whole fits
+    let bar = crate::estimate::progress_bar(opts.progress, proposed.len() as u64 + 1, "testing effects");
+    let screen = |corr: &model::Corrections, init: &Model| {
+        let mut f = fit::fit_subset(data, corr, init, opts.candidate_fit, opts.screen_pixels);
+        f.inherit_dof(current);
+        bar.inc(1);
+        f
+    };
+    let null = screen(&current.model.corrections, &current.model);
     let mut scores = vec![CandidateScore { name: "(null refit)".into(), reduced_chi2: null.reduced_chi2(), parameters: serde_json::Value::Null, delta_bic: 0.0, note: "the current model refitted with the candidates' budget".into() }];
     let mut best: Option<(candidates::Candidate, Fit, f64)> = None;
-    let proposed = candidates::propose(data, current, analysis, &opts.excluded);
-    let bar = crate::estimate::progress_bar(opts.progress, proposed.len() as u64, "testing effects");
     let total = |f: &Fit| f.chi2() + f.noise_chi2;
     for cand in proposed {
-        bar.inc(1);
-        let mut f = fit::fit(data, &cand.corrections, cand.init.as_ref().unwrap_or(&current.model), opts.candidate_fit);
-        f.inherit_dof(current);
+        let f = screen(&cand.corrections, cand.init.as_ref().unwrap_or(&current.model));
         let dbic = f.bic() - null.bic();
         let gain = (total(&null) - total(&f)) / total(&null).max(1e-300);
         scores.push(CandidateScore { name: cand.name.to_string(), parameters: candidates::parameters_json(cand.name, &f.model.corrections), reduced_chi2: f.reduced_chi2(), delta_bic: dbic, note: format!("removes {:.1}% of χ²", 100.0 * gain) });

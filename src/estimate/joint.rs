@@ -131,7 +131,7 @@ fn build_problem(open: &Plane, sharp: &Plane, valid: &[bool], grid: &PsfGrid, ke
     let op = KernelOperator::new(sharp, grid, max_pixels);
     let mask: Vec<bool> = valid.iter().zip(op.covered()).map(|(&v, &c)| v && c).collect();
     // λ = c · σ · sd · √N: rescale the window's √N to the effective data Σ w_t² M here
-    let lambda: Vec<f32> = fits.iter().enumerate().take(grid.tile_count()).map(|(t, &(l0, n0, _))| l0 * (op.weighted_count(t, &mask) / n0.max(1) as f64).sqrt() as f32).collect();
+    let lambda: Vec<f32> = fits.par_iter().enumerate().take(grid.tile_count()).map(|(t, &(l0, n0, _))| l0 * (op.weighted_count(t, &mask) / n0.max(1) as f64).sqrt() as f32).collect();
     let totals: Vec<f32> = kernels.iter().map(|p| p.sum() as f32).collect();
     let q = vec![0.0f32; grid.tile_count() * tv_dual_len(grid.kernel_size)];
     JointProblem { k: grid.kernel_size, blurred: open.data.clone(), mask, lambda, totals, pred: vec![0.0; open.width * open.height], q, op }

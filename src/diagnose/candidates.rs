@@ -49,12 +49,7 @@ pub fn centroid_similarity(current: &Fit) -> Option<[f64; 2]> {
     let mut ata = vec![vec![0.0f64; 4]; 4];
     let mut atb = vec![0.0f64; 4];
     for t in 0..g.tile_count() {
-        let (mut dx, mut dy) = (0.0, 0.0);
-        for c in 0..g.channels.len() {
-            let (a, b) = crate::optics::lens::centroid(&g.kernels[c][t]);
-            dx += a / g.channels.len() as f64;
-            dy += b / g.channels.len() as f64;
-        }
+        let (dx, dy) = g.mean_centroid(t);
         let (x, y) = (g.centers[t][0] - cx, g.centers[t][1] - cy);
         for (row, d) in [([x, -y, 1.0, 0.0], dx), ([y, x, 0.0, 1.0], dy)] {
             for i in 0..4 {

@@ -36,12 +36,7 @@ pub fn keystone_of_grid(g: &crate::optics::psf_grid::PsfGrid, w: usize, h: usize
     let mut ata = vec![vec![0.0f64; 6]; 6];
     let mut atb = vec![0.0f64; 6];
     for t in 0..g.tile_count() {
-        let (mut dx, mut dy) = (0.0, 0.0);
-        for c in 0..g.channels.len() {
-            let (a, b) = crate::optics::lens::centroid(&g.kernels[c][t]);
-            dx += a / g.channels.len() as f64;
-            dy += b / g.channels.len() as f64;
-        }
+        let (dx, dy) = g.mean_centroid(t);
         let (x, y) = ((g.centers[t][0] - cx) / unit, (g.centers[t][1] - cy) / unit);
         for (row, d) in [([x, -y, 1.0, 0.0, x * x, x * y], dx), ([y, x, 0.0, 1.0, x * y, y * y], dy)] {
             for i in 0..6 {

@@ -88,6 +88,18 @@ impl PsfGrid {
         self.columns * self.rows
     }
 
+    /// The centroid of tile `t`'s kernels (pixels from the kernel centre, `(x, y)`), averaged
+    /// over the channels: where the lens moves the light at that centre, colour aside.
+    pub fn mean_centroid(&self, t: usize) -> (f64, f64) {
+        let (mut dx, mut dy) = (0.0, 0.0);
+        for c in 0..self.channels.len() {
+            let (a, b) = crate::optics::lens::centroid(&self.kernels[c][t]);
+            dx += a / self.channels.len() as f64;
+            dy += b / self.channels.len() as f64;
+        }
+        (dx, dy)
+    }
+
     /// The (up to sixteen) tiles blended at `(x, y)` and their weights (non-zero only).
     pub fn weights_at(&self, x: f64, y: f64) -> Vec<Weight> {
         let wx = hat_weights_1d(&self.column_xs(), x);

@@ -471,13 +471,27 @@ fn verdict(effects: &[FoundEffect], current: &Fit, final_analysis: &Analysis, op
             format!(" after {} (the catalogue's nearest effects; they do not reach the floor)", effects.iter().map(|e| e.name.as_str()).collect::<Vec<_>>().join(", "))
         };
         format!(
-            "unexplained: reduced χ² {:.3} remains{partial} (noise law misfit {:.0}%); {}; residual depends on {}; excess kurtosis {:.2}",
-            current.reduced_chi2(),
-            100.0 * current.noise_misfit,
+            "unexplained: {}{partial}; {}; residual depends on {}; excess kurtosis {:.2}",
+            what_remains(current.reduced_chi2(), current.noise_misfit, opts),
             analysis::where_text(final_analysis),
             if curvebits.is_empty() { "no single variable".to_string() } else { curvebits.join(", ") },
             final_analysis.excess_kurtosis
         )
+    }
+}
+
+/// What keeps a fit from being consistent with noise ([`consistent`]): the reduced χ² above its
+/// bound, or, when χ² is within it, the noise curve's departure from a Poisson–Gaussian law
+/// (which a χ² of 0.99 alone would not explain to the reader).
+fn what_remains(reduced_chi2: f64, noise_misfit: f64, opts: &DiagnoseOptions) -> String {
+    if reduced_chi2 <= opts.consistent {
+        format!(
+            "the residual is at the noise floor (reduced χ² {reduced_chi2:.3}) but the measured noise curve departs from a Poisson–Gaussian law by {:.0}% (bound {:.0}%)",
+            100.0 * noise_misfit,
+            100.0 * opts.consistent_noise
+        )
+    } else {
+        format!("reduced χ² {reduced_chi2:.3} remains (noise law misfit {:.0}%)", 100.0 * noise_misfit)
     }
 }
 
@@ -542,4 +556,20 @@ fn cross_validate(data: &Data, current: &Fit, settings: FitSettings) -> [f64; 2]
         }
     }
     [held.0 / held.1.max(1) as f64, current.reduced_chi2()]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// An inconsistent fit whose χ² is within bounds names the noise law's misfit, not a χ²
+    /// that "remains"; one above the bound names the χ².
+    #[test]
+    fn what_remains_names_the_failed_test() {
+        let o = DiagnoseOptions::default();
+        let law = what_remains(0.994, 0.18, &o);
+        assert!(law.contains("noise floor") && law.contains("18%") && !law.contains("remains"), "{law}");
+        let chi = what_remains(1.319, 0.05, &o);
+        assert!(chi.starts_with("reduced χ² 1.319 remains"), "{chi}");
+    }
 }

@@ -60,7 +60,7 @@ pub fn centroid_similarity(current: &Fit) -> Option<[f64; 2]> {
             }
         }
     }
-    let p = super::fit::solve_dense(ata, atb)?;
+    let p = crate::solve::dense::solve(ata, atb, 1e-300)?;
     Some([p[0], p[1]])
 }
 

@@ -206,32 +206,6 @@ pub fn regrid(grid: &PsfGrid, width: usize, height: usize, columns: usize, rows:
     PsfGrid { kernel_size: grid.kernel_size, columns, rows, centers, channels: grid.channels.clone(), kernels }
 }
 
-pub fn solve_dense(mut a: Vec<Vec<f64>>, mut b: Vec<f64>) -> Option<Vec<f64>> {
-    let n = b.len();
-    for i in 0..n {
-        let piv = (i..n).max_by(|&x, &y| a[x][i].abs().total_cmp(&a[y][i].abs()))?;
-        if a[piv][i].abs() < 1e-300 {
-            return None;
-        }
-        a.swap(i, piv);
-        b.swap(i, piv);
-        for r in 0..n {
-            if r != i {
-                let f = a[r][i] / a[i][i];
-                if f != 0.0 {
-                    for k in i..n {
-                        a[r][k] -= f * a[i][k];
-                    }
-                    b[r] -= f * b[i];
-                }
-            }
-        }
-    }
-    Some((0..n).map(|i| b[i] / a[i][i]).collect())
-}
-
-/// Fits `corrections` (their parameter values are starting points) to `data`, starting from
-/// `init`'s kernels and exposure ratios.
 /// The flat floor common to all `kernels` — the smallest, over kernels, of the median of each
 /// kernel's outer ring (a PSF is near zero at its support's edge) — taken out of every kernel.
 /// Returns the mass removed per kernel (`floor·k²`, less what the clamp at 0 keeps).
@@ -376,7 +350,7 @@ fn scalar_normal_equations(corr: &Corrections, names: &[(usize, &'static str)], 
 fn gauss_newton_step(corr: &mut Corrections, open_lin: &[Plane], variance_lin: &[Plane], fitmask: &[Vec<bool>], glare_planes: Option<&[Plane]>, st: &mut ScalarState) -> bool {
     let names = scalar_names(corr, open_lin.len());
     let (ata, atb) = scalar_normal_equations(corr, &names, open_lin, variance_lin, fitmask, glare_planes, st);
-    let Some(delta) = solve_dense(ata, atb) else { return false };
+    let Some(delta) = crate::solve::dense::solve(ata, atb, 1e-300) else { return false };
     for (j, (ch, n)) in names.iter().enumerate() {
         let d = delta[j];
         match *n {
@@ -471,6 +445,8 @@ fn score_channel(mlin: &Plane, vl: &Plane, transfer: Transfer, clip: Option<f32>
     ChannelScore { predicted: pred, normalized: norm, variance: var_s, chi2, n, sq, var_sum: vs }
 }
 
+/// Fits `corrections` (their parameter values are starting points) to `data`, starting from
+/// `init`'s kernels and exposure ratios.
 pub fn fit(data: &Data, corrections: &Corrections, init: &Model, settings: FitSettings) -> Fit {
     fit_masked(data, corrections, init, settings, &|_, _| true)
 }

@@ -47,7 +47,7 @@ pub fn keystone_of_grid(g: &crate::optics::psf_grid::PsfGrid, w: usize, h: usize
             }
         }
     }
-    let p = super::fit::solve_dense(ata, atb)?;
+    let p = crate::solve::dense::solve(ata, atb, 1e-300)?;
     Some([p[4] / (unit * unit), p[5] / (unit * unit)])
 }
 

@@ -246,7 +246,11 @@ pub fn bootstrap_estimate(est: &Estimate, opts: &EstimateOptions, o: &BootstrapO
         })
         .collect();
     let law = noise_law(est);
-    let ropts = EstimateOptions { kernel_size: Some(g.kernel_size), progress: false, ..opts.clone() };
+    // the profile's kernel size and grid: a replicate neither re-probes the field nor may land
+    // on another grid
+    let (w, h) = (est.open_linear[0].width, est.open_linear[0].height);
+    let tile = super::tile_for_grid(w, h, g.columns, g.rows).or(opts.tile);
+    let ropts = EstimateOptions { kernel_size: Some(g.kernel_size), tile, progress: false, ..opts.clone() };
     let zero = EstimateOptions { lambda_scale: 0.0, ..ropts.clone() };
     let black = &opts.black_level;
     let data = (encoded(est.open_linear.clone(), est, black), encoded(est.pinhole_registered.clone(), est, black));

@@ -183,6 +183,12 @@ pub fn tile_grid(w: usize, h: usize, tile: usize) -> (usize, usize) {
     (((w as f64 / tile as f64).round() as usize).max(1), ((h as f64 / tile as f64).round() as usize).max(1))
 }
 
+/// A spacing that gives the grid `(columns, rows)` under [`tile_grid`] (the largest such), so a
+/// refit (the bootstrap's replicates) lands on the profile's grid without probing the field again.
+pub fn tile_for_grid(w: usize, h: usize, columns: usize, rows: usize) -> Option<usize> {
+    (1..=w.max(h)).rev().find(|&t| tile_grid(w, h, t) == (columns, rows))
+}
+
 /// Default spacing of the PSF centres for a kernel size: about 1.8 kernels, so the
 /// Catmull–Rom blend follows a quickly varying field; each centre is still fitted on a
 /// [`default_window`] of 4 kernels, and the joint refinement makes the dense grid consistent.
@@ -833,6 +839,20 @@ mod tests {
         assert_eq!(lens_tile(k, 1.0, w, h), default_tile(k, w, h));
         assert_eq!(lens_tile(k, GRID_CHANGE / 200.0, w, h), 200);
         assert_eq!(lens_tile(k, f64::NAN, w, h), 384);
+    }
+
+    /// Every grid a spacing gives is given back by the spacing found for it.
+    #[test]
+    fn tile_for_grid_reproduces_the_grid() {
+        for (w, h) in [(1024, 768), (4000, 3000), (256, 192)] {
+            for t in (32..w.min(h)).step_by(7) {
+                let (c, r) = tile_grid(w, h, t);
+                let back = tile_for_grid(w, h, c, r).expect("a spacing");
+                assert_eq!(tile_grid(w, h, back), (c, r), "{w}x{h} tile {t}");
+                assert!(back >= t, "{w}x{h}: {back} < {t}");
+            }
+        }
+        assert_eq!(tile_for_grid(1024, 768, 1, 9), None);
     }
 
     #[test]

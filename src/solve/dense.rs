@@ -1,27 +1,37 @@
 //! Small dense linear systems (the normal equations of the few-parameter fits: planar trends,
 //! registrations, the distortion fit), solved in `f64`.
 
-/// Solves `a·x = b` for an `N × N` system by Gauss–Jordan elimination with partial pivoting;
-/// `None` when a pivot's magnitude falls below `tiny` (a singular or degenerate fit).
-pub fn gauss_jordan<const N: usize>(mut a: [[f64; N]; N], mut b: [f64; N], tiny: f64) -> Option<[f64; N]> {
-    for i in 0..N {
-        let piv = (i..N).max_by(|&x, &y| a[x][i].abs().total_cmp(&a[y][i].abs()))?;
+/// Solves `a·x = b` (`n × n`, `a` row-major) by Gauss–Jordan elimination with partial pivoting;
+/// `None` when a pivot's magnitude falls below `tiny` (a singular or degenerate fit). Columns
+/// left of the pivot are already eliminated and are not touched again.
+pub fn solve(mut a: Vec<Vec<f64>>, mut b: Vec<f64>, tiny: f64) -> Option<Vec<f64>> {
+    let n = b.len();
+    for i in 0..n {
+        let piv = (i..n).max_by(|&x, &y| a[x][i].abs().total_cmp(&a[y][i].abs()))?;
         if a[piv][i].abs() < tiny {
             return None;
         }
         a.swap(i, piv);
         b.swap(i, piv);
-        for r in 0..N {
+        for r in 0..n {
             if r != i {
                 let f = a[r][i] / a[i][i];
-                for k in 0..N {
-                    a[r][k] -= f * a[i][k];
+                if f != 0.0 {
+                    for k in i..n {
+                        a[r][k] -= f * a[i][k];
+                    }
+                    b[r] -= f * b[i];
                 }
-                b[r] -= f * b[i];
             }
         }
     }
-    Some(std::array::from_fn(|i| b[i] / a[i][i]))
+    Some((0..n).map(|i| b[i] / a[i][i]).collect())
+}
+
+/// [`solve`] for a fixed-size system held in arrays.
+pub fn gauss_jordan<const N: usize>(a: [[f64; N]; N], b: [f64; N], tiny: f64) -> Option<[f64; N]> {
+    let x = solve(a.iter().map(|r| r.to_vec()).collect(), b.to_vec(), tiny)?;
+    Some(std::array::from_fn(|i| x[i]))
 }
 
 #[cfg(test)]

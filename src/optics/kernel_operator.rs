@@ -29,7 +29,7 @@ use crate::solve::fft::{good_size, Fft2, FftScratch};
 use crate::solve::operator::LinearOperator;
 use rayon::prelude::*;
 use rustfft::num_complex::Complex32;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 /// One block of the image: a `sw × sh` piece at `(x0, y0)`, the spectrum of the sharp image on
 /// the piece plus a kernel radius, and the tiles whose weight is non-zero on it.
@@ -40,6 +40,8 @@ struct Block {
     sh: usize,
     a_hat: Vec<Complex32>,
     tiles: Vec<usize>,
+    /// The active tiles grouped by grid column: `(column, tiles)`, columns ascending.
+    groups: Vec<(usize, Vec<usize>)>,
 }
 
 /// The kernels-to-image map of one channel (see the module docs).
@@ -60,10 +62,12 @@ pub struct KernelOperator {
     index: Vec<usize>,
     /// Pixels of the kept blocks.
     covered: Vec<bool>,
+    buffers: Mutex<Buffers>,
 }
 
 /// Per-task work buffers for one `F × F` plan.
 struct Work {
+    size: (usize, usize),
     scratch: FftScratch,
     buf: Vec<f32>,
     out: Vec<f32>,
@@ -75,8 +79,57 @@ impl Work {
     fn new(fft: &Fft2) -> Self {
         let n = fft.width * fft.height;
         let zero = vec![Complex32::new(0.0, 0.0); fft.spectrum_len()];
-        Self { scratch: fft.make_scratch(), buf: vec![0.0; n], out: vec![0.0; n], spec: zero.clone(), acc: zero }
+        Self { size: (fft.width, fft.height), scratch: fft.make_scratch(), buf: vec![0.0; n], out: vec![0.0; n], spec: zero.clone(), acc: zero }
     }
+}
+
+/// Runs `f` with this thread's cached [`Work`] for `fft`'s size (made on first use), so the
+/// `F × F` buffers are not allocated (and their pages faulted in) per task and iteration.
+fn with_work<R>(fft: &Fft2, f: impl FnOnce(&mut Work) -> R) -> R {
+    thread_local! {
+        static WORK: std::cell::RefCell<Vec<Work>> = const { std::cell::RefCell::new(Vec::new()) };
+    }
+    let size = (fft.width, fft.height);
+    let mut wk = WORK.with(|c| {
+        let mut v = c.borrow_mut();
+        match v.iter().position(|w| w.size == size) {
+            Some(i) => v.swap_remove(i),
+            None => Work::new(fft),
+        }
+    });
+    let r = f(&mut wk);
+    WORK.with(|c| {
+        let mut v = c.borrow_mut();
+        if v.len() >= 4 {
+            v.remove(0);
+        }
+        v.push(wk);
+    });
+    r
+}
+
+/// Per-call outputs of the parallel stages, kept between calls (no allocation per iteration):
+/// the kernels' spectra, the blocks' predictions and the blocks' adjoint row passes (one per
+/// active grid column, in [`Block::groups`] order).
+#[derive(Default)]
+struct Buffers {
+    b_hat: Vec<Vec<Complex32>>,
+    preds: Vec<Vec<f32>>,
+    rows: Vec<Vec<Vec<Complex32>>>,
+}
+
+/// Groups `tiles` (grid order) by grid column: `(column, tiles)`, columns ascending.
+fn group_by_column(tiles: &[usize], columns: usize) -> Vec<(usize, Vec<usize>)> {
+    let mut groups: Vec<(usize, Vec<usize>)> = Vec::new();
+    let mut sorted: Vec<usize> = tiles.to_vec();
+    sorted.sort_by_key(|&t| (t % columns, t / columns));
+    for t in sorted {
+        match groups.last_mut() {
+            Some((c, g)) if *c == t % columns => g.push(t),
+            _ => groups.push((t % columns, vec![t])),
+        }
+    }
+    groups
 }
 
 /// Splits of one axis into blocks: `(start, length)` intervals.
@@ -194,7 +247,8 @@ impl KernelOperator {
             .map(|(x0, y0, sw, sh, tiles)| {
                 let win = sharp.window_reflect(x0 as isize - r as isize, y0 as isize - r as isize, f, f);
                 let a_hat = fft.forward(&win.data);
-                Block { x0, y0, sw, sh, a_hat, tiles }
+                let groups = group_by_column(&tiles, grid.columns);
+                Block { x0, y0, sw, sh, a_hat, tiles, groups }
             })
             .collect();
         let mut blocks_of = vec![Vec::new(); grid.tile_count()];
@@ -204,7 +258,7 @@ impl KernelOperator {
             }
         }
         let index = kernel_origin_index(k, f, f);
-        Self { width: w, height: h, k, columns: grid.columns, fft, blocks, blocks_of, cx, cy, index, covered }
+        Self { width: w, height: h, k, columns: grid.columns, fft, blocks, blocks_of, cx, cy, index, covered, buffers: Mutex::new(Buffers::default()) }
     }
 
     /// Image width.
@@ -257,77 +311,106 @@ impl KernelOperator {
         w2
     }
 
-    /// The kernels' spectra on the `F × F` domain (centre at the origin).
-    fn kernel_spectra(&self, b: &[f32]) -> Vec<Vec<Complex32>> {
+    /// The kernels' spectra on the `F × F` domain (centre at the origin), into `b_hat`.
+    fn kernel_spectra(&self, b: &[f32], b_hat: &mut Vec<Vec<Complex32>>) {
         let (k2, r) = (self.k * self.k, self.k / 2);
         let fft = &self.fft;
         let (fw, fh) = (fft.width, fft.height);
-        b.par_chunks(k2)
-            .map_init(
-                || Work::new(fft),
-                |wk, bt| {
-                    let kernel_row = |y: usize| y <= r || y + r >= fh;
-                    for y in (0..fh).filter(|&y| kernel_row(y)) {
-                        wk.buf[y * fw..(y + 1) * fw].fill(0.0);
-                    }
-                    for (&i, &v) in self.index.iter().zip(bt) {
-                        wk.buf[i] = v;
-                    }
-                    let mut bh = vec![Complex32::new(0.0, 0.0); fft.spectrum_len()];
-                    fft.forward_rows_with(&wk.buf, &mut bh, kernel_row, &mut wk.scratch);
-                    bh
-                },
-            )
-            .collect()
+        b_hat.resize_with(b.len() / k2, || vec![Complex32::new(0.0, 0.0); fft.spectrum_len()]);
+        b_hat.par_iter_mut().zip(b.par_chunks(k2)).for_each(|(bh, bt)| {
+            with_work(fft, |wk| {
+                let kernel_row = |y: usize| y <= r || y + r >= fh;
+                for y in (0..fh).filter(|&y| kernel_row(y)) {
+                    wk.buf[y * fw..(y + 1) * fw].fill(0.0);
+                }
+                for (&i, &v) in self.index.iter().zip(bt) {
+                    wk.buf[i] = v;
+                }
+                fft.forward_rows_with(&wk.buf, bh, kernel_row, &mut wk.scratch);
+            })
+        });
     }
 
-    /// `Σ_t w_t ⊙ (I ⊛ b_t)` on one block (`sw × sh`, row-major).
-    fn predict_block(&self, blk: &Block, b_hat: &[Vec<Complex32>], wk: &mut Work) -> Vec<f32> {
+    /// `Σ_t w_t ⊙ (I ⊛ b_t)` on one block (`sw × sh`, row-major), factored by grid column
+    /// `c`: `Σ_c cx_c(x) · R⁻¹_x[Σ_{t ∈ c} cy_t(y) · C⁻¹_y(Î_B · b̂_t)]` (`C⁻¹_y` the inverse
+    /// column pass, `R⁻¹_x` the inverse row pass, on the block's `sh` rows only): one column
+    /// pass per active tile, one row pass per active grid column.
+    fn predict_block(&self, blk: &Block, b_hat: &[Vec<Complex32>], wk: &mut Work, local: &mut Vec<f32>) {
         let r = self.k / 2;
-        let fw = self.fft.width;
-        let mut local = vec![0.0f32; blk.sw * blk.sh];
-        for &t in &blk.tiles {
-            wk.spec.iter_mut().zip(&blk.a_hat).zip(&b_hat[t]).for_each(|((s, a), q)| *s = a * q);
-            let sh = blk.sh;
-            self.fft.inverse_rows_with(&mut wk.spec, &mut wk.out, |y| y >= r && y < r + sh, &mut wk.scratch);
-            let cxt = &self.cx[t % self.columns][blk.x0..blk.x0 + blk.sw];
-            let cyt = &self.cy[t / self.columns];
-            for y in 0..blk.sh {
-                let a = cyt[blk.y0 + y];
-                if a == 0.0 {
-                    continue;
+        let (fw, fh, hw) = (self.fft.width, self.fft.height, self.fft.half_width);
+        let (sw, sh) = (blk.sw, blk.sh);
+        local.clear();
+        local.resize(sw * sh, 0.0);
+        for (c, tiles) in &blk.groups {
+            let acc = &mut wk.acc[..hw * sh];
+            acc.fill(Complex32::new(0.0, 0.0));
+            for &t in tiles {
+                wk.spec.iter_mut().zip(&blk.a_hat).zip(&b_hat[t]).for_each(|((s, a), q)| *s = a * q);
+                self.fft.inverse_columns_with(&mut wk.spec, &mut wk.scratch);
+                let cyt = &self.cy[t / self.columns][blk.y0..blk.y0 + sh];
+                for (dst, col) in acc.chunks_exact_mut(sh).zip(wk.spec.chunks_exact(fh)) {
+                    for ((d, v), &a) in dst.iter_mut().zip(&col[r..r + sh]).zip(cyt) {
+                        *d += v * a;
+                    }
                 }
-                let src = &wk.out[(y + r) * fw + r..(y + r) * fw + r + blk.sw];
-                for ((o, s), q) in local[y * blk.sw..(y + 1) * blk.sw].iter_mut().zip(src).zip(cxt) {
-                    *o += a * q * s;
+            }
+            let out = &mut wk.out[..sh * fw];
+            self.fft.inverse_row_pass_with(acc, sh, out, |_| true, &mut wk.scratch);
+            let cxc = &self.cx[*c][blk.x0..blk.x0 + sw];
+            for (dst, src) in local.chunks_exact_mut(sw).zip(out.chunks_exact(fw)) {
+                for ((o, v), q) in dst.iter_mut().zip(&src[r..r + sw]).zip(cxc) {
+                    *o += q * v;
                 }
             }
         }
-        local
     }
 
-    /// Kernel `t`'s share of `Aᵀ resid`, written to `out` (`k²` values).
-    fn adjoint_tile(&self, t: usize, resid: &[f32], wk: &mut Work, out: &mut [f32]) {
+    /// The weighted residual of one block after the row pass, per active grid column `c`:
+    /// `R_x(cx_c ⊙ r_B)` on the block's `sh` rows, column-major (`half_width` columns of `sh`
+    /// bins), shared by the adjoint of every tile of that column.
+    fn adjoint_rows(&self, blk: &Block, resid: &[f32], wk: &mut Work, out: &mut Vec<Vec<Complex32>>) {
         let r = self.k / 2;
-        let (fw, fh) = (self.fft.width, self.fft.height);
-        let w = self.width;
-        wk.acc.iter_mut().for_each(|v| *v = Complex32::new(0.0, 0.0));
-        let cxt = &self.cx[t % self.columns];
+        let (fw, hw, w) = (self.fft.width, self.fft.half_width, self.width);
+        let (sw, sh) = (blk.sw, blk.sh);
+        out.resize_with(blk.groups.len(), || vec![Complex32::new(0.0, 0.0); hw * sh]);
+        for ((c, _), rows) in blk.groups.iter().zip(out.iter_mut()) {
+            let cxc = &self.cx[*c][blk.x0..blk.x0 + sw];
+            let lines = &mut wk.buf[..sh * fw];
+            for (y, line) in lines.chunks_exact_mut(fw).enumerate() {
+                line[..r].fill(0.0);
+                line[r + sw..].fill(0.0);
+                let o = (blk.y0 + y) * w + blk.x0;
+                for ((d, v), q) in line[r..r + sw].iter_mut().zip(&resid[o..o + sw]).zip(cxc) {
+                    *d = q * v;
+                }
+            }
+            self.fft.forward_row_pass_with(lines, sh, rows, |_| true, &mut wk.scratch);
+        }
+    }
+
+    /// Kernel `t`'s share of `Aᵀ resid`, written to `out` (`k²` values), from the blocks' row
+    /// passes `rows` ([`KernelOperator::adjoint_rows`]): `Σ_B conj(Î_B) · C_y(cy_t ⊙ rows)`,
+    /// inverted once.
+    fn adjoint_tile(&self, t: usize, rows: &[Vec<Vec<Complex32>>], wk: &mut Work, out: &mut [f32]) {
+        let r = self.k / 2;
+        let fh = self.fft.height;
+        let zero = Complex32::new(0.0, 0.0);
+        wk.acc.fill(zero);
+        let c = t % self.columns;
         let cyt = &self.cy[t / self.columns];
         for &bi in &self.blocks_of[t] {
             let blk = &self.blocks[bi];
-            for y in 0..blk.sh {
-                let a = cyt[blk.y0 + y];
-                let row = &mut wk.buf[(y + r) * fw..(y + r + 1) * fw];
-                row[..r].fill(0.0);
-                row[r + blk.sw..].fill(0.0);
-                let src = &resid[(blk.y0 + y) * w + blk.x0..(blk.y0 + y) * w + blk.x0 + blk.sw];
-                for ((d, s), q) in row[r..r + blk.sw].iter_mut().zip(src).zip(&cxt[blk.x0..blk.x0 + blk.sw]) {
-                    *d = a * q * s;
+            let Some(g) = blk.groups.iter().position(|(cc, _)| *cc == c) else { continue };
+            let rb = &rows[bi][g];
+            let (sh, cyb) = (blk.sh, &cyt[blk.y0..blk.y0 + blk.sh]);
+            for (col, src) in wk.spec.chunks_exact_mut(fh).zip(rb.chunks_exact(sh)) {
+                col[..r].fill(zero);
+                col[r + sh..].fill(zero);
+                for ((d, v), &a) in col[r..r + sh].iter_mut().zip(src).zip(cyb) {
+                    *d = v * a;
                 }
             }
-            let sh = blk.sh;
-            self.fft.forward_rows_with(&wk.buf, &mut wk.spec, |y| y >= r && y < r + sh, &mut wk.scratch);
+            self.fft.forward_columns_with(&mut wk.spec, &mut wk.scratch);
             for ((g, s), a) in wk.acc.iter_mut().zip(&wk.spec).zip(&blk.a_hat) {
                 *g += s * a.conj();
             }
@@ -356,10 +439,13 @@ impl LinearOperator for KernelOperator {
         self.width * self.height
     }
     fn apply(&self, b: &[f32], out: &mut [f32]) {
-        let b_hat = self.kernel_spectra(b);
-        let preds: Vec<Vec<f32>> = self.blocks.par_iter().map_init(|| Work::new(&self.fft), |wk, blk| self.predict_block(blk, &b_hat, wk)).collect();
+        let mut guard = self.buffers.lock().unwrap_or_else(|e| e.into_inner());
+        let Buffers { b_hat, preds, .. } = &mut *guard;
+        self.kernel_spectra(b, b_hat);
+        preds.resize_with(self.blocks.len(), Vec::new);
+        self.blocks.par_iter().zip(preds.par_iter_mut()).for_each(|(blk, local)| with_work(&self.fft, |wk| self.predict_block(blk, b_hat, wk, local)));
         out.fill(0.0);
-        for (blk, local) in self.blocks.iter().zip(&preds) {
+        for (blk, local) in self.blocks.iter().zip(preds.iter()) {
             for y in 0..blk.sh {
                 let o = (blk.y0 + y) * self.width + blk.x0;
                 out[o..o + blk.sw].copy_from_slice(&local[y * blk.sw..(y + 1) * blk.sw]);
@@ -368,7 +454,12 @@ impl LinearOperator for KernelOperator {
     }
     fn apply_adjoint(&self, resid: &[f32], out: &mut [f32]) {
         let k2 = self.k * self.k;
-        out.par_chunks_mut(k2).enumerate().for_each_init(|| Work::new(&self.fft), |wk, (t, ot)| self.adjoint_tile(t, resid, wk, ot));
+        let mut guard = self.buffers.lock().unwrap_or_else(|e| e.into_inner());
+        let rows = &mut guard.rows;
+        rows.resize_with(self.blocks.len(), Vec::new);
+        self.blocks.par_iter().zip(rows.par_iter_mut()).for_each(|(blk, rb)| with_work(&self.fft, |wk| self.adjoint_rows(blk, resid, wk, rb)));
+        let rows = &*rows;
+        out.par_chunks_mut(k2).enumerate().for_each(|(t, ot)| with_work(&self.fft, |wk| self.adjoint_tile(t, rows, wk, ot)));
     }
 }
 
@@ -425,6 +516,43 @@ pub(crate) mod tests {
         for ((x, y), &c) in a.data.iter().zip(&b.data).zip(op.covered()) {
             let want = if c { *y } else { 0.0 };
             assert!((x - want).abs() < 1e-4, "{x} vs {want}");
+        }
+    }
+
+    /// The factored adjoint equals the direct sum
+    /// `(Aᵀ r)_t(u) = Σ_x w_t(x) r(x) I(x − u)` (`I` mirrored at the edges), with several
+    /// blocks and grid columns and with subsampled blocks.
+    #[test]
+    fn adjoint_matches_the_direct_sum() {
+        for &(w, h, k, cols, rows, cap) in &[(70usize, 50usize, 5usize, 3usize, 2usize, usize::MAX), (157, 113, 9, 4, 3, usize::MAX), (157, 113, 9, 4, 3, 157 * 113 / 3)] {
+            let mut rng = Rng::new(7);
+            let sharp = Plane::from_fn(w, h, |_, _| rng.uniform() as f32);
+            let resid: Vec<f32> = (0..w * h).map(|_| rng.normal() as f32).collect();
+            let g = grid(w, h, k, cols, rows, 8);
+            let op = KernelOperator::new(&sharp, &g, cap);
+            assert!(op.block_count() > 1, "several blocks");
+            let mut got = vec![0.0f32; op.input_len()];
+            op.apply_adjoint(&resid, &mut got);
+            let r = (k / 2) as isize;
+            let mut worst = 0.0f64;
+            let mut scale = 0.0f64;
+            for t in 0..g.tile_count() {
+                for i in 0..k * k {
+                    let (u, v) = ((i % k) as isize - r, (i / k) as isize - r);
+                    let mut want = 0.0f64;
+                    for y in 0..h {
+                        for x in 0..w {
+                            if op.covered()[y * w + x] {
+                                let iv = sharp.get_reflect(x as isize - u, y as isize - v);
+                                want += (op.weight(t, x, y) * resid[y * w + x] * iv) as f64;
+                            }
+                        }
+                    }
+                    worst = worst.max((want - got[t * k * k + i] as f64).abs());
+                    scale = scale.max(want.abs());
+                }
+            }
+            assert!(worst <= 1e-4 * scale, "{w}×{h}: adjoint off by {worst} (scale {scale})");
         }
     }
 }

@@ -129,17 +129,29 @@ impl Fft2 {
     /// caller need not clear them).
     pub fn forward_rows_with(&self, input: &[f32], spec: &mut [Complex32], rows: impl Fn(usize) -> bool, s: &mut FftScratch) {
         assert_eq!(input.len(), self.width * self.height, "FFT input size");
-        assert_eq!(spec.len(), self.spectrum_len(), "FFT spectrum size");
+        self.forward_row_pass_with(input, self.height, spec, rows, s);
+        self.col_fwd.process_with_scratch(spec, &mut s.col);
+    }
+
+    /// The row pass of the forward transform alone, on `n` rows (`input` row-major
+    /// `n × width`, rows where `rows(y)` is false taken as zero): row `y`'s bin `kx` goes to
+    /// `out[kx * n + y]` (column-major, columns of length `n`, unnormalised). With `n = height`
+    /// and [`Fft2::forward_columns_with`] it is [`Fft2::forward_rows_with`]; in between, a
+    /// factor that depends on `y` alone may be applied (separable weights,
+    /// [`crate::optics::kernel_operator`]).
+    pub fn forward_row_pass_with(&self, input: &[f32], n: usize, out: &mut [Complex32], rows: impl Fn(usize) -> bool, s: &mut FftScratch) {
+        assert_eq!(input.len(), self.width * n, "FFT row-pass input size");
+        assert_eq!(out.len(), self.half_width * n, "FFT row-pass output size");
         assert_eq!(s.size, (self.width, self.height), "FFT scratch size");
-        let (w, h, hw) = (self.width, self.height, self.half_width);
+        let (w, hw) = (self.width, self.half_width);
         let zero = Complex32::new(0.0, 0.0);
-        if (0..h).any(|y| !rows(y)) {
-            spec.fill(zero);
+        if (0..n).any(|y| !rows(y)) {
+            out.fill(zero);
         }
         // rows in batches, so the transposed writes go out ROW_BATCH bins at a time
         let mut y0 = 0;
-        while y0 < h {
-            let nb = ROW_BATCH.min(h - y0);
+        while y0 < n {
+            let nb = ROW_BATCH.min(n - y0);
             if (y0..y0 + nb).all(|y| !rows(y)) {
                 y0 += nb;
                 continue;
@@ -156,14 +168,28 @@ impl Fft2 {
                 let _ = self.r2c.process_with_scratch(&mut s.row_real, dst, &mut s.r2c);
             }
             for kx in 0..hw {
-                let col = &mut spec[kx * h + y0..kx * h + y0 + nb];
+                let col = &mut out[kx * n + y0..kx * n + y0 + nb];
                 for (j, c) in col.iter_mut().enumerate() {
                     *c = s.batch[j * hw + kx];
                 }
             }
             y0 += nb;
         }
+    }
+
+    /// The column pass of the forward transform alone, in place on a column-major spectrum
+    /// whose columns hold the row transforms ([`Fft2::forward_row_pass_with`], `n = height`).
+    pub fn forward_columns_with(&self, spec: &mut [Complex32], s: &mut FftScratch) {
+        assert_eq!(spec.len(), self.spectrum_len(), "FFT spectrum size");
         self.col_fwd.process_with_scratch(spec, &mut s.col);
+    }
+
+    /// The column pass of the inverse transform alone, in place on a column-major spectrum
+    /// (unnormalised): bin `kx * height + y` then holds row `y`'s half spectrum, and a factor
+    /// that depends on `y` alone may be applied before [`Fft2::inverse_row_pass_with`].
+    pub fn inverse_columns_with(&self, spec: &mut [Complex32], s: &mut FftScratch) {
+        assert_eq!(spec.len(), self.spectrum_len(), "FFT spectrum size");
+        self.col_inv.process_with_scratch(spec, &mut s.col);
     }
 
     /// Inverse transform (normalised by `1 / (width * height)`); consumes the spectrum.
@@ -182,19 +208,29 @@ impl Fft2 {
     /// which `rows(y)` is true (the other rows of `out` are left untouched); `spec` is used as
     /// scratch and left modified.
     pub fn inverse_rows_with(&self, spec: &mut [Complex32], out: &mut [f32], rows: impl Fn(usize) -> bool, s: &mut FftScratch) {
-        assert_eq!(out.len(), self.width * self.height, "FFT output size");
         assert_eq!(spec.len(), self.spectrum_len(), "FFT spectrum size");
-        assert_eq!(s.size, (self.width, self.height), "FFT scratch size");
-        let (w, h, hw) = (self.width, self.height, self.half_width);
         self.col_inv.process_with_scratch(spec, &mut s.col);
-        let norm = 1.0 / (w * h) as f32;
+        self.inverse_row_pass_with(spec, self.height, out, rows, s);
+    }
+
+    /// The row pass of the inverse transform alone, on `n` rows: `spec` column-major with
+    /// columns of length `n` (bin `kx` of row `y` at `kx * n + y`, after
+    /// [`Fft2::inverse_columns_with`] or a weighted sum of such), `out` row-major `n × width`,
+    /// normalised by `1 / (width * height)` like [`Fft2::inverse`]; only the rows where
+    /// `rows(y)` is true are written.
+    pub fn inverse_row_pass_with(&self, spec: &[Complex32], n: usize, out: &mut [f32], rows: impl Fn(usize) -> bool, s: &mut FftScratch) {
+        assert_eq!(out.len(), self.width * n, "FFT row-pass output size");
+        assert_eq!(spec.len(), self.half_width * n, "FFT row-pass input size");
+        assert_eq!(s.size, (self.width, self.height), "FFT scratch size");
+        let (w, hw) = (self.width, self.half_width);
+        let norm = 1.0 / (w * self.height) as f32;
         let mut res = std::mem::take(&mut s.row_real);
         let mut ys = [0usize; ROW_BATCH];
         let mut y = 0;
-        while y < h {
+        while y < n {
             // gather the next batch of requested rows
             let mut nb = 0;
-            while y < h && nb < ROW_BATCH {
+            while y < n && nb < ROW_BATCH {
                 if rows(y) {
                     ys[nb] = y;
                     nb += 1;
@@ -202,7 +238,7 @@ impl Fft2 {
                 y += 1;
             }
             for kx in 0..hw {
-                let col = &spec[kx * h..(kx + 1) * h];
+                let col = &spec[kx * n..(kx + 1) * n];
                 for (j, &yy) in ys[..nb].iter().enumerate() {
                     s.batch[j * hw + kx] = col[yy];
                 }
@@ -324,6 +360,41 @@ mod tests {
                     assert!(v.is_nan());
                 }
             }
+        }
+    }
+
+    /// The split passes compose to the full transforms, and a factor depending on `y` alone
+    /// applied between them equals the transform of the row-weighted input (what the kernel
+    /// operator's factored blocks rely on).
+    #[test]
+    fn split_passes_compose_and_commute_with_row_factors() {
+        let (w, h) = (12, 10);
+        let x: Vec<f32> = (0..w * h).map(|i| ((i * 37 % 23) as f32) / 7.0 - 1.5).collect();
+        let a: Vec<f32> = (0..h).map(|y| 0.3 + 0.1 * y as f32).collect();
+        let f = Fft2::plan(w, h);
+        let mut s = f.make_scratch();
+        let xa: Vec<f32> = x.iter().enumerate().map(|(i, v)| v * a[i / w]).collect();
+        let full = f.forward(&xa);
+        let mut split = vec![Complex32::new(0.0, 0.0); f.spectrum_len()];
+        f.forward_row_pass_with(&x, h, &mut split, |_| true, &mut s);
+        for col in split.chunks_exact_mut(h) {
+            col.iter_mut().zip(&a).for_each(|(c, &q)| *c *= q);
+        }
+        f.forward_columns_with(&mut split, &mut s);
+        let scale = full.iter().map(|c| c.norm()).fold(0.0f32, f32::max);
+        for (p, q) in full.iter().zip(&split) {
+            assert!((p - q).norm() <= 1e-5 * scale, "forward {p} vs {q}");
+        }
+        // inverse: columns, factor, rows == factor applied to the inverse's rows
+        let mut spec = f.forward(&x);
+        f.inverse_columns_with(&mut spec, &mut s);
+        for col in spec.chunks_exact_mut(h) {
+            col.iter_mut().zip(&a).for_each(|(c, &q)| *c *= q);
+        }
+        let mut back = vec![0.0f32; w * h];
+        f.inverse_row_pass_with(&spec, h, &mut back, |_| true, &mut s);
+        for (i, (v, b)) in x.iter().zip(&back).enumerate() {
+            assert!((v * a[i / w] - b).abs() < 1e-5, "inverse {} vs {b}", v * a[i / w]);
         }
     }
 }

@@ -11,10 +11,23 @@
 //! # Blocked FFT convolution
 //! The image is cut into blocks of at most `F − 2r` pixels (`r` the kernel radius, one `F × F`
 //! FFT plan for every block); the spectrum of `I` on each block plus a kernel radius (mirrored
-//! at the image edges) is computed once. `A b`: per block and active tile, one inverse FFT of
+//! at the image edges) is computed once. `A b`: per block and active tile, the inverse of
 //! `Î_B · b̂_t`, cropped and weighted. `Aᵀ r`: per tile, `Σ_B conj(Î_B) · FFT(w_t ⊙ r_B)`
 //! accumulated in the Fourier domain and inverted once. Exact (linear, not circular,
-//! convolution on every block); the `F × F` work stays in cache; tiles and blocks in parallel.
+//! convolution on every block); the `F × F` work stays in cache.
+//!
+//! # Separable weights between the FFT passes
+//! The weights are separable, `w_t(x, y) = cx_c(x) · cy_t(y)` (`c` the tile's grid column),
+//! and the 2-D FFT is a row pass `R` (along x) and a column pass `C` (along y); a factor that
+//! depends on `y` alone commutes with `R`, one on `x` alone with `C`. So
+//!
+//! `(A b)_B = Σ_c cx_c ⊙ R⁻¹[Σ_{t ∈ c} cy_t ⊙ C⁻¹(Î_B · b̂_t)]`,
+//! `(Aᵀ r)_t = Σ_B conj(Î_B) · C(cy_t ⊙ R(cx_c ⊙ r_B))`:
+//!
+//! one column pass per block and active tile, but one row pass per block and active grid
+//! *column* (of the block's rows only) instead of one per tile. `A b` runs blocks in parallel;
+//! `Aᵀ r` runs grid columns in parallel (each computes a block's row pass once, in cache, for
+//! all its tiles), then inverts every tile's sum in parallel.
 //! On large images the operator may keep only every n-th block ([`KernelOperator::new`]'s
 //! `max_pixels`); `A b` is then zero on the dropped blocks and `Aᵀ` ignores them.
 //!
@@ -55,6 +68,8 @@ pub struct KernelOperator {
     blocks: Vec<Block>,
     /// `blocks_of[t]`: the blocks tile `t` touches.
     blocks_of: Vec<Vec<usize>>,
+    /// `column_blocks[c]`: the blocks on which grid column `c` has an active tile.
+    column_blocks: Vec<Vec<usize>>,
     /// Separable Catmull–Rom factors: `w_t(x, y) = cx[t % columns][x] · cy[t / columns][y]`.
     cx: Vec<Vec<f32>>,
     cy: Vec<Vec<f32>>,
@@ -73,13 +88,15 @@ struct Work {
     out: Vec<f32>,
     spec: Vec<Complex32>,
     acc: Vec<Complex32>,
+    /// One block's row pass, column-major (`half_width` columns of `sh` bins).
+    rows: Vec<Complex32>,
 }
 
 impl Work {
     fn new(fft: &Fft2) -> Self {
         let n = fft.width * fft.height;
         let zero = vec![Complex32::new(0.0, 0.0); fft.spectrum_len()];
-        Self { size: (fft.width, fft.height), scratch: fft.make_scratch(), buf: vec![0.0; n], out: vec![0.0; n], spec: zero.clone(), acc: zero }
+        Self { size: (fft.width, fft.height), scratch: fft.make_scratch(), buf: vec![0.0; n], out: vec![0.0; n], spec: zero.clone(), acc: zero.clone(), rows: zero }
     }
 }
 
@@ -108,14 +125,20 @@ fn with_work<R>(fft: &Fft2, f: impl FnOnce(&mut Work) -> R) -> R {
     r
 }
 
+/// Tasks the adjoint is cut into at least: its tasks are the grid columns (each keeps its
+/// blocks' row passes in cache), split into parts when there are fewer columns.
+const ADJOINT_TASKS: usize = 4;
+
+/// One task of the adjoint: a grid column and its tiles' spectra `(tile, spectrum)`.
+type AdjointTask<'a> = (usize, Vec<(usize, &'a mut Vec<Complex32>)>);
+
 /// Per-call outputs of the parallel stages, kept between calls (no allocation per iteration):
-/// the kernels' spectra, the blocks' predictions and the blocks' adjoint row passes (one per
-/// active grid column, in [`Block::groups`] order).
+/// the kernels' spectra, the blocks' predictions and the adjoint's per-tile spectra.
 #[derive(Default)]
 struct Buffers {
     b_hat: Vec<Vec<Complex32>>,
     preds: Vec<Vec<f32>>,
-    rows: Vec<Vec<Vec<Complex32>>>,
+    acc: Vec<Vec<Complex32>>,
 }
 
 /// Groups `tiles` (grid order) by grid column: `(column, tiles)`, columns ascending.
@@ -258,7 +281,8 @@ impl KernelOperator {
             }
         }
         let index = kernel_origin_index(k, f, f);
-        Self { width: w, height: h, k, columns: grid.columns, fft, blocks, blocks_of, cx, cy, index, covered, buffers: Mutex::new(Buffers::default()) }
+        let column_blocks = (0..grid.columns).map(|c| (0..blocks.len()).filter(|&bi| blocks[bi].groups.iter().any(|(cc, _)| *cc == c)).collect()).collect();
+        Self { width: w, height: h, k, columns: grid.columns, fft, blocks, blocks_of, column_blocks, cx, cy, index, covered, buffers: Mutex::new(Buffers::default()) }
     }
 
     /// Image width.
@@ -365,57 +389,68 @@ impl KernelOperator {
         }
     }
 
-    /// The weighted residual of one block after the row pass, per active grid column `c`:
+    /// The weighted residual of one block after the row pass for grid column `c`:
     /// `R_x(cx_c ⊙ r_B)` on the block's `sh` rows, column-major (`half_width` columns of `sh`
-    /// bins), shared by the adjoint of every tile of that column.
-    fn adjoint_rows(&self, blk: &Block, resid: &[f32], wk: &mut Work, out: &mut Vec<Vec<Complex32>>) {
+    /// bins) in `wk.rows`, shared by the adjoint of every tile of that column.
+    fn adjoint_rows(&self, blk: &Block, c: usize, resid: &[f32], wk: &mut Work) {
         let r = self.k / 2;
         let (fw, hw, w) = (self.fft.width, self.fft.half_width, self.width);
         let (sw, sh) = (blk.sw, blk.sh);
-        out.resize_with(blk.groups.len(), || vec![Complex32::new(0.0, 0.0); hw * sh]);
-        for ((c, _), rows) in blk.groups.iter().zip(out.iter_mut()) {
-            let cxc = &self.cx[*c][blk.x0..blk.x0 + sw];
-            let lines = &mut wk.buf[..sh * fw];
-            for (y, line) in lines.chunks_exact_mut(fw).enumerate() {
-                line[..r].fill(0.0);
-                line[r + sw..].fill(0.0);
-                let o = (blk.y0 + y) * w + blk.x0;
-                for ((d, v), q) in line[r..r + sw].iter_mut().zip(&resid[o..o + sw]).zip(cxc) {
-                    *d = q * v;
+        let cxc = &self.cx[c][blk.x0..blk.x0 + sw];
+        let lines = &mut wk.buf[..sh * fw];
+        for (y, line) in lines.chunks_exact_mut(fw).enumerate() {
+            line[..r].fill(0.0);
+            line[r + sw..].fill(0.0);
+            let o = (blk.y0 + y) * w + blk.x0;
+            for ((d, v), q) in line[r..r + sw].iter_mut().zip(&resid[o..o + sw]).zip(cxc) {
+                *d = q * v;
+            }
+        }
+        self.fft.forward_row_pass_with(lines, sh, &mut wk.rows[..hw * sh], |_| true, &mut wk.scratch);
+    }
+
+    /// The spectra of grid column `c`'s share of `Aᵀ resid`: for every tile `t` of `accs` (tiles
+    /// of column `c`, as `(t, spectrum)`), `Σ_B conj(Î_B) · C_y(cy_t ⊙ R_x(cx_c ⊙ r_B))`, one row pass per
+    /// block shared by the column's tiles (kept in cache: the column is one task).
+    fn adjoint_column(&self, c: usize, resid: &[f32], accs: &mut [(usize, &mut Vec<Complex32>)], wk: &mut Work) {
+        let r = self.k / 2;
+        let (fh, hw) = (self.fft.height, self.fft.half_width);
+        let zero = Complex32::new(0.0, 0.0);
+        for (_, acc) in accs.iter_mut() {
+            acc.clear();
+            acc.resize(self.fft.spectrum_len(), zero);
+        }
+        for &bi in &self.column_blocks[c] {
+            let blk = &self.blocks[bi];
+            let Some((_, tiles)) = blk.groups.iter().find(|(cc, _)| *cc == c) else { continue };
+            if !tiles.iter().any(|t| accs.iter().any(|(tt, _)| tt == t)) {
+                continue;
+            }
+            self.adjoint_rows(blk, c, resid, wk);
+            let sh = blk.sh;
+            for &t in tiles {
+                let cyb = &self.cy[t / self.columns][blk.y0..blk.y0 + sh];
+                for (col, src) in wk.spec.chunks_exact_mut(fh).zip(wk.rows[..hw * sh].chunks_exact(sh)) {
+                    col[..r].fill(zero);
+                    col[r + sh..].fill(zero);
+                    for ((d, v), &a) in col[r..r + sh].iter_mut().zip(src).zip(cyb) {
+                        *d = v * a;
+                    }
+                }
+                self.fft.forward_columns_with(&mut wk.spec, &mut wk.scratch);
+                let Some((_, acc)) = accs.iter_mut().find(|(tt, _)| *tt == t) else { continue };
+                for ((g, s), a) in acc.iter_mut().zip(&wk.spec).zip(&blk.a_hat) {
+                    *g += s * a.conj();
                 }
             }
-            self.fft.forward_row_pass_with(lines, sh, rows, |_| true, &mut wk.scratch);
         }
     }
 
-    /// Kernel `t`'s share of `Aᵀ resid`, written to `out` (`k²` values), from the blocks' row
-    /// passes `rows` ([`KernelOperator::adjoint_rows`]): `Σ_B conj(Î_B) · C_y(cy_t ⊙ rows)`,
-    /// inverted once.
-    fn adjoint_tile(&self, t: usize, rows: &[Vec<Vec<Complex32>>], wk: &mut Work, out: &mut [f32]) {
-        let r = self.k / 2;
-        let fh = self.fft.height;
-        let zero = Complex32::new(0.0, 0.0);
-        wk.acc.fill(zero);
-        let c = t % self.columns;
-        let cyt = &self.cy[t / self.columns];
-        for &bi in &self.blocks_of[t] {
-            let blk = &self.blocks[bi];
-            let Some(g) = blk.groups.iter().position(|(cc, _)| *cc == c) else { continue };
-            let rb = &rows[bi][g];
-            let (sh, cyb) = (blk.sh, &cyt[blk.y0..blk.y0 + blk.sh]);
-            for (col, src) in wk.spec.chunks_exact_mut(fh).zip(rb.chunks_exact(sh)) {
-                col[..r].fill(zero);
-                col[r + sh..].fill(zero);
-                for ((d, v), &a) in col[r..r + sh].iter_mut().zip(src).zip(cyb) {
-                    *d = v * a;
-                }
-            }
-            self.fft.forward_columns_with(&mut wk.spec, &mut wk.scratch);
-            for ((g, s), a) in wk.acc.iter_mut().zip(&wk.spec).zip(&blk.a_hat) {
-                *g += s * a.conj();
-            }
-        }
-        wk.spec.copy_from_slice(&wk.acc);
+    /// Kernel `t`'s share of `Aᵀ resid` (`k²` values into `out`) from its spectrum `acc`
+    /// ([`KernelOperator::adjoint_column`]), inverted on the kernel's rows only.
+    fn adjoint_tile(&self, acc: &[Complex32], wk: &mut Work, out: &mut [f32]) {
+        let (r, fh) = (self.k / 2, self.fft.height);
+        wk.spec.copy_from_slice(acc);
         self.fft.inverse_rows_with(&mut wk.spec, &mut wk.out, |y| y <= r || y + r >= fh, &mut wk.scratch);
         for (o, &i) in out.iter_mut().zip(&self.index) {
             *o = wk.out[i];
@@ -455,11 +490,22 @@ impl LinearOperator for KernelOperator {
     fn apply_adjoint(&self, resid: &[f32], out: &mut [f32]) {
         let k2 = self.k * self.k;
         let mut guard = self.buffers.lock().unwrap_or_else(|e| e.into_inner());
-        let rows = &mut guard.rows;
-        rows.resize_with(self.blocks.len(), Vec::new);
-        self.blocks.par_iter().zip(rows.par_iter_mut()).for_each(|(blk, rb)| with_work(&self.fft, |wk| self.adjoint_rows(blk, resid, wk, rb)));
-        let rows = &*rows;
-        out.par_chunks_mut(k2).enumerate().for_each(|(t, ot)| with_work(&self.fft, |wk| self.adjoint_tile(t, rows, wk, ot)));
+        let acc = &mut guard.acc;
+        acc.resize_with(self.tiles(), Vec::new);
+        // one task per grid column, or per part of one when there are fewer than
+        // ADJOINT_TASKS columns (a 1- or 2-column grid would leave a core idle): a part repeats
+        // the row passes of the blocks it shares with its neighbour
+        let parts = ADJOINT_TASKS.div_ceil(self.columns).max(1);
+        let rows = self.tiles() / self.columns;
+        let chunk = rows.div_ceil(parts).max(1);
+        let mut tasks: Vec<AdjointTask> = (0..self.columns * parts).map(|i| (i / parts, Vec::new())).collect();
+        for (t, a) in acc.iter_mut().enumerate() {
+            tasks[(t % self.columns) * parts + (t / self.columns) / chunk].1.push((t, a));
+        }
+        tasks.par_iter_mut().for_each(|(c, accs)| with_work(&self.fft, |wk| self.adjoint_column(*c, resid, accs, wk)));
+        drop(tasks);
+        let acc = &*acc;
+        out.par_chunks_mut(k2).zip(acc.par_iter()).for_each(|(ot, a)| with_work(&self.fft, |wk| self.adjoint_tile(a, wk, ot)));
     }
 }
 

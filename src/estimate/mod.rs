@@ -81,7 +81,7 @@ pub struct EstimateOptions {
     /// forward model ([`joint`]); 0 skips it. It stops at a relative step of `tolerance / 10`.
     pub joint_iterations: usize,
     /// Choose the joint fit's TV weight multiplier per channel on held-out pixels
-    /// ([`joint::LAMBDA_LADDER`]); `false` keeps the rule's weight (multiplier 1).
+    /// (`joint::select_lambda`, within [`joint::LAMBDA_RANGE`]); `false` keeps the rule's weight (multiplier 1).
     pub select_lambda: bool,
     /// Relative step `‖Δb‖ / ‖b‖` at which a window's iterations stop.
     pub tolerance: f64,

@@ -34,7 +34,7 @@ pub struct EstimateArgs {
     #[arg(long, default_value_t = 40)]
     pub joint_iterations: usize,
     /// Keep the rule's TV weight in the joint refinement instead of choosing its multiplier
-    /// (powers of 2 from ¼ to 4) per channel on held-out pixels.
+    /// (×0.5, ×1, ×2) per channel on held-out pixels.
     #[arg(long)]
     pub fixed_lambda: bool,
 }

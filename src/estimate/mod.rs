@@ -13,7 +13,8 @@
 //!    weight `λ = c_λ · σ̂ · std(s·I) · √N_data` uses the noise level `σ̂` measured from the
 //!    window's residual after a short first phase (`c_λ` defaults to 1).
 //! 6. Per channel, all kernels are refined jointly with the interpolated forward model
-//!    ([`joint`]), `σ̂` re-measured from the joint residual.
+//!    ([`joint`]), `σ̂` re-measured from the joint residual and the multiplier of the TV
+//!    weight chosen per channel on held-out pixels ([`joint::LAMBDA_LADDER`]).
 //!
 //! # Units
 //! Kernels are `k × k` on the sensor's pixel grid, sum ≈ 1, centre = zero displacement, true
@@ -81,7 +82,7 @@ pub struct EstimateOptions {
     /// forward model ([`joint`]); 0 skips it. It stops at a relative step of `tolerance / 10`.
     pub joint_iterations: usize,
     /// Choose the joint fit's TV weight multiplier per channel on held-out pixels
-    /// (`joint::select_lambda`, within [`joint::LAMBDA_RANGE`]); `false` keeps the rule's weight (multiplier 1).
+    /// (`joint::select_lambda` among [`joint::LAMBDA_LADDER`]); `false` keeps the rule's weight (multiplier 1).
     pub select_lambda: bool,
     /// Relative step `‖Δb‖ / ‖b‖` at which a window's iterations stop.
     pub tolerance: f64,

@@ -26,9 +26,11 @@
 //! pixels ([`held_out`]) and `b(m)` the kernels after [`SELECT_ITERATIONS`] iterations from the
 //! same start on the other pixels with the weights `m · λ_t · √(N_train/N)`,
 //!
-//! `m_c = argmin_m E(m),  E(m) = Σ_{x∈H} (pred_{b(m)}(x) − j(x))²`,
+//! `E(m) = Σ_{x∈H} r_m(x)²,  r_m = pred_{b(m)} − j`,
 //!
-//! then the fit continues on all pixels with `m_c · λ_t`. The rule `λ ∝ σ̂ √N` has one constant
+//! `m_c` is the `m` with the largest gain `D(m) = E(1) − E(m)` among those whose gain exceeds
+//! [`GAIN_Z`] = 2 standard errors `√Σ_H (d − D/|H|)²` (`d = r₁² − r_m²`), else 1; then the fit
+//! continues on all pixels with `m_c · λ_t`. The rule `λ ∝ σ̂ √N` has one constant
 //! for every lens; where a dense grid gives each kernel little data (achromat-f4) the data
 //! want a weaker prior, and the choice finds that from the capture itself.
 //!
@@ -100,16 +102,11 @@ impl JointProblem {
 }
 
 impl JointProblem {
-    /// `Σ_{x∈H} (pred(x) − j(x))²` over the pixels of `held` (the data of [`select_lambda`]'s
-    /// held-out set).
-    fn held_out_error(&mut self, b: &[f32], held: &[bool]) -> f64 {
+    /// The residuals `pred(x) − j(x)` on the pixels of `held`, in pixel order (the data of
+    /// [`select_lambda`]'s held-out set).
+    fn held_out_residuals(&mut self, b: &[f32], held: &[bool]) -> Vec<f32> {
         self.op.apply(b, &mut self.pred);
-        let w = self.op.width();
-        let (pred, blurred) = (&self.pred, &self.blurred);
-        pred.par_chunks(w)
-            .enumerate()
-            .map(|(y, row)| row.iter().enumerate().filter(|&(x, _)| held[y * w + x]).map(|(x, &q)| ((q - blurred[y * w + x]) as f64).powi(2)).sum::<f64>())
-            .sum()
+        self.pred.iter().zip(&self.blurred).zip(held).filter(|t| *t.1).map(|((&q, &j), _)| q - j).collect()
     }
 }
 
@@ -153,10 +150,12 @@ pub fn held_out(i: usize) -> bool {
 /// training set and a held-out set `H` ([`held_out`]); from the same start `x`, each `m` of
 /// [`LAMBDA_LADDER`] runs [`SELECT_ITERATIONS`] FISTA iterations on the training set with the
 /// weights `m · λ_t · √(N_train / N)` (the `√N` of the λ rule, so that `m` transfers to the full
-/// data), and the one with the least `Σ_{x∈H} (pred(x) − j(x))²` wins. The pixel noise is
-/// independent between the sets, so that sum estimates the prediction risk (plus a constant,
-/// the same for every `m`). On return `p` has its full mask back and the weights `m_c · λ_t`,
-/// and `x` is the winner's iterate. Returns `m_c` and the iterations run.
+/// data), giving the held-out residuals `r_m`. The pixel noise is independent between the sets,
+/// so `E(m) = Σ_H r_m²` estimates the prediction risk (plus a constant, the same for every `m`).
+/// `m = 1` (the rule) stays unless another `m` lowers `E` by more than [`GAIN_Z`] standard
+/// errors ([`significant_gain`]); of those, the largest gain wins. On return `p` has its full
+/// mask back and the weights `m_c · λ_t`, and `x` is the winner's iterate. Returns `m_c` and the
+/// iterations run.
 fn select_lambda(p: &mut JointProblem, x: &mut Vec<f32>, l_f: f32, progress: &indicatif::ProgressBar) -> (f32, usize) {
     let full = std::mem::take(&mut p.mask);
     let held: Vec<bool> = full.iter().enumerate().map(|(i, &m)| m && held_out(i)).collect();
@@ -165,22 +164,39 @@ fn select_lambda(p: &mut JointProblem, x: &mut Vec<f32>, l_f: f32, progress: &in
     let shrink = (n_train as f64 / n_all as f64).sqrt() as f32;
     let base = p.lambda.clone();
     let o = SplitOptions { max_iterations: SELECT_ITERATIONS, min_iterations: usize::MAX, tolerance: 0.0 };
-    let mut best: Option<(f64, f32, Vec<f32>)> = None;
     let mut iterations = 0;
-    for &m in &LAMBDA_LADDER {
-        p.lambda = base.iter().map(|&l| l * m * shrink).collect();
-        let mut xm = x.clone();
-        iterations += run_fista(p, &mut xm, &o, l_f, progress).iterations;
-        let score = p.held_out_error(&xm, &held);
-        if best.as_ref().is_none_or(|b| score < b.0) {
-            best = Some((score, m, xm));
-        }
-    }
-    let (_, m, xm) = best.expect("the ladder is not empty");
+    let runs: Vec<(f32, Vec<f32>, Vec<f32>)> = LAMBDA_LADDER
+        .iter()
+        .map(|&m| {
+            p.lambda = base.iter().map(|&l| l * m * shrink).collect();
+            let mut xm = x.clone();
+            iterations += run_fista(p, &mut xm, &o, l_f, progress).iterations;
+            let r = p.held_out_residuals(&xm, &held);
+            (m, xm, r)
+        })
+        .collect();
+    let one = runs.iter().position(|r| r.0 == 1.0).expect("the ladder holds 1");
+    let gain = |r: &[f32]| significant_gain(&runs[one].2, r);
+    let pick = (0..runs.len()).filter(|&i| i == one || gain(&runs[i].2).is_some()).max_by(|&a, &b| gain(&runs[a].2).unwrap_or(0.0).total_cmp(&gain(&runs[b].2).unwrap_or(0.0))).unwrap_or(one);
+    let (m, xm, _) = runs.into_iter().nth(pick).expect("pick is an index of runs");
     *x = xm;
     p.mask = full;
     p.lambda = base.iter().map(|&l| l * m).collect();
     (m, iterations)
+}
+
+/// How many standard errors a held-out gain must reach ([`significant_gain`]).
+pub const GAIN_Z: f64 = 2.0;
+
+/// `D = Σ_{x∈H} (r₁(x)² − r(x)²)`, the fall of the held-out error from the residuals `r₁` (the
+/// rule's weight) to `r`, when it exceeds [`GAIN_Z`] standard errors
+/// `√(Σ_x (d(x) − D/n)²)` (`d(x) = r₁(x)² − r(x)²`, `n = |H|`); `None` otherwise.
+pub fn significant_gain(r1: &[f32], r: &[f32]) -> Option<f64> {
+    let d: Vec<f64> = r1.iter().zip(r).map(|(&a, &b)| (a as f64).powi(2) - (b as f64).powi(2)).collect();
+    let total: f64 = d.iter().sum();
+    let mean = total / d.len().max(1) as f64;
+    let se = d.iter().map(|v| (v - mean).powi(2)).sum::<f64>().sqrt();
+    (total > GAIN_Z * se && total > 0.0).then_some(total)
 }
 
 /// Largest number of data pixels the joint fit uses. Beyond it (12-megapixel captures) every
@@ -400,6 +416,19 @@ mod tests {
         for (name, got) in [("all", frac(&|_| true)), ("even columns", frac(&|i| i % 2 == 0)), ("first row", frac(&|i| i < w)), ("one column", frac(&|i| i % w == 7))] {
             assert!((got - want).abs() < 0.05 * want.max(0.2) + if name == "all" { 0.0 } else { 0.03 }, "{name}: held out {got:.3}, want {want:.3}");
         }
+    }
+
+    /// A held-out gain counts only beyond its noise: removing a bias of half the noise level
+    /// from 10⁴ residuals is significant, removing one of a hundredth is not, and a loss never is.
+    #[test]
+    fn held_out_gain_must_beat_its_noise() {
+        let mut r = Rng::new(11);
+        let noise: Vec<f32> = (0..10_000).map(|_| r.normal() as f32).collect();
+        let biased = |d: f32| noise.iter().map(|&n| n + d).collect::<Vec<f32>>();
+        let clear = super::significant_gain(&biased(0.5), &noise);
+        assert!(clear.is_some_and(|g| (g - 10_000.0 * 0.25).abs() < 0.2 * 2500.0), "gain {clear:?}");
+        assert_eq!(super::significant_gain(&biased(0.01), &noise), None);
+        assert_eq!(super::significant_gain(&noise, &biased(0.5)), None);
     }
 
     /// The held-out choice moves the TV weight towards the one that predicts best: from a

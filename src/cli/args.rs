@@ -33,6 +33,10 @@ pub struct EstimateArgs {
     /// (at most; it stops when χ² stalls); 0 keeps the per-window fits.
     #[arg(long, default_value_t = 40)]
     pub joint_iterations: usize,
+    /// Keep the rule's TV weight in the joint refinement instead of choosing its multiplier
+    /// (×0.5, ×1, ×2) per channel on held-out pixels.
+    #[arg(long)]
+    pub fixed_lambda: bool,
 }
 
 impl EstimateArgs {
@@ -46,6 +50,7 @@ impl EstimateArgs {
             max_iterations: self.max_iterations,
             tolerance: self.tolerance,
             joint_iterations: self.joint_iterations,
+            select_lambda: !self.fixed_lambda,
             ..Default::default()
         }
     }

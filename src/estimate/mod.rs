@@ -13,7 +13,8 @@
 //!    weight `λ = c_λ · σ̂ · std(s·I) · √N_data` uses the noise level `σ̂` measured from the
 //!    window's residual after a short first phase (`c_λ` defaults to 1).
 //! 6. Per channel, all kernels are refined jointly with the interpolated forward model
-//!    ([`joint`]), `σ̂` re-measured from the joint residual.
+//!    ([`joint`]), `σ̂` re-measured from the joint residual and the multiplier of the TV
+//!    weight chosen per channel on held-out pixels ([`joint::LAMBDA_LADDER`]).
 //!
 //! # Units
 //! Kernels are `k × k` on the sensor's pixel grid, sum ≈ 1, centre = zero displacement, true
@@ -80,6 +81,9 @@ pub struct EstimateOptions {
     /// Iterations of the joint refinement of all kernels of a channel with the interpolated
     /// forward model ([`joint`]); 0 skips it. It stops at a relative step of `tolerance / 10`.
     pub joint_iterations: usize,
+    /// Choose the joint fit's TV weight multiplier per channel on held-out pixels
+    /// (`joint::select_lambda` among [`joint::LAMBDA_LADDER`]); `false` keeps the rule's weight (multiplier 1).
+    pub select_lambda: bool,
     /// Relative step `‖Δb‖ / ‖b‖` at which a window's iterations stop.
     pub tolerance: f64,
     pub registration: RegistrationModel,
@@ -100,6 +104,7 @@ impl Default for EstimateOptions {
             mu_relative: 1.0,
             max_iterations: 150,
             joint_iterations: 40,
+            select_lambda: true,
             tolerance: 1e-3,
             registration: RegistrationModel::Translation,
             saturation: 0.995,
@@ -500,7 +505,7 @@ fn refine_jointly(open_lin: &[Plane], pin_reg: &[Plane], data: &ValidData, layou
     for c in 0..open_lin.len() {
         let mut sharp = pin_reg[c].clone();
         sharp.scale(data.ratio[c] as f32);
-        let (st, rms) = joint::refine_channel(&open_lin[c], &sharp, &data.valid_masks[c], &shape, &mut kernels[c], &fits[c], &o, &mut power, &bar, joint::JOINT_DATA_PIXELS);
+        let (st, rms) = joint::refine_channel(&open_lin[c], &sharp, &data.valid_masks[c], &shape, &mut kernels[c], &fits[c], &o, &mut power, &bar, joint::JOINT_DATA_PIXELS, opts.select_lambda && opts.lambda_scale > 0.0);
         bar.set_position(((c + 1) * opts.joint_iterations) as u64);
         for t in 0..layout.tiles() {
             info.iterations[c][t] += st.iterations;

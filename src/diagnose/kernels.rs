@@ -152,14 +152,33 @@ fn fit_kernels_with_step(op: &KernelOperator, y: &Plane, weight: &[f32], init: &
 /// Probe step of [`kernel_divergence`], in noise standard deviations.
 pub const PROBE_EPS: f32 = 0.25;
 
+/// Upper clamp of [`Divergence::highpass_absorbed`] (a fit that absorbs more of the noise
+/// leaves too little residual to measure it from).
+pub const MAX_ABSORBED: f64 = 0.5;
+
+/// What one probe of [`kernel_divergence`] measured.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Divergence {
+    /// The divergence `df` (the fit's effective parameter count).
+    pub df: f64,
+    /// The fraction of white noise's high-pass energy the fit absorbs,
+    /// `α_hp = (2·Σ(Fb)(Fh) − Σ(Fh)²) / Σ(Fb)²` with `F` the high-pass of
+    /// [`super::noise::highpass`] and `h` the whitened response to the probe `b`: the
+    /// residual's high-pass holds `(1 − α_hp)` of the noise's (`E‖F(I − H)b‖² = tr FᵀF −
+    /// 2·tr FᵀFH + tr HᵀFᵀFH`), which [`super::noise::measure_residual`] must divide out.
+    pub highpass_absorbed: f64,
+}
+
 /// Monte-Carlo divergence of the kernel fit (docs/diagnosis.md, "Effective degrees of
 /// freedom"): with a Rademacher probe `b` on the weighted pixels and `σ = W^{-1/2}`,
 /// `df ≈ Σ_x b(x)·(m(y + ε·σ·b) − m(y))(x) / (ε·σ(x))`, where `m(y) = A·U(y)` is the prediction
 /// of [`fit_kernels`] run with `settings` from `init` on target `y`. Both solves start from
 /// `init`, so what the budget leaves unconverged cancels; `ε` is [`PROBE_EPS`]. The expectation
 /// over `b` is the trace of the whitened fit's Jacobian, the effective parameter count of a
-/// (locally) linear smoother: `E[χ²] = N − df` on data the model describes.
-pub fn kernel_divergence(op: &KernelOperator, y: &Plane, weight: &[f32], init: &[Plane], settings: KernelFitSettings, rng: &mut crate::rng::Rng) -> f64 {
+/// (locally) linear smoother: `E[χ²] = N − df` on data the model describes. The same probe gives
+/// the share of the noise's high-pass the fit absorbs ([`Divergence::highpass_absorbed`], over
+/// the pixels whose 5-point stencil is weighted).
+pub fn kernel_divergence(op: &KernelOperator, y: &Plane, weight: &[f32], init: &[Plane], settings: KernelFitSettings, rng: &mut crate::rng::Rng) -> Divergence {
     let b: Vec<f32> = weight.iter().map(|_| if rng.next_u32() & 1 == 0 { -1.0 } else { 1.0 }).collect();
     let mut yp = y.clone();
     for ((v, w), bb) in yp.data.iter_mut().zip(weight).zip(&b) {
@@ -170,13 +189,32 @@ pub fn kernel_divergence(op: &KernelOperator, y: &Plane, weight: &[f32], init: &
     let (ua, _) = fit_kernels(op, y, weight, init, settings);
     let (ub, _) = fit_kernels(op, &yp, weight, init, settings);
     let (pa, pb) = (op.apply_planes(&ua), op.apply_planes(&ub));
+    // the whitened response `h = W^{1/2}·Δm/ε` and the probe, 0 off the weighted pixels
+    let mut h = vec![0.0f32; weight.len()];
+    let mut bw = vec![0.0f32; weight.len()];
     let mut df = 0.0f64;
     for i in 0..weight.len() {
         if weight[i] > 0.0 {
-            df += (b[i] * (pb.data[i] - pa.data[i]) * weight[i].sqrt()) as f64;
+            h[i] = (pb.data[i] - pa.data[i]) * weight[i].sqrt() / PROBE_EPS;
+            bw[i] = b[i];
+            df += (b[i] * h[i]) as f64;
         }
     }
-    df / PROBE_EPS as f64
+    let (w, rows) = (y.width, y.height);
+    let (mut cross, mut hh, mut bb) = (0.0f64, 0.0f64, 0.0f64);
+    for yy in 1..rows.saturating_sub(1) {
+        for x in 1..w.saturating_sub(1) {
+            let i = yy * w + x;
+            if [i, i - 1, i + 1, i - w, i + w].iter().all(|&j| weight[j] > 0.0) {
+                let (fb, fh) = (super::noise::highpass(&bw, w, i) as f64, super::noise::highpass(&h, w, i) as f64);
+                cross += fb * fh;
+                hh += fh * fh;
+                bb += fb * fb;
+            }
+        }
+    }
+    let highpass_absorbed = if bb > 0.0 { ((2.0 * cross - hh) / bb).clamp(0.0, MAX_ABSORBED) } else { 0.0 };
+    Divergence { df, highpass_absorbed }
 }
 
 #[cfg(test)]
@@ -230,8 +268,14 @@ mod tests {
         let sigma = 0.01f32;
         let wt = vec![1.0 / (sigma * sigma); w * h];
         let nominal = (6 * (k * k - 1) + 1) as f64;
-        let probe = |iterations: usize, seed: u64, step: KernelStep| kernel_divergence(&op, &y, &wt, &truth.kernels[0], KernelFitSettings { iterations, rounds: 2, step }, &mut Rng::new(seed));
+        let probe_all = |iterations: usize, seed: u64, step: KernelStep| kernel_divergence(&op, &y, &wt, &truth.kernels[0], KernelFitSettings { iterations, rounds: 2, step }, &mut Rng::new(seed));
+        let probe = |iterations: usize, seed: u64, step: KernelStep| probe_all(iterations, seed, step).df;
         let converged = (0..4).map(|s| probe(400, s, KernelStep::Tangent)).sum::<f64>() / 4.0;
+        // a white reference: the absorbed noise is white too, so its share of the high-pass
+        // is its share of the whole, df / N
+        let absorbed = (0..4).map(|s| probe_all(400, s, KernelStep::Tangent).highpass_absorbed).sum::<f64>() / 4.0;
+        let share = converged / (w * h) as f64;
+        assert!((absorbed / share - 1.0).abs() < 0.25, "high-pass share {absorbed:.4} vs df/N {share:.4}");
         assert!((converged / nominal - 1.0).abs() < 0.2, "divergence {converged:.1} vs {nominal}");
         let (early, early_whole) = (probe(2, 0, KernelStep::Tangent), probe(2, 0, KernelStep::WholeSpace));
         eprintln!("divergence: converged {converged:.1} of {nominal}, 2 iterations {early:.1} (whole-space step {early_whole:.1})");

@@ -191,6 +191,8 @@ pub struct FoundEffect {
     #[serde(rename = "where")]
     pub location: String,
     pub parameters: serde_json::Value,
+    /// The model before the effect and with it, both scored with the noise curve measured
+    /// after the effect was added (the last effect: after the final polish).
     pub before: Figures,
     pub after: Figures,
     /// BIC of the model with the effect minus the null refit's.
@@ -320,29 +322,40 @@ fn base_model(open: &Image, pinhole: &Image, base_profile: &Profile, opts: &Diag
     let base_registration = register::register(&sum_planes(&lin(open)), &sum_planes(&lin(pinhole)), RegistrationModel::Translation).info;
     let mut data = Data { open: open.clone(), pinhole: pinhole.clone(), curves, base_registration, pinhole_variance_scale: opts.pinhole_variance_scale };
     let init = Model { corrections: model::Corrections::default(), grid: base_profile.grid.clone(), exposure: base_profile.meta.exposure_ratio.clone() };
-    let provisional = fit::fit(&data, &init.corrections, &init, opts.base_fit);
+    let mut provisional = fit::fit(&data, &init.corrections, &init, opts.base_fit);
+    // the probe measures what the kernel fit absorbs (its dof, and its share of the noise's
+    // high-pass, which the residual's curve is corrected for); the probe's response does not
+    // depend on the curve's overall scale, so the refit inherits it
+    measure_dof(&data, &mut provisional, opts, 0);
     let repeat_noise = opts.repeat_noise.as_ref().filter(|r| r.len() == open.channel_count() && r.iter().all(|c| !c.bins.is_empty()));
     data.curves = match repeat_noise {
         Some(r) => r.clone(),
         None => residual_curves(open, &provisional),
     };
     let mut base = fit::fit(&data, &provisional.model.corrections, &provisional.model, FitSettings { rounds: 1, kernel_iterations: opts.base_fit.kernel_iterations });
-    measure_dof(&data, &mut base, opts, 0);
+    base.inherit_dof(&provisional);
     (data, base, repeat_noise.is_some())
 }
 
 /// Measures `f`'s effective kernel degrees of freedom ([`fit::measure_kernel_dof`]) with the
 /// base fit's budget; `round` seeds the probe.
 fn measure_dof(data: &Data, f: &mut Fit, opts: &DiagnoseOptions, round: u64) {
-    f.kernel_dof = Some(fit::measure_kernel_dof(data, f, opts.base_fit, DOF_PROBE_SEED + round));
+    f.set_dof(fit::measure_kernel_dof(data, f, opts.base_fit, DOF_PROBE_SEED + round));
 }
 
 /// Seed of the divergence probe (any fixed value: the run stays reproducible).
 const DOF_PROBE_SEED: u64 = 0x00d0_f5eed;
 
-/// The noise curve of each channel from a fit's residual.
-fn residual_curves(open: &Image, f: &Fit) -> Vec<NoiseCurve> {
-    (0..open.channel_count()).map(|c| noise::measure_residual(&open.planes[c], &f.predicted[c], &f.eval[c], 16, 8, Some(&f.reference_highpass[c]))).collect()
+/// The noise curve of each channel from a fit's residual, divided by the share of the noise
+/// the fit keeps (`1 − α_hp`, [`Fit::highpass_absorbed`]) when that is known.
+pub fn residual_curves(open: &Image, f: &Fit) -> Vec<NoiseCurve> {
+    (0..open.channel_count())
+        .map(|c| {
+            let curve = noise::measure_residual(&open.planes[c], &f.predicted[c], &f.eval[c], 16, 8, Some(&f.reference_highpass[c]));
+            let alpha = f.highpass_absorbed.as_ref().and_then(|a| a.get(c)).copied().unwrap_or(0.0);
+            curve.absorbed(alpha)
+        })
+        .collect()
 }
 
 /// Where the effect search ended.
@@ -369,18 +382,20 @@ fn add_effects(data: &mut Data, base: Fit, base_analysis: Analysis, repeat_noise
         if opts.progress {
             eprintln!("round {}: {} explains most (reduced χ² {:.3} → {:.3}, ΔBIC {:.0})", s.rounds.len(), cand.name, s.current.reduced_chi2(), f.reduced_chi2(), dbic);
         }
-        let before = Figures::of(&s.current);
+        let previous = s.current.clone();
         // polish the winner with the base budget
         let mut polished = fit::fit(data, &f.model.corrections, &f.model, opts.base_fit);
         polished.inherit_dof(&s.current);
         let f = if polished.chi2() <= f.chi2() { polished } else { f };
         let parameters = candidates::parameters_json(cand.name, &f.model.corrections);
-        s.effects.push(FoundEffect { name: cand.name.to_string(), evidence: cand.evidence, location: cand.location, parameters, before, after: Figures::of(&f), delta_bic: dbic });
         // the better model's residual gives a cleaner noise curve; refigure with it (a curve
-        // from repeated frames does not depend on the model)
+        // from repeated frames does not depend on the model), and state the effect's before
+        // and after on that same curve
         if !repeat_noise {
             data.curves = residual_curves(&data.open, &f);
         }
+        let (before, after) = (Figures::of(&rescore(data, &previous)), Figures::of(&rescore(data, &f)));
+        s.effects.push(FoundEffect { name: cand.name.to_string(), evidence: cand.evidence, location: cand.location, parameters, before, after, delta_bic: dbic });
         s.current = fit::fit(data, &f.model.corrections, &f.model, FitSettings { rounds: 1, kernel_iterations: opts.candidate_fit.kernel_iterations });
         measure_dof(data, &mut s.current, opts, s.rounds.len() as u64);
         s.analysis = analyse(&s.current);
@@ -407,6 +422,14 @@ fn add_effects(data: &mut Data, base: Fit, base_analysis: Analysis, repeat_noise
         }
     }
     s
+}
+
+/// `f`'s model scored with `data`'s current noise curves, unchanged (no fitting round), with
+/// `f`'s degrees of freedom.
+fn rescore(data: &Data, f: &Fit) -> Fit {
+    let mut r = fit::fit(data, &f.model.corrections, &f.model, FitSettings { rounds: 0, kernel_iterations: 0 });
+    r.inherit_dof(f);
+    r
 }
 
 /// A fit consistent with noise: reduced χ² and the noise law's misfit within the options'

@@ -5,9 +5,7 @@ use lensrig::diagnose::bench::proof_options;
 use lensrig::diagnose::fit::{fit, Data, FitSettings, Model};
 use lensrig::diagnose::proof::{floor_ratio, render_case, CaseSpec};
 use lensrig::diagnose::{model, noise};
-use lensrig::estimate::register::{self, RegistrationModel};
 use lensrig::estimate::{estimate, EstimateOptions};
-use lensrig::image::{Image, Plane};
 
 fn main() {
     let a: Vec<String> = std::env::args().collect();
@@ -33,18 +31,7 @@ fn main() {
     let eo = EstimateOptions { saturation: f32::INFINITY, ..opts.estimate.clone() };
     let prof = estimate(open, pinhole, &eo).unwrap().profile;
     eprintln!("estimate {:.1} s", t.elapsed().as_secs_f64());
-    let lin = |img: &Image| -> Plane {
-        let mut s = Plane::new(img.width(), img.height());
-        for p in &img.planes {
-            for (a, b) in s.data.iter_mut().zip(&p.data) {
-                *a += img.transfer.decode(*b);
-            }
-        }
-        s
-    };
-    let base_registration = register::register(&lin(open), &lin(pinhole), RegistrationModel::Translation).info;
-    let curves = open.planes.iter().map(|p| noise::measure(p, 16)).collect();
-    let mut data = Data { open: open.clone(), pinhole: pinhole.clone(), curves, base_registration, pinhole_variance_scale: 1.0 / case.pinhole_frames as f64 };
+    let mut data = Data::new(open, pinhole, 1.0 / case.pinhole_frames as f64);
     let init = Model { corrections: model::Corrections::default(), grid: prof.grid.clone(), exposure: prof.meta.exposure_ratio.clone() };
     // noise curves from a long fit's residual (fixed for every budget below)
     let t = std::time::Instant::now();

@@ -9,9 +9,8 @@ use lensrig::diagnose::bench::proof_options;
 use lensrig::diagnose::fit::{fit, measure_kernel_dof, Data, FitSettings, Model, KERNEL_STEP};
 use lensrig::diagnose::proof::{render_case, CaseSpec};
 use lensrig::diagnose::{model, noise, residual_curves};
-use lensrig::estimate::register::{self, RegistrationModel};
 use lensrig::estimate::{estimate, EstimateOptions};
-use lensrig::image::{Image, Plane, Transfer};
+use lensrig::image::{Plane, Transfer};
 use lensrig::optics::capture::Sensor;
 
 fn main() {
@@ -31,18 +30,7 @@ fn main() {
     let (open, pinhole) = (&case.open.image, &case.pinhole.image);
     let eo = EstimateOptions { saturation: f32::INFINITY, ..opts.estimate.clone() };
     let prof = estimate(open, pinhole, &eo).unwrap().profile;
-    let lin = |img: &Image| -> Plane {
-        let mut s = Plane::new(img.width(), img.height());
-        for p in &img.planes {
-            for (a, b) in s.data.iter_mut().zip(&p.data) {
-                *a += img.transfer.decode(*b);
-            }
-        }
-        s
-    };
-    let base_registration = register::register(&lin(open), &lin(pinhole), RegistrationModel::Translation).info;
-    let curves = open.planes.iter().map(|p| noise::measure(p, 16)).collect();
-    let data = Data { open: open.clone(), pinhole: pinhole.clone(), curves, base_registration, pinhole_variance_scale: 1.0 / case.pinhole_frames as f64 };
+    let data = Data::new(open, pinhole, 1.0 / case.pinhole_frames as f64);
     let init = Model { corrections: model::Corrections::default(), grid: prof.grid.clone(), exposure: prof.meta.exposure_ratio.clone() };
     let settings = FitSettings { rounds: 3, kernel_iterations: iters };
     let mut f = fit(&data, &init.corrections, &init, settings);

@@ -59,6 +59,18 @@ pub struct Data {
     pub pinhole_variance_scale: f64,
 }
 
+impl Data {
+    /// The pair with the wide-open capture's noise curves (`noise::measure`, 16 level bins) and
+    /// the base registration: a translation of the channels' linear sum.
+    pub fn new(open: &Image, pinhole: &Image, pinhole_variance_scale: f64) -> Data {
+        let curves = open.planes.iter().map(|p| super::noise::measure(p, 16)).collect();
+        let lin = |img: &Image| -> Vec<Plane> { img.planes.iter().map(|p| p.map(|v| img.transfer.decode(v))).collect() };
+        let model = crate::estimate::register::RegistrationModel::Translation;
+        let base_registration = crate::estimate::register::register(&Plane::sum_of(&lin(open)), &Plane::sum_of(&lin(pinhole)), model).info;
+        Data { open: open.clone(), pinhole: pinhole.clone(), curves, base_registration, pinhole_variance_scale }
+    }
+}
+
 /// A fitted model's free parameters.
 #[derive(Clone, Debug)]
 pub struct Model {

@@ -38,9 +38,8 @@ pub mod session;
 pub mod simulate;
 pub mod tilt;
 
-use crate::estimate::register::{self, RegistrationModel};
 use crate::estimate::{estimate, EstimateError, EstimateOptions};
-use crate::image::{Image, Plane};
+use crate::image::Image;
 use crate::profile::Profile;
 use analysis::{analyse, Analysis};
 use fit::{Data, Fit, FitSettings, Model};
@@ -233,16 +232,6 @@ pub struct Diagnosis {
     pub stage_seconds: Vec<(&'static str, f64)>,
 }
 
-fn sum_planes(ps: &[Plane]) -> Plane {
-    let mut s = Plane::new(ps[0].width, ps[0].height);
-    for p in ps {
-        for (a, b) in s.data.iter_mut().zip(&p.data) {
-            *a += b;
-        }
-    }
-    s
-}
-
 /// Diagnoses a wide-open / pinhole pair (as stored; `open.transfer` is the declared encoding)
 /// against `profile`, or against a base profile estimated here when none is given (the module
 /// docs give the stages).
@@ -317,10 +306,7 @@ fn base_profile(open: &Image, pinhole: &Image, profile: Option<&Profile>, opts: 
 /// model refitted with it; the curve stays fixed for every later model. Returns whether the
 /// curve came from repeated frames.
 fn base_model(open: &Image, pinhole: &Image, base_profile: &Profile, opts: &DiagnoseOptions) -> (Data, Fit, bool) {
-    let curves: Vec<NoiseCurve> = open.planes.iter().map(|p| noise::measure(p, 16)).collect();
-    let lin = |img: &Image| -> Vec<Plane> { img.planes.iter().map(|p| p.map(|v| img.transfer.decode(v))).collect() };
-    let base_registration = register::register(&sum_planes(&lin(open)), &sum_planes(&lin(pinhole)), RegistrationModel::Translation).info;
-    let mut data = Data { open: open.clone(), pinhole: pinhole.clone(), curves, base_registration, pinhole_variance_scale: opts.pinhole_variance_scale };
+    let mut data = Data::new(open, pinhole, opts.pinhole_variance_scale);
     let init = Model { corrections: model::Corrections::default(), grid: base_profile.grid.clone(), exposure: base_profile.meta.exposure_ratio.clone() };
     let mut provisional = fit::fit(&data, &init.corrections, &init, opts.base_fit);
     // the probe measures what the kernel fit absorbs (its dof, and its share of the noise's

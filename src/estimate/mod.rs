@@ -312,20 +312,10 @@ fn check_texture(image: &'static str, planes: &[Plane], channels: &[String]) -> 
     Ok(())
 }
 
-fn sum_planes(ps: &[Plane]) -> Plane {
-    let mut s = Plane::new(ps[0].width, ps[0].height);
-    for p in ps {
-        for (a, b) in s.data.iter_mut().zip(&p.data) {
-            *a += b;
-        }
-    }
-    s
-}
-
 /// Registers the pinhole capture to the wide-open one on the sum of channels; returns the
 /// registration, the registered pinhole planes and their registered saturation masks.
 fn register_pair(open_lin: &[Plane], pin_lin: &[Plane], pinhole: &Image, opts: &EstimateOptions) -> (register::Registration, Vec<Plane>, Vec<Vec<bool>>) {
-    let reg = register::register(&sum_planes(open_lin), &sum_planes(pin_lin), opts.registration);
+    let reg = register::register(&Plane::sum_of(open_lin), &Plane::sum_of(pin_lin), opts.registration);
     let pin_reg: Vec<Plane> = pin_lin.iter().map(|p| register::apply(p, &reg.info)).collect();
     let pin_sat_reg: Vec<Vec<bool>> = pinhole
         .planes

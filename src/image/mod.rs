@@ -130,6 +130,17 @@ impl Plane {
         self.data.iter().map(|&v| v as f64).sum()
     }
 
+    /// The pixel-wise sum of equally sized planes (e.g. the channels, for registration).
+    pub fn sum_of(planes: &[Plane]) -> Plane {
+        let mut s = Plane::new(planes[0].width, planes[0].height);
+        for p in planes {
+            for (a, b) in s.data.iter_mut().zip(&p.data) {
+                *a += b;
+            }
+        }
+        s
+    }
+
     pub fn mean(&self) -> f64 {
         if self.data.is_empty() { 0.0 } else { self.sum() / self.data.len() as f64 }
     }

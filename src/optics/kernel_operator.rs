@@ -107,22 +107,7 @@ fn with_work<R>(fft: &Fft2, f: impl FnOnce(&mut Work) -> R) -> R {
         static WORK: std::cell::RefCell<Vec<Work>> = const { std::cell::RefCell::new(Vec::new()) };
     }
     let size = (fft.width, fft.height);
-    let mut wk = WORK.with(|c| {
-        let mut v = c.borrow_mut();
-        match v.iter().position(|w| w.size == size) {
-            Some(i) => v.swap_remove(i),
-            None => Work::new(fft),
-        }
-    });
-    let r = f(&mut wk);
-    WORK.with(|c| {
-        let mut v = c.borrow_mut();
-        if v.len() >= 4 {
-            v.remove(0);
-        }
-        v.push(wk);
-    });
-    r
+    crate::solve::fft::with_thread_cached(&WORK, 4, |w| w.size == size, || Work::new(fft), f)
 }
 
 /// Tasks the adjoint is cut into at least: its tasks are the grid columns (each keeps its

@@ -89,22 +89,7 @@ impl Fft2 {
             static SCRATCH: std::cell::RefCell<Vec<FftScratch>> = const { std::cell::RefCell::new(Vec::new()) };
         }
         let key = (self.width, self.height);
-        let mut s = SCRATCH.with(|c| {
-            let mut v = c.borrow_mut();
-            match v.iter().position(|s| s.size == key) {
-                Some(i) => v.swap_remove(i),
-                None => self.make_scratch(),
-            }
-        });
-        let r = f(&mut s);
-        SCRATCH.with(|c| {
-            let mut v = c.borrow_mut();
-            if v.len() >= 8 {
-                v.remove(0);
-            }
-            v.push(s);
-        });
-        r
+        with_thread_cached(&SCRATCH, 8, |s| s.size == key, || self.make_scratch(), f)
     }
 
     /// Forward transform of a row-major real array of `width * height` values.
@@ -295,6 +280,32 @@ pub fn good_size(n: usize) -> usize {
         p2 *= 2;
     }
     best
+}
+
+/// Runs `f` on a value taken from a thread-local cache (the first that `fits`, else `make()`)
+/// and puts it back afterwards, keeping at most `keep` values (oldest dropped first): per-thread
+/// work buffers for FFT plans of a few sizes, without allocation after the first call.
+pub(crate) fn with_thread_cached<T: 'static, R>(
+    cache: &'static std::thread::LocalKey<std::cell::RefCell<Vec<T>>>,
+    keep: usize,
+    fits: impl Fn(&T) -> bool,
+    make: impl FnOnce() -> T,
+    f: impl FnOnce(&mut T) -> R,
+) -> R {
+    let taken = cache.with(|c| {
+        let mut v = c.borrow_mut();
+        v.iter().position(&fits).map(|i| v.swap_remove(i))
+    });
+    let mut item = taken.unwrap_or_else(make);
+    let r = f(&mut item);
+    cache.with(|c| {
+        let mut v = c.borrow_mut();
+        if v.len() >= keep {
+            v.remove(0);
+        }
+        v.push(item);
+    });
+    r
 }
 
 #[cfg(test)]

@@ -249,6 +249,11 @@ fn calibrate_measures_distortion_from_the_configured_target_layout() {
     let unknown = config_variant(&dir.join("unknown"), |t| base(t) + &layout(1.6, 7.0, 5.0) + "scale = 2\n");
     let e = fails(&["check-config", unknown.to_str().unwrap()]);
     assert!(e.contains("scale"), "{e}");
+    // and `calibrate` refuses it before anything is created: no empty --out is left behind
+    let never = dir.join("never-created");
+    let e = fails(&["calibrate", "--rig", unknown.to_str().unwrap(), "--out", never.to_str().unwrap(), "--quiet"]);
+    assert!(e.contains("scale"), "{e}");
+    assert!(!never.exists(), "a refused config left {} behind", never.display());
     let _ = std::fs::remove_dir_all(&dir);
 }
 

@@ -344,7 +344,8 @@ fn corner_px(d: &lensrig::optics::distortion::PtLens, width: usize, height: usiz
 pub fn run(a: &CalibrateArgs) -> Result<()> {
     let t0 = Instant::now();
     let progress = !a.quiet;
-    std::fs::create_dir_all(&a.out).with_context(|| format!("cannot create {}", a.out.display()))?;
+    // `--out` is created by the session capture, after the config has loaded and the rig is
+    // open, so that a refused config or a missing device leaves nothing behind.
     let session_dir = a.out.join("session");
     let (cfg, rig, rec) = capture_session(&a.rig, &session_dir, progress)?;
     let t_capture = t0.elapsed().as_secs_f64();

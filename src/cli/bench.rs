@@ -27,7 +27,7 @@ use clap::Args;
 use lensrig::diagnose::simulate::predict;
 use lensrig::estimate::bootstrap::{bootstrap_estimate, predicted_error, BootstrapOptions, KernelUncertainty};
 use lensrig::estimate::testbed::{errors_against_truth, quantile};
-use lensrig::estimate::{estimate, kernel_errors, median_max, EstimateOptions};
+use lensrig::estimate::{estimate, kernel_errors, median_max, process_cpu_seconds, EstimateOptions};
 use lensrig::image::{Image, Plane};
 use lensrig::optics::capture::{render, Blur, Rendered, Sensor, Shot};
 use lensrig::optics::lens::LensModel;
@@ -218,17 +218,6 @@ fn testbed_pair(l: &TestLens, seed: u64) -> Result<(Rendered, Rendered)> {
     Ok((open, pin))
 }
 
-/// CPU seconds of this process so far (user + system, all threads; Linux `/proc/self/stat`,
-/// USER_HZ = 100), or `None` elsewhere.
-fn cpu_seconds() -> Option<f64> {
-    let s = std::fs::read_to_string("/proc/self/stat").ok()?;
-    // fields after the command name (which may hold spaces) start at the state, field 3
-    let rest = &s[s.rfind(')')? + 2..];
-    let f: Vec<&str> = rest.split_whitespace().collect();
-    let ticks: f64 = f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?;
-    Some(ticks / 100.0)
-}
-
 /// RMS of `pred − recorded` and of the recorded image's true noise, per channel, over the
 /// interior (`margin` px from every edge).
 fn residual_vs_noise(pred: &Image, recorded: &Rendered, margin: usize) -> Vec<(f64, f64)> {
@@ -313,10 +302,12 @@ fn run_testbed(a: &BenchArgs, dir: &Path) -> Result<()> {
         let pair = testbed_pair(l, 1)?;
         let pair2 = testbed_pair(l, 2)?;
         let opts = EstimateOptions { progress: false, ..a.estimation.options() };
-        let (t0, c0) = (std::time::Instant::now(), cpu_seconds());
+        let (t0, c0) = (std::time::Instant::now(), process_cpu_seconds());
         let est = estimate(&pair.0.image, &pair.1.image, &opts)?;
         let wall = t0.elapsed().as_secs_f64();
-        let cpu = cpu_seconds().zip(c0).map(|(b, a)| b - a);
+        let cpu = process_cpu_seconds().zip(c0).map(|(b, a)| b - a);
+        let stages: Vec<String> = est.stage_seconds.iter().map(|t| format!("{} {:.1} s / {} CPU-s", t.stage, t.wall, t.cpu.map_or("–".into(), |c| format!("{c:.1}")))).collect();
+        eprintln!("{}: {}", l.name, stages.join(", "));
         let g = &est.profile.grid;
         let errors = errors_against_truth(g, &l.truth);
         let margin = g.kernel_size.max(l.truth.kernel_size) / 2;

@@ -24,13 +24,17 @@
 //! a channel get one multiplier `m_c ∈ {½, 1, 2}` ([`LAMBDA_LADDER`]) chosen by held-out
 //! prediction error ([`select_lambda`]): with `H` a fixed pseudo-random quarter of the valid
 //! pixels ([`held_out`]) and `b(m)` the kernels after [`SELECT_ITERATIONS`] iterations from the
-//! same start on the other pixels with the weights `m · λ_t · √(N_train/N)`,
+//! same start on the other pixels with the weights `m · λ_t · √(N_train/N)`, all on every
+//! [`SELECT_BLOCK_STRIDE`]-th block of the operator (`N`, `N_train`, `H` counted there; half the
+//! cost of a joint iteration's convolutions),
 //!
 //! `E(m) = Σ_{x∈H} r_m(x)²,  r_m = pred_{b(m)} − j`,
 //!
 //! `m_c` is the `m` with the largest gain `D(m) = E(1) − E(m)` among those whose gain exceeds
 //! [`GAIN_Z`] = 2 standard errors `√Σ_H (d − D/|H|)²` (`d = r₁² − r_m²`), else 1; then the fit
-//! continues on all pixels with `m_c · λ_t`. The rule `λ ∝ σ̂ √N` has one constant
+//! continues on all pixels with `m_c · λ_t` from its own iterate (the rungs' common start: they
+//! saw half the data, and going on from the winner's kernels raised the blue channels' error by
+//! 0.1 point). The rule `λ ∝ σ̂ √N` has one constant
 //! for every lens; where a dense grid gives each kernel little data (achromat-f4) the data
 //! want a weaker prior, and the choice finds that from the capture itself.
 //!
@@ -136,6 +140,11 @@ pub const HOLDOUT_EVERY: u64 = 4;
 /// FISTA iterations per multiplier of the ladder, from the same start.
 pub const SELECT_ITERATIONS: usize = 8;
 
+/// The ladder's runs use every `SELECT_BLOCK_STRIDE`-th block of the joint operator (staggered,
+/// every tile keeps data; [`crate::optics::kernel_operator::KernelOperator::new`]): half the
+/// operator's cost of the choice (docs/estimation.md "TV weight chosen on held-out pixels").
+pub const SELECT_BLOCK_STRIDE: usize = 2;
+
 /// Whether pixel `i` belongs to the held-out set (a fixed hash of the index: independent of the
 /// image content, the same in every channel).
 pub fn held_out(i: usize) -> bool {
@@ -223,6 +232,25 @@ fn run_fista(p: &mut JointProblem, x: &mut [f32], opts: &SplitOptions, l_f: f32,
     stats
 }
 
+/// The problem [`select_lambda`] runs on: that of `p` on every [`SELECT_BLOCK_STRIDE`]-th of its
+/// blocks (staggered), with `p`'s TV duals as the warm start; `None` when a tile would lose all
+/// its data there (the selection then runs on `p` itself). The weights are those of the λ rule
+/// on the subset's data (before the noise rescaling of [`refine_channel`]).
+fn selection_problem(p: &JointProblem, open: &Plane, sharp: &Plane, valid: &[bool], grid: &PsfGrid, kernels: &[Plane], fits: &[(f32, usize, f64)]) -> Option<JointProblem> {
+    let pixels = p.op.covered().iter().filter(|&&c| c).count();
+    let mut sub = build_problem(open, sharp, valid, grid, kernels, fits, pixels.div_ceil(SELECT_BLOCK_STRIDE));
+    sub.q = p.q.clone();
+    sub.op.every_tile_has_data().then_some(sub)
+}
+
+/// Replaces the window fits' noise level `σ̂_t` in the weights `λ_t = c·σ̂_t·sd·√N` by the joint
+/// model's residual RMS `sigma`.
+fn rescale_noise(lambda: &mut [f32], fits: &[(f32, usize, f64)], sigma: f64) {
+    for (l, &(_, _, s0)) in lambda.iter_mut().zip(fits) {
+        *l *= (sigma / s0.max(1e-12)) as f32;
+    }
+}
+
 /// Builds the joint problem of one channel (see [`refine_channel`]); the data are subsampled
 /// to about `max_pixels` pixels.
 fn build_problem(open: &Plane, sharp: &Plane, valid: &[bool], grid: &PsfGrid, kernels: &[Plane], fits: &[(f32, usize, f64)], max_pixels: usize) -> JointProblem {
@@ -269,14 +297,26 @@ pub fn refine_channel(
     let mut g = vec![0.0f32; x.len()];
     let f1 = if st1.iterations > 0 { st1.primal_objective } else { p.normal(&x, &mut g, true) };
     let sigma_joint = (2.0 * f1 / count as f64).sqrt();
-    for (l, &(_, _, s0)) in p.lambda.iter_mut().zip(fits) {
-        *l *= (sigma_joint / s0.max(1e-12)) as f32;
-    }
-    let (_, selecting) = if select && st1.iterations > 0 { select_lambda(&mut p, &mut x, l_f, progress) } else { (1.0, 0) };
+    rescale_noise(&mut p.lambda, fits, sigma_joint);
+    let (_, selecting) = if select && st1.iterations > 0 {
+        match selection_problem(&p, open, sharp, valid, grid, kernels, fits) {
+            Some(mut sub) => {
+                rescale_noise(&mut sub.lambda, fits, sigma_joint);
+                let l_sub = sub.lipschitz(2, &mut power.clone());
+                // the rungs fit half the data: the main fit goes on from its own iterate
+                let (m, n) = select_lambda(&mut sub, &mut x.clone(), l_sub, progress);
+                p.lambda.iter_mut().for_each(|l| *l *= m);
+                (m, n)
+            }
+            None => select_lambda(&mut p, &mut x, l_f, progress),
+        }
+    } else {
+        (1.0, 0)
+    };
     let rest = SplitOptions { max_iterations: opts.max_iterations.saturating_sub(st1.iterations), ..opts.clone() };
     let mut stats = run_fista(&mut p, &mut x, &rest, l_f, progress);
+    let f = if stats.iterations > 0 { stats.primal_objective } else { p.normal(&x, &mut g, true) };
     stats.iterations += st1.iterations + selecting;
-    let f = if stats.iterations > st1.iterations { stats.primal_objective } else { p.normal(&x, &mut g, true) };
     for (kp, xb) in kernels.iter_mut().zip(x.chunks(k * k)) {
         kp.data.copy_from_slice(xb);
     }
@@ -404,6 +444,25 @@ mod tests {
         let cv = |gr: &PsfGrid| interior_rms(&blur_channel(&sharp2.map(|v| v * s), gr, 0), &open2, k / 2) / noise as f64;
         let (cv0, cv1) = (cv(&grid), cv(&refined));
         assert!(cv1 < 1.10 && cv1 < cv0 - 0.05, "subsampled joint cv {cv1} vs window fits {cv0}");
+    }
+
+    /// The selection's problem keeps about one block in `SELECT_BLOCK_STRIDE` and data in every
+    /// tile, and its λ rule sees the smaller data (weights lower by about `√stride`).
+    #[test]
+    fn selection_runs_on_half_the_blocks() {
+        let (w, h, k) = (400, 300, 11);
+        let g = truth(w, h, k);
+        let (open, sharp) = pair(&g, w, h, 0.003, 3);
+        let fits = vec![(1e-3f32, 100 * 100, 0.003f64); g.tile_count()];
+        let valid = vec![true; w * h];
+        let p = super::build_problem(&open, &sharp, &valid, &g, &g.kernels[0], &fits, usize::MAX);
+        let sub = super::selection_problem(&p, &open, &sharp, &valid, &g, &g.kernels[0], &fits).expect("every tile keeps data");
+        let count = |q: &super::JointProblem| q.mask.iter().filter(|&&b| b).count() as f64;
+        let share = count(&sub) / count(&p);
+        let want = 1.0 / super::SELECT_BLOCK_STRIDE as f64;
+        assert!((share - want).abs() < 0.15, "kept {share:.3} of the pixels, want about {want}");
+        let ratio: f64 = sub.lambda.iter().zip(&p.lambda).map(|(a, b)| (a / b) as f64).sum::<f64>() / p.lambda.len() as f64;
+        assert!(ratio < 0.95 && ratio > 0.4, "weights {ratio:.3} of the full problem's");
     }
 
     /// About one valid pixel in `HOLDOUT_EVERY` is held out, with no visible pattern (rows and

@@ -123,6 +123,9 @@ pub struct Estimate {
     pub pinhole_registered: Vec<Plane>,
     /// The wide-open planes (linear, black removed).
     pub open_linear: Vec<Plane>,
+    /// Time of each stage, in order: `registration`, `layout` (the probe fits that choose the
+    /// kernel size and grid), `window fits`, `joint refinement` (≈ 0 when skipped).
+    pub stage_seconds: Vec<StageTime>,
 }
 
 /// Robust noise standard deviation of a plane: MAD of a zero-mean 3×3 high-pass normalised to
@@ -257,15 +260,21 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
     // PSF from: without this it would give a delta-like profile and no complaint
     check_texture("wide-open", &open_lin, &open.channels)?;
     check_texture("pinhole", &pin_lin, &open.channels)?;
+    let mut stages = Vec::new();
+    let mut lap = stage_clock();
     let (reg, pin_reg, pin_sat_reg) = register_pair(&open_lin, &pin_lin, pinhole, opts);
+    stages.push(lap("registration"));
     let layout = Layout::choose(&open_lin, &pin_reg, opts)?;
+    stages.push(lap("layout"));
     let data = valid_data(open, &open_lin, &pin_reg, &pin_sat_reg, layout.kernel, opts)?;
     let (mut kernels, mut info, tile_fits) = fit_windows(&open_lin, &pin_reg, &data, &layout, opts);
+    stages.push(lap("window fits"));
     if opts.joint_iterations > 0 {
         let factors = spread_factors(&kernels, SPREAD_EXPONENT);
         let scaled: TileFits = tile_fits.iter().zip(&factors).map(|(f, g)| f.iter().zip(g).map(|(&(l, n, s), &x)| (l * x as f32, n, s)).collect()).collect();
         refine_jointly(&open_lin, &pin_reg, &data, &layout, &open.channels, &scaled, &mut kernels, &mut info, opts);
     }
+    stages.push(lap("joint refinement"));
     // the noise level per channel: median over tiles of the least-squares residual level
     let noise: Vec<f64> = tile_fits
         .iter()
@@ -280,7 +289,38 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
     let mut profile = assemble_profile(open, &layout, kernels, data.ratio, reg.info, info, opts);
     // the sensor's noise law from the wide-open capture (issue 12; crate::profile::noise)
     profile.meta.noise = crate::profile::noise::NoiseLaw::fit_image(&open_lin, opts.saturation).ok();
-    Ok(Estimate { profile, noise_sigma: noise, valid_masks: data.valid_masks, pinhole_registered: pin_reg, open_linear: open_lin })
+    Ok(Estimate { profile, noise_sigma: noise, valid_masks: data.valid_masks, pinhole_registered: pin_reg, open_linear: open_lin, stage_seconds: stages })
+}
+
+/// Wall and CPU seconds of one stage of [`estimate`] (CPU: user + system of the whole process,
+/// all threads; `None` where [`process_cpu_seconds`] cannot read it).
+#[derive(Clone, Copy, Debug)]
+pub struct StageTime {
+    pub stage: &'static str,
+    pub wall: f64,
+    pub cpu: Option<f64>,
+}
+
+/// A lap clock: each call returns the time since the previous call (or its creation).
+fn stage_clock() -> impl FnMut(&'static str) -> StageTime {
+    let (mut last, mut last_cpu) = (std::time::Instant::now(), process_cpu_seconds());
+    move |stage| {
+        let (now, cpu) = (std::time::Instant::now(), process_cpu_seconds());
+        let t = StageTime { stage, wall: now.duration_since(last).as_secs_f64(), cpu: cpu.zip(last_cpu).map(|(b, a)| b - a) };
+        (last, last_cpu) = (now, cpu);
+        t
+    }
+}
+
+/// CPU seconds of this process so far (user + system, all threads; Linux `/proc/self/stat`,
+/// USER_HZ = 100), or `None` elsewhere.
+pub fn process_cpu_seconds() -> Option<f64> {
+    let s = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // fields after the command name (which may hold spaces) start at the state, field 3
+    let rest = &s[s.rfind(')')? + 2..];
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let ticks: f64 = f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?;
+    Some(ticks / 100.0)
 }
 
 /// Sizes and the kernel option, before any work.

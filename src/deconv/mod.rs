@@ -249,6 +249,10 @@ pub struct DeconvOptions {
     /// +5.2 dB on the held-out chromatic fundus case (`examples/chromatic_failure`) but −0.02 to
     /// −0.22 dB on the five-scene benchmark the flat defaults were tuned on.
     pub coloured_noise: bool,
+    /// Local noise level in the denoising stage ([`local_noise_maps`]): with a signal-dependent
+    /// noise law, each block's noise level follows the law at the input's local level instead of
+    /// the image mean's. No effect without a law or with a white one.
+    pub local_noise: bool,
     /// Where the noise level comes from ([`noise::NoiseSource`]). With a law, a tile's
     /// `λ_c = κ (g_c x̄ + r_c²)` uses the tile's mean linear value `x̄` of the channel, and the
     /// channel's `σ_c = √(g_c · mean(x) + r_c²)` replaces Donoho's estimate everywhere else.
@@ -292,6 +296,7 @@ impl Default for DeconvOptions {
             denoise_lambda_per_variance: 2.5,
             denoiser: denoise::DenoiseOptions::default(),
             coloured_noise: false,
+            local_noise: true,
             noise: noise::NoiseSource::Profile,
             no_harm: noharm::NoHarmOptions::default(),
         }
@@ -529,6 +534,7 @@ fn finish(planes: &[Plane], mut out: Vec<Plane>, noise: &NoiseStage, opts: &Deco
     if opts.denoise > 0.0 {
         let d = denoise::DenoiseOptions {
             coefficient_variance: opts.coloured_noise.then(|| coloured_variance(planes, lens.0, lens.1, noise, opts)),
+            local_variance: if opts.local_noise { local_noise_maps(planes, lens.0, noise) } else { None },
             sigma: noise.sigma.iter().map(|s| opts.denoise * s).collect(),
             transfer: opts.output_transfer.unwrap_or(crate::image::Transfer::Linear),
             parallel: opts.parallel,
@@ -547,6 +553,33 @@ fn finish(planes: &[Plane], mut out: Vec<Plane>, noise: &NoiseStage, opts: &Deco
     };
     (out, no_harm)
 }
+/// Local noise level of the denoising stage (docs/deconvolution.md "Local noise level"): with a
+/// Poisson–Gaussian law, the noise of the deconvolved channel `c` near `x` has the variance
+/// `V_c(x) = g_c (G_{s_c} * j_c)(x) + r_c²`, the law at the input's level averaged over the
+/// restoration's reach (`G_s` a Gaussian with the per-axis RMS radius `s_c = √(m₂/2)` of the
+/// channel's centre PSF, `m₂` its [`second_moment`], at least 1 px); returned as
+/// `m_c = V_c / σ_c²`, `σ_c` the stationary level the denoiser is given. `None` without a law
+/// or with a signal-independent one (`g = 0`: `m ≡ 1`).
+fn local_noise_maps(planes: &[Plane], grid: &PsfGrid, noise: &NoiseStage) -> Option<Vec<Plane>> {
+    let law = noise.law.as_ref()?;
+    if law.gain.iter().all(|g| *g <= 0.0) {
+        return None;
+    }
+    let (w, h) = (planes[0].width, planes[0].height);
+    let (cx, cy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
+    let maps = planes
+        .par_iter()
+        .enumerate()
+        .map(|(c, p)| {
+            let s = (second_moment(&grid.kernel_at(c, cx, cy)) / 2.0).sqrt().max(1.0);
+            let level = crate::image::filter::gaussian_blur(&p.map(|v| v.clamp(0.0, 1.0)), s);
+            let reference = (noise.sigma[c] * noise.sigma[c]).max(1e-20);
+            level.map(|v| law.variance(c, v) / reference)
+        })
+        .collect();
+    Some(maps)
+}
+
 /// Coloured-noise stage of [`deblur`]: the denoiser's per-coefficient noise variances, the
 /// noise law (or σ) propagated through the solver on the photograph's centre window with the
 /// kernels at the image centre and each channel's `λ` at its mean level

@@ -60,6 +60,9 @@ const LENSES: &str = "/work/shared/data/lenses";
 const SENSOR: (usize, usize) = (1024, 768);
 const RL_ITERATIONS: [usize; 3] = [10, 30, 100];
 const WIENER_BALANCE: [f32; 7] = [1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2, 1e-1];
+/// lensrig's options other than the noise and the denoiser's noise model (`--cross-weight`,
+/// `--stationary-noise` for experiments; the defaults otherwise).
+static BASE: std::sync::OnceLock<DeconvOptions> = std::sync::OnceLock::new();
 /// Seed of every cell's noise.
 const SEED: u64 = 2013;
 /// Version of the peer code and of the cell's input (scene, forward model, noise sampler):
@@ -241,10 +244,26 @@ fn cpu_seconds() -> f64 {
 
 /// lensrig's result (clipped), wall and CPU seconds.
 fn run_lensrig(blurred: &[Plane], grid: &PsfGrid, law: &NoiseLaw, coloured: bool) -> anyhow::Result<(Vec<Plane>, f64, f64)> {
-    let opts = DeconvOptions { noise: NoiseSource::Law(law.clone()), coloured_noise: coloured, ..DeconvOptions::default() };
+    let base = BASE.get().cloned().unwrap_or_default();
+    let opts = DeconvOptions { noise: NoiseSource::Law(law.clone()), coloured_noise: coloured, ..base };
     let (t, c) = (Instant::now(), cpu_seconds());
     let (out, _) = deblur(blurred, grid, &opts, &|_, _| {})?;
     Ok((clipped(&out), t.elapsed().as_secs_f64(), cpu_seconds() - c))
+}
+
+/// The peers' figures of a cell, from the cache or run (and cached).
+fn cached_peers(l: &str, nz: &str, s: &str, sharp: &[Plane], blurred: &[Plane], grid: &PsfGrid, cache: &mut PeerCache) -> anyhow::Result<Peers> {
+    let key = PeerCache::key(l, nz, s);
+    Ok(match cache.rows.get(&key) {
+        Some(p) => *p,
+        None => {
+            let (rl, its) = rl_peer(sharp, blurred, grid);
+            let (wiener, balance) = wiener_peer(sharp, blurred, grid);
+            let p = Peers { blurred: psnr(sharp, &clipped(blurred)), rl, its, wiener, balance };
+            cache.insert(key, p)?;
+            p
+        }
+    })
 }
 
 /// One table row (and the numbers the summary needs: split held out, lensrig − blurred, margin).
@@ -252,17 +271,10 @@ fn cell(l: &str, nz: &str, s: &str, grid: &PsfGrid, est: Option<&PsfGrid>, colou
     let sharp = scene(s)?;
     let (law, pg) = noise_law(nz)?;
     let blurred = blurred_noisy(&sharp, grid, pg, SEED);
-    let key = PeerCache::key(l, nz, s);
-    let peers = match cache.rows.get(&key) {
-        Some(p) => *p,
-        None => {
-            let (rl, its) = rl_peer(&sharp, &blurred, grid);
-            let (wiener, balance) = wiener_peer(&sharp, &blurred, grid);
-            let p = Peers { blurred: psnr(&sharp, &clipped(&blurred)), rl, its, wiener, balance };
-            cache.insert(key, p)?;
-            p
-        }
-    };
+    let peers = cached_peers(l, nz, s, &sharp, &blurred, grid, cache)?;
+    if est.is_none() && std::env::args().any(|x| x == "--peers-only") {
+        return Ok((String::new(), false, 0.0, 0.0));
+    }
     let (pr, its, pw, bal) = (peers.rl, peers.its, peers.wiener, peers.balance);
     let (out, wall, cpu) = run_lensrig(&blurred, grid, &law, coloured)?;
     let est_db = match est {
@@ -305,8 +317,8 @@ fn region_errors(sharp: &[Plane], out: &[Plane], bright: &[bool]) -> Vec<[f64; 4
         .collect()
 }
 
-/// `regions L N S`: the error of lensrig (flat and coloured denoiser, no-harm off, denoiser
-/// off) and of Richardson–Lucy (100 iterations) split into bright objects (the sharp scene's
+/// `regions L N S`: the error of lensrig (defaults, flat denoiser, stationary noise level,
+/// cross-channel term off) and of Richardson–Lucy (100 iterations) split into bright objects (the sharp scene's
 /// luminance, Gaussian-smoothed over 3 px, above 2 × its median) and the background, per channel.
 fn regions(l: &str, nz: &str, s: &str) -> anyhow::Result<()> {
     let sharp = scene(s)?;
@@ -324,12 +336,10 @@ fn regions(l: &str, nz: &str, s: &str) -> anyhow::Result<()> {
     let rl: Vec<Plane> = blurred.iter().zip(&ops).map(|(b, op)| richardson_lucy(b, op, None, &[100]).remove(0)).collect();
     let base = DeconvOptions { noise: NoiseSource::Law(law.clone()), ..DeconvOptions::default() };
     let variants: Vec<(&str, DeconvOptions)> = vec![
-        ("lensrig flat", base.clone()),
-        ("lensrig coloured", DeconvOptions { coloured_noise: true, ..base.clone() }),
-        ("lensrig flat, stationary noise", DeconvOptions { local_noise: false, ..base.clone() }),
-        ("lensrig coloured, stationary", DeconvOptions { local_noise: false, coloured_noise: true, ..base.clone() }),
-        ("lensrig flat, no-harm off", DeconvOptions { no_harm: lensrig::deconv::noharm::NoHarmOptions { enabled: false, ..Default::default() }, ..base.clone() }),
-        ("lensrig, denoiser off (κ = 7)", DeconvOptions { denoise: 0.0, ..base.clone() }),
+        ("lensrig (defaults)", base.clone()),
+        ("lensrig, flat denoiser", DeconvOptions { coloured_noise: false, ..base.clone() }),
+        ("lensrig, stationary noise", DeconvOptions { local_noise: false, ..base.clone() }),
+        ("lensrig, cross-channel off", DeconvOptions { cross_weight: 0.0, ..base.clone() }),
     ];
     let mut outs: Vec<(String, Vec<Plane>)> = vec![("blurred".into(), blurred.clone()), ("RL 100".into(), rl)];
     for (name, o) in variants {
@@ -370,12 +380,16 @@ fn main() -> anyhow::Result<()> {
     let noises = list("--noise", &["pg15k", "gauss", "pg3k"]);
     let all_scenes: Vec<&str> = PHOTOS.iter().chain(&EXTRA).copied().collect();
     let scenes = list("--scene", &all_scenes);
-    let coloured = list("--denoise-noise", &["flat"]).first().is_some_and(|m| m == "coloured");
+    let default_mode = if DeconvOptions::default().coloured_noise { "coloured" } else { "flat" };
+    let coloured = list("--denoise-noise", &[default_mode]).first().is_some_and(|m| m == "coloured");
     let with_estimate = !a.iter().any(|x| x == "--no-estimate");
+    let cross_weight: f32 = list("--cross-weight", &["3"])[0].parse()?;
+    let local_noise = !a.iter().any(|x| x == "--stationary-noise");
+    let _ = BASE.set(DeconvOptions { cross_weight, local_noise, ..DeconvOptions::default() });
     let mut cache = PeerCache::load(Path::new(list("--peer-cache", &["target/deblur_matrix_peers.tsv"])[0].as_str()));
     let total = noises.len() * lenses.len() * scenes.len();
     let start = Instant::now();
-    println!("denoiser noise model: {}; PSNR on linear values clipped to [0, 1]; peers with the TRUE PSFs and an oracle choice by PSNR (RL its from {{10, 30, 100}}, Wiener balance from {WIENER_BALANCE:?}); seconds: lensrig (true profile) wall / CPU", if coloured { "coloured" } else { "flat" });
+    println!("cross weight {cross_weight}, local noise {local_noise}; denoiser noise model: {}; PSNR on linear values clipped to [0, 1]; peers with the TRUE PSFs and an oracle choice by PSNR (RL its from {{10, 30, 100}}, Wiener balance from {WIENER_BALANCE:?}); seconds: lensrig (true profile) wall / CPU", if coloured { "coloured" } else { "flat" });
     println!("| lens | noise | scene | size | split | blurred dB | RL dB | Wiener dB | lensrig (true) dB | lensrig (estimated) dB | lensrig − best peer | SSIM (lensrig) | lensrig s (wall / CPU) | RL its / Wiener b |");
     println!("| --- | --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |");
     let mut grids: HashMap<String, PsfGrid> = HashMap::new();

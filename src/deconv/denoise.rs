@@ -18,7 +18,8 @@
 //!
 //! `σ_b` is the block's noise level on the encoded axis: the linear noise level of the
 //! deconvolved channel times the slope `g'(v̄_b)` of the transfer curve at the block's mean
-//! linear brightness (the delta method). Work is done in strips of rows with a halo, so only a
+//! linear brightness (the delta method), and, for signal-dependent noise, by the local level
+//! of the noise law ([`DenoiseOptions::local_variance`]). Work is done in strips of rows with a halo, so only a
 //! strip's buffers are held besides the input and the output.
 
 use crate::image::{Plane, Transfer};
@@ -755,5 +756,30 @@ mod tests {
         let ec: f32 = c.iter().map(|v| v * v).sum();
         assert!((e - ec).abs() < 1e-3 * e);
         assert!(x.iter().zip(&y).all(|(a, b)| (a - b).abs() < 1e-5));
+    }
+
+    /// A local variance map of 4 everywhere is the same as twice the stationary level; a map of
+    /// 1 changes nothing.
+    #[test]
+    fn local_variance_scales_the_block_noise_level() {
+        let (w, h) = (48, 40);
+        let mut noise = crate::deconv::synth::GaussianNoise::new(5);
+        let planes: Vec<Plane> = (0..3)
+            .map(|c| {
+                let mut p = Plane::from_fn(w, h, |x, y| 0.3 + 0.1 * c as f32 + 0.2 * ((x / 9 + y / 7) % 2) as f32);
+                noise.add_to(&mut p, 0.02);
+                p
+            })
+            .collect();
+        let base = DenoiseOptions { sigma: vec![0.02, 0.01, 0.03], parallel: false, ..DenoiseOptions::default() };
+        let maps = |v: f32| Some(vec![Plane::filled(w, h, v); 3]);
+        let plain = denoise(&planes, &base);
+        let ones = denoise(&planes, &DenoiseOptions { local_variance: maps(1.0), ..base.clone() });
+        let doubled = denoise(&planes, &DenoiseOptions { sigma: base.sigma.iter().map(|s| 2.0 * s).collect(), ..base.clone() });
+        let four = denoise(&planes, &DenoiseOptions { local_variance: maps(4.0), ..base.clone() });
+        let diff = |a: &[Plane], b: &[Plane]| a.iter().zip(b).flat_map(|(p, q)| p.data.iter().zip(&q.data).map(|(x, y)| (x - y).abs())).fold(0.0f32, f32::max);
+        assert!(diff(&plain, &ones) < 1e-5, "{}", diff(&plain, &ones));
+        assert!(diff(&doubled, &four) < 1e-4, "{}", diff(&doubled, &four));
+        assert!(diff(&plain, &four) > 1e-3, "the map must matter");
     }
 }

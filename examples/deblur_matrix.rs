@@ -28,6 +28,13 @@
 //! sharp scene. lensrig gets the true noise law; its estimated profile comes from
 //! [`lensrig::estimate::estimate`] (default options) on one calibration pair per lens × noise
 //! (noise target through the lens, exposure 0.75, the cell's noise law), reused across scenes.
+//!
+//! **Peer cache.** The peers are the slow part and do not depend on lensrig's settings: their
+//! PSNRs (and the blurred input's) are kept per cell in `--peer-cache PATH` (default
+//! `target/deblur_matrix_peers.tsv`), keyed by [`PEER_VERSION`], lens, noise, scene, noise
+//! seed and sensor size, so a second run in another denoiser mode only runs lensrig. Bump
+//! [`PEER_VERSION`] when the peers, the forward model or the scenes change. Progress and an
+//! ETA per cell go to stderr.
 
 use lensrig::deconv::noise::NoiseSource;
 use lensrig::deconv::peers::{richardson_lucy, wiener_tiled, FieldBlur};
@@ -53,6 +60,71 @@ const LENSES: &str = "/work/shared/data/lenses";
 const SENSOR: (usize, usize) = (1024, 768);
 const RL_ITERATIONS: [usize; 3] = [10, 30, 100];
 const WIENER_BALANCE: [f32; 7] = [1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2, 1e-1];
+/// lensrig's options other than the noise and the denoiser's noise model (`--cross-weight`,
+/// `--stationary-noise` for experiments; the defaults otherwise).
+static BASE: std::sync::OnceLock<DeconvOptions> = std::sync::OnceLock::new();
+/// Seed of every cell's noise.
+const SEED: u64 = 2013;
+/// Version of the peer code and of the cell's input (scene, forward model, noise sampler):
+/// part of every cache key.
+const PEER_VERSION: &str = "peers-v1:rl10-30-100:wiener7:fieldblur:seed-noise-v1";
+
+/// The peers' figures of one cell: blurred PSNR, RL PSNR and iterations, Wiener PSNR and balance.
+#[derive(Clone, Copy)]
+struct Peers {
+    blurred: f64,
+    rl: f64,
+    its: usize,
+    wiener: f64,
+    balance: f32,
+}
+
+/// The peer cache: one line per cell, `key \t blurred \t rl \t its \t wiener \t balance`.
+struct PeerCache {
+    path: std::path::PathBuf,
+    rows: HashMap<String, Peers>,
+}
+
+impl PeerCache {
+    fn parse(text: &str) -> HashMap<String, Peers> {
+        text.lines()
+            .filter_map(|l| {
+                let f: Vec<&str> = l.split('\t').collect();
+                let p = Peers { blurred: f.get(1)?.parse().ok()?, rl: f.get(2)?.parse().ok()?, its: f.get(3)?.parse().ok()?, wiener: f.get(4)?.parse().ok()?, balance: f.get(5)?.parse().ok()? };
+                [p.blurred, p.rl, p.wiener].iter().all(|v| v.is_finite()).then(|| (f[0].to_string(), p))
+            })
+            .collect()
+    }
+
+    fn load(path: &Path) -> Self {
+        let rows = std::fs::read_to_string(path).map(|t| Self::parse(&t)).unwrap_or_default();
+        Self { path: path.to_path_buf(), rows }
+    }
+
+    fn key(l: &str, nz: &str, s: &str) -> String {
+        let (w, h) = SENSOR;
+        format!("{PEER_VERSION}|{l}|{nz}|{s}|{SEED}|{w}x{h}")
+    }
+
+    /// Adds a cell and rewrites the file atomically (merged with what another run wrote meanwhile).
+    fn insert(&mut self, key: String, p: Peers) -> anyhow::Result<()> {
+        let mut rows = std::fs::read_to_string(&self.path).map(|t| Self::parse(&t)).unwrap_or_default();
+        rows.extend(self.rows.drain());
+        rows.insert(key, p);
+        let mut keys: Vec<&String> = rows.keys().collect();
+        keys.sort();
+        let text: String = keys.iter().map(|k| {
+            let p = rows[*k];
+            format!("{k}\t{}\t{}\t{}\t{}\t{}\n", p.blurred, p.rl, p.its, p.wiener, p.balance)
+        }).collect();
+        if let Some(d) = self.path.parent() {
+            std::fs::create_dir_all(d)?;
+        }
+        lensrig::fsutil::write_atomic(&self.path, text.as_bytes(), Overwrite::Replace)?;
+        self.rows = rows;
+        Ok(())
+    }
+}
 
 /// The scene's linear planes on the sensor (mirror-tiled/cropped).
 fn scene(name: &str) -> anyhow::Result<Vec<Plane>> {
@@ -172,26 +244,45 @@ fn cpu_seconds() -> f64 {
 
 /// lensrig's result (clipped), wall and CPU seconds.
 fn run_lensrig(blurred: &[Plane], grid: &PsfGrid, law: &NoiseLaw, coloured: bool) -> anyhow::Result<(Vec<Plane>, f64, f64)> {
-    let opts = DeconvOptions { noise: NoiseSource::Law(law.clone()), coloured_noise: coloured, ..DeconvOptions::default() };
+    let base = BASE.get().cloned().unwrap_or_default();
+    let opts = DeconvOptions { noise: NoiseSource::Law(law.clone()), coloured_noise: coloured, ..base };
     let (t, c) = (Instant::now(), cpu_seconds());
     let (out, _) = deblur(blurred, grid, &opts, &|_, _| {})?;
     Ok((clipped(&out), t.elapsed().as_secs_f64(), cpu_seconds() - c))
 }
 
+/// The peers' figures of a cell, from the cache or run (and cached).
+fn cached_peers(l: &str, nz: &str, s: &str, sharp: &[Plane], blurred: &[Plane], grid: &PsfGrid, cache: &mut PeerCache) -> anyhow::Result<Peers> {
+    let key = PeerCache::key(l, nz, s);
+    Ok(match cache.rows.get(&key) {
+        Some(p) => *p,
+        None => {
+            let (rl, its) = rl_peer(sharp, blurred, grid);
+            let (wiener, balance) = wiener_peer(sharp, blurred, grid);
+            let p = Peers { blurred: psnr(sharp, &clipped(blurred)), rl, its, wiener, balance };
+            cache.insert(key, p)?;
+            p
+        }
+    })
+}
+
 /// One table row (and the numbers the summary needs: split held out, lensrig − blurred, margin).
-fn cell(l: &str, nz: &str, s: &str, grid: &PsfGrid, est: Option<&PsfGrid>, coloured: bool) -> anyhow::Result<(String, bool, f64, f64)> {
+fn cell(l: &str, nz: &str, s: &str, grid: &PsfGrid, est: Option<&PsfGrid>, coloured: bool, cache: &mut PeerCache) -> anyhow::Result<(String, bool, f64, f64)> {
     let sharp = scene(s)?;
     let (law, pg) = noise_law(nz)?;
-    let blurred = blurred_noisy(&sharp, grid, pg, 2013);
-    let (pr, its) = rl_peer(&sharp, &blurred, grid);
-    let (pw, bal) = wiener_peer(&sharp, &blurred, grid);
+    let blurred = blurred_noisy(&sharp, grid, pg, SEED);
+    let peers = cached_peers(l, nz, s, &sharp, &blurred, grid, cache)?;
+    if est.is_none() && std::env::args().any(|x| x == "--peers-only") {
+        return Ok((String::new(), false, 0.0, 0.0));
+    }
+    let (pr, its, pw, bal) = (peers.rl, peers.its, peers.wiener, peers.balance);
     let (out, wall, cpu) = run_lensrig(&blurred, grid, &law, coloured)?;
     let est_db = match est {
         Some(g) => format!("{:.2}", psnr(&sharp, &run_lensrig(&blurred, g, &law, coloured)?.0)),
         None => "–".to_string(),
     };
     let held_out = !(l == "synth1" && nz == "gauss" && PHOTOS.contains(&s));
-    let (pb, pl) = (psnr(&sharp, &clipped(&blurred)), psnr(&sharp, &out));
+    let (pb, pl) = (peers.blurred, psnr(&sharp, &out));
     let margin = pl - pr.max(pw);
     let (w, h) = SENSOR;
     let row = format!(
@@ -200,6 +291,66 @@ fn cell(l: &str, nz: &str, s: &str, grid: &PsfGrid, est: Option<&PsfGrid>, colou
         ssim_luma(&sharp, &out)
     );
     Ok((row, held_out, pl - pb, margin))
+}
+
+/// Squared error of `out` against `sharp` (both clipped to [0, 1]) per channel, summed over the
+/// `bright` pixels and over the rest, as shares of the whole image's MSE, plus the mean signed
+/// error in each region.
+fn region_errors(sharp: &[Plane], out: &[Plane], bright: &[bool]) -> Vec<[f64; 4]> {
+    let n = bright.len() as f64;
+    sharp
+        .iter()
+        .zip(out)
+        .map(|(s, o)| {
+            let mut e = [0.0; 4];
+            for ((a, b), &m) in s.data.iter().zip(&o.data).zip(bright) {
+                let d = (b.clamp(0.0, 1.0) - a.clamp(0.0, 1.0)) as f64;
+                let i = if m { 0 } else { 1 };
+                e[i] += d * d / n;
+                e[i + 2] += d;
+            }
+            let nb = bright.iter().filter(|m| **m).count().max(1) as f64;
+            e[2] /= nb;
+            e[3] /= (n - nb).max(1.0);
+            e
+        })
+        .collect()
+}
+
+/// `regions L N S`: the error of lensrig (defaults, flat denoiser, stationary noise level,
+/// cross-channel term off) and of Richardson–Lucy (100 iterations) split into bright objects (the sharp scene's
+/// luminance, Gaussian-smoothed over 3 px, above 2 × its median) and the background, per channel.
+fn regions(l: &str, nz: &str, s: &str) -> anyhow::Result<()> {
+    let sharp = scene(s)?;
+    let grid = lens(l)?;
+    let (law, pg) = noise_law(nz)?;
+    let blurred = blurred_noisy(&sharp, &grid, pg, SEED);
+    let luma = Plane::sum_of(&sharp);
+    let smooth = lensrig::image::filter::gaussian_blur(&luma, 3.0);
+    let mut sorted = smooth.data.clone();
+    sorted.sort_by(f32::total_cmp);
+    let thr = 2.0 * sorted[sorted.len() / 2];
+    let bright: Vec<bool> = smooth.data.iter().map(|v| *v > thr).collect();
+    println!("{l} × {nz} × {s}: bright region {:.1} % of pixels (smoothed luminance > {thr:.4}); MSE share bright / background and mean signed error bright / background, per channel R, G, B; PSNR", 100.0 * bright.iter().filter(|m| **m).count() as f64 / bright.len() as f64);
+    let ops: Vec<FieldBlur> = (0..3).map(|c| FieldBlur::new(&grid, c, blurred[c].width, blurred[c].height)).collect();
+    let rl: Vec<Plane> = blurred.iter().zip(&ops).map(|(b, op)| richardson_lucy(b, op, None, &[100]).remove(0)).collect();
+    let base = DeconvOptions { noise: NoiseSource::Law(law.clone()), ..DeconvOptions::default() };
+    let variants: Vec<(&str, DeconvOptions)> = vec![
+        ("lensrig (defaults)", base.clone()),
+        ("lensrig, flat denoiser", DeconvOptions { coloured_noise: false, ..base.clone() }),
+        ("lensrig, stationary noise", DeconvOptions { local_noise: false, ..base.clone() }),
+        ("lensrig, cross-channel off", DeconvOptions { cross_weight: 0.0, ..base.clone() }),
+    ];
+    let mut outs: Vec<(String, Vec<Plane>)> = vec![("blurred".into(), blurred.clone()), ("RL 100".into(), rl)];
+    for (name, o) in variants {
+        outs.push((name.to_string(), deblur(&blurred, &grid, &o, &|_, _| {})?.0));
+    }
+    for (name, o) in &outs {
+        let e = region_errors(&sharp, o, &bright);
+        let f = |i: usize| e.iter().map(|c| format!("{:.2e}", c[i])).collect::<Vec<_>>().join(" ");
+        println!("{name:32} PSNR {:.2} | MSE bright {} | background {} | bias bright {} | background {}", psnr(&sharp, &clipped(o)), f(0), f(1), f(2), f(3));
+    }
+    Ok(())
 }
 
 fn write_scenes(dir: &Path) -> anyhow::Result<()> {
@@ -219,6 +370,9 @@ fn main() -> anyhow::Result<()> {
     if a.first().is_some_and(|x| x == "scenes") {
         return write_scenes(Path::new(a.get(1).map_or("data/scenes-extra", |s| s.as_str())));
     }
+    if a.first().is_some_and(|x| x == "regions") && a.len() >= 4 {
+        return regions(&a[1], &a[2], &a[3]);
+    }
     let list = |flag: &str, all: &[&str]| -> Vec<String> {
         a.iter().position(|x| x == flag).and_then(|i| a.get(i + 1)).map_or_else(|| all.iter().map(|s| s.to_string()).collect(), |v| v.split(',').map(str::to_string).collect())
     };
@@ -226,9 +380,16 @@ fn main() -> anyhow::Result<()> {
     let noises = list("--noise", &["pg15k", "gauss", "pg3k"]);
     let all_scenes: Vec<&str> = PHOTOS.iter().chain(&EXTRA).copied().collect();
     let scenes = list("--scene", &all_scenes);
-    let coloured = list("--denoise-noise", &["flat"]).first().is_some_and(|m| m == "coloured");
+    let default_mode = if DeconvOptions::default().coloured_noise { "coloured" } else { "flat" };
+    let coloured = list("--denoise-noise", &[default_mode]).first().is_some_and(|m| m == "coloured");
     let with_estimate = !a.iter().any(|x| x == "--no-estimate");
-    println!("denoiser noise model: {}; PSNR on linear values clipped to [0, 1]; peers with the TRUE PSFs and an oracle choice by PSNR (RL its from {{10, 30, 100}}, Wiener balance from {WIENER_BALANCE:?}); seconds: lensrig (true profile) wall / CPU", if coloured { "coloured" } else { "flat" });
+    let cross_weight: f32 = list("--cross-weight", &["3"])[0].parse()?;
+    let local_noise = !a.iter().any(|x| x == "--stationary-noise");
+    let _ = BASE.set(DeconvOptions { cross_weight, local_noise, ..DeconvOptions::default() });
+    let mut cache = PeerCache::load(Path::new(list("--peer-cache", &["target/deblur_matrix_peers.tsv"])[0].as_str()));
+    let total = noises.len() * lenses.len() * scenes.len();
+    let start = Instant::now();
+    println!("cross weight {cross_weight}, local noise {local_noise}; denoiser noise model: {}; PSNR on linear values clipped to [0, 1]; peers with the TRUE PSFs and an oracle choice by PSNR (RL its from {{10, 30, 100}}, Wiener balance from {WIENER_BALANCE:?}); seconds: lensrig (true profile) wall / CPU", if coloured { "coloured" } else { "flat" });
     println!("| lens | noise | scene | size | split | blurred dB | RL dB | Wiener dB | lensrig (true) dB | lensrig (estimated) dB | lensrig − best peer | SSIM (lensrig) | lensrig s (wall / CPU) | RL its / Wiener b |");
     println!("| --- | --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |");
     let mut grids: HashMap<String, PsfGrid> = HashMap::new();
@@ -248,9 +409,18 @@ fn main() -> anyhow::Result<()> {
                 None
             };
             for s in &scenes {
-                let (row, held_out, gain, margin) = cell(l, nz, s, grid, est.as_ref(), coloured)?;
+                let t = Instant::now();
+                let cached = cache.rows.contains_key(&PeerCache::key(l, nz, s));
+                let (row, held_out, gain, margin) = cell(l, nz, s, grid, est.as_ref(), coloured, &mut cache)?;
                 println!("{row}");
                 n += 1;
+                let per_cell = start.elapsed().as_secs_f64() / n as f64;
+                eprintln!(
+                    "cell {n}/{total} {l} × {nz} × {s}: {:.0} s (peers {}); ETA {:.0} s",
+                    t.elapsed().as_secs_f64(),
+                    if cached { "cached" } else { "run" },
+                    per_cell * (total - n) as f64
+                );
                 below += usize::from(gain < 0.0);
                 if held_out {
                     min_margin = min_margin.min(margin);

@@ -18,7 +18,8 @@
 //!
 //! `σ_b` is the block's noise level on the encoded axis: the linear noise level of the
 //! deconvolved channel times the slope `g'(v̄_b)` of the transfer curve at the block's mean
-//! linear brightness (the delta method). Work is done in strips of rows with a halo, so only a
+//! linear brightness (the delta method), and, for signal-dependent noise, by the local level
+//! of the noise law ([`DenoiseOptions::local_variance`]). Work is done in strips of rows with a halo, so only a
 //! strip's buffers are held besides the input and the output.
 
 use crate::image::{Plane, Transfer};
@@ -65,6 +66,13 @@ pub struct DenoiseOptions {
     /// method; smaller values account for the solver's prior, which already regularises dark
     /// regions more).
     pub slope_power: f32,
+    /// Local noise level (signal-dependent noise): per RGB channel, the ratio
+    /// `m_c(x) = V_c(x) / σ_c²` of the local noise variance to the variance `sigma` (or
+    /// `coefficient_variance`) describes. A block's level on plane `i` is multiplied by
+    /// `√(Σ_c a_ic m_c(b))`, `a_ic = w_ic σ_c² / Σ_c w_ic σ_c²` with `w_ic` the squared
+    /// opponent weights (identity without the opponent transform), `m_c` read at the block
+    /// centre. `None`: stationary noise.
+    pub local_variance: Option<Vec<Plane>>,
     pub parallel: bool,
 }
 
@@ -86,6 +94,7 @@ impl Default for DenoiseOptions {
             match_tau: 10.0,
             slope_power: 0.0,
             coefficient_variance: None,
+            local_variance: None,
             parallel: true,
         }
     }
@@ -275,6 +284,8 @@ struct Plan<'a> {
     sig_lin: Vec<f32>,
     rel: Vec<[f32; 64]>,
     slope: Slope,
+    /// `a_ic` of [`DenoiseOptions::local_variance`] per plane (empty without a map).
+    local_weights: Vec<Vec<f32>>,
 }
 
 /// One strip's decorrelated, encoded planes (rows `a..a + rows` of the image) and the linear
@@ -310,7 +321,16 @@ impl<'a> Plan<'a> {
             sig_lin,
             rel,
             slope: Slope::new(opts.transfer, opts.slope_power),
+            local_weights: local_weights(opts, planes.len(), opponent),
         }
+    }
+
+    /// `√(Σ_c a_ic m_c(b))` of [`DenoiseOptions::local_variance`] for plane `ch` and the block at
+    /// (local row `ly` of strip `s`, column `px`); 1 without a map.
+    fn local_gain(&self, s: &Strip, ly: usize, px: usize, ch: usize) -> f32 {
+        let (Some(maps), Some(a)) = (&self.opts.local_variance, self.local_weights.get(ch)) else { return 1.0 };
+        let k = (s.a + ly + B / 2).min(self.h - 1) * self.w + (px + B / 2).min(self.w - 1);
+        a.iter().zip(maps).map(|(a, m)| a * m.data[k].max(0.0)).sum::<f32>().sqrt()
     }
 
     /// Block origins (image rows) in `[lo, hi)`.
@@ -378,7 +398,7 @@ impl<'a> Plan<'a> {
                     if self.bm && ch < self.nbm {
                         continue;
                     }
-                    let sg = self.sig_lin[ch] * g;
+                    let sg = self.sig_lin[ch] * g * self.local_gain(s, ly, px, ch);
                     load_block(plane, w, ly, px, &mut x);
                     dct2(&x, &mut c);
                     let rc = &self.rel[ch];
@@ -412,7 +432,7 @@ impl<'a> Plan<'a> {
                     if self.bm && ch < self.nbm {
                         continue;
                     }
-                    let sg = self.sig_lin[ch] * g;
+                    let sg = self.sig_lin[ch] * g * self.local_gain(s, ly, px, ch);
                     let s2v = sg * sg;
                     load_block(&s.noisy[ch], w, ly, px, &mut x);
                     dct2(&x, &mut c);
@@ -437,7 +457,7 @@ impl<'a> Plan<'a> {
     fn bm_planes(&self, s: &Strip, pilot: Option<&[Vec<f32>]>, refs: &[usize], num: &mut [Vec<f32>], den: &mut [Vec<f32>]) {
         let ctx = BmContext { w: self.w, h: self.h, a: s.a, b: s.a + s.rows, xs: &self.xs, opts: self.opts };
         for ch in 0..self.nbm.min(s.noisy.len()) {
-            let sigma = |ly: usize, px: usize| self.sig_lin[ch] * self.block_gain(s, ly, px);
+            let sigma = |ly: usize, px: usize| self.sig_lin[ch] * self.block_gain(s, ly, px) * self.local_gain(s, ly, px, ch);
             bm_stage(&ctx, &s.noisy[ch], pilot.map(|p| p[ch].as_slice()), refs, (&sigma, &self.rel[ch]), &mut num[ch], &mut den[ch]);
         }
     }
@@ -500,6 +520,22 @@ fn wiener_shrink(c: &mut [f32; 64], pc: &[f32; 64], s2v: f32, rel: &[f32; 64]) -
         wn += f * f * r * r;
     }
     wn
+}
+
+/// The weights `a_ic` of [`DenoiseOptions::local_variance`] (empty without a map or when the
+/// map or `sigma` does not cover every channel).
+fn local_weights(opts: &DenoiseOptions, nch: usize, opponent: bool) -> Vec<Vec<f32>> {
+    let ok = opts.local_variance.as_ref().is_some_and(|m| m.len() == nch) && opts.sigma.len() >= nch;
+    if !ok {
+        return Vec::new();
+    }
+    (0..nch)
+        .map(|i| {
+            let w: Vec<f32> = (0..nch).map(|c| if opponent { OPP[i][c] * OPP[i][c] } else { f32::from(u8::from(i == c)) } * opts.sigma[c] * opts.sigma[c]).collect();
+            let total = w.iter().sum::<f32>();
+            w.iter().map(|v| if total > 0.0 { v / total } else { 0.0 }).collect()
+        })
+        .collect()
 }
 
 /// The noise level `σ` of each decorrelated plane (linear axis, before the transfer slope) and
@@ -720,5 +756,30 @@ mod tests {
         let ec: f32 = c.iter().map(|v| v * v).sum();
         assert!((e - ec).abs() < 1e-3 * e);
         assert!(x.iter().zip(&y).all(|(a, b)| (a - b).abs() < 1e-5));
+    }
+
+    /// A local variance map of 4 everywhere is the same as twice the stationary level; a map of
+    /// 1 changes nothing.
+    #[test]
+    fn local_variance_scales_the_block_noise_level() {
+        let (w, h) = (48, 40);
+        let mut noise = crate::deconv::synth::GaussianNoise::new(5);
+        let planes: Vec<Plane> = (0..3)
+            .map(|c| {
+                let mut p = Plane::from_fn(w, h, |x, y| 0.3 + 0.1 * c as f32 + 0.2 * ((x / 9 + y / 7) % 2) as f32);
+                noise.add_to(&mut p, 0.02);
+                p
+            })
+            .collect();
+        let base = DenoiseOptions { sigma: vec![0.02, 0.01, 0.03], parallel: false, ..DenoiseOptions::default() };
+        let maps = |v: f32| Some(vec![Plane::filled(w, h, v); 3]);
+        let plain = denoise(&planes, &base);
+        let ones = denoise(&planes, &DenoiseOptions { local_variance: maps(1.0), ..base.clone() });
+        let doubled = denoise(&planes, &DenoiseOptions { sigma: base.sigma.iter().map(|s| 2.0 * s).collect(), ..base.clone() });
+        let four = denoise(&planes, &DenoiseOptions { local_variance: maps(4.0), ..base.clone() });
+        let diff = |a: &[Plane], b: &[Plane]| a.iter().zip(b).flat_map(|(p, q)| p.data.iter().zip(&q.data).map(|(x, y)| (x - y).abs())).fold(0.0f32, f32::max);
+        assert!(diff(&plain, &ones) < 1e-5, "{}", diff(&plain, &ones));
+        assert!(diff(&doubled, &four) < 1e-4, "{}", diff(&doubled, &four));
+        assert!(diff(&plain, &four) > 1e-3, "the map must matter");
     }
 }

@@ -488,3 +488,30 @@ fn coloured_denoiser_quiets_a_flat_patch_behind_a_defocused_channel() {
     }
     assert!(region_std(&coloured[0], x0, x1, y0, y1) < region_std(&flat[0], x0, x1, y0, y1));
 }
+
+/// The local noise maps follow the law at the input's smoothed level: 1 on a uniform input at
+/// the reference level, below 1 on the dark half and above on the bright half of a two-level
+/// input, `g x + r²` over `σ²` far from the step; none for a white law.
+#[test]
+fn local_noise_maps_follow_the_law_at_the_local_level() {
+    let (w, h) = (96, 64);
+    let grid = SyntheticLens::new(9, 3).grid(w, h, 3, 2, 2);
+    let law = crate::profile::noise::NoiseLaw::new(vec![1.0 / 15_000.0; 3], vec![4.0 / 15_000.0; 3], "test");
+    let stage = |planes: &[Plane], law: &crate::profile::noise::NoiseLaw| {
+        let opts = DeconvOptions { noise: noise::NoiseSource::Law(law.clone()), ..DeconvOptions::default() };
+        noise_stage(planes, &grid, &opts).expect("noise stage")
+    };
+    let uniform = vec![Plane::filled(w, h, 0.4); 3];
+    let maps = local_noise_maps(&uniform, &grid, &stage(&uniform, &law)).expect("maps");
+    assert!(maps.iter().all(|m| m.data.iter().all(|v| (v - 1.0).abs() < 1e-3)));
+    let step = vec![Plane::from_fn(w, h, |x, _| if x < w / 2 { 0.02 } else { 0.8 }); 3];
+    let st = stage(&step, &law);
+    let maps = local_noise_maps(&step, &grid, &st).expect("maps");
+    let s2 = st.sigma[0] * st.sigma[0];
+    let (dark, bright) = (maps[0].get(5, 30), maps[0].get(w - 5, 30));
+    assert!((dark - law.variance(0, 0.02) / s2).abs() < 1e-3 * dark.max(1e-3), "{dark}");
+    assert!((bright - law.variance(0, 0.8) / s2).abs() < 1e-3 * bright, "{bright}");
+    assert!(dark < 0.1 && bright > 1.5, "{dark} {bright}");
+    let white = crate::profile::noise::NoiseLaw::white(0.01, 3);
+    assert!(local_noise_maps(&step, &grid, &stage(&step, &white)).is_none());
+}

@@ -33,14 +33,11 @@ use crate::image::filter::gaussian_blur;
 use crate::optics::psf_grid::PsfGrid;
 use crate::profile::RegistrationInfo;
 
-/// The kernel step of every fit. [`KernelStep::Tangent`] converges at 31–45 px where this one
-/// stalls (docs/diagnosis.md, "The kernel step on the tangent space"), and with the noise
-/// curve's corrections ([`super::noise::measure_residual`]'s level normalisation,
-/// [`Fit::highpass_absorbed`]) it passes 17 of the 19 proof tests; not switched on yet because
-/// `pinhole_diffraction`'s MTF50 then comes out 12 % low (0.230 against 0.262 cycles/px,
-/// bound 10 %) and the tilted target without its model ends at 1.027× the true floor (the test
-/// wants it above 1.10).
-pub const KERNEL_STEP: KernelStep = KernelStep::WholeSpace;
+/// The kernel step of every fit: [`KernelStep::Tangent`], which converges at 31–45 px where
+/// the whole-space step stalls (docs/diagnosis.md, "The kernel step on the tangent space");
+/// with the noise curve's corrections ([`super::noise::measure_residual`]'s level
+/// normalisation, [`Fit::highpass_absorbed`]) the proof suite passes with it.
+pub const KERNEL_STEP: KernelStep = KernelStep::Tangent;
 
 /// Stored values at or above this count as clipped.
 pub const CLIP: f32 = 0.995;

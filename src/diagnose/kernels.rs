@@ -18,8 +18,8 @@
 //! FISTA ([`crate::solve::fista`], no stall rule: a fixed number of iterations) with a step
 //! `1/L` from power iteration, and the exact Euclidean projection onto `{U ≥ 0, ΣU = S}` (the
 //! scaled simplex). Two steps ([`KernelStep`]): `L = 1.05 ‖AᵀWA‖` on the whole space, no
-//! restart (what the diagnosis uses today, [`super::fit::KERNEL_STEP`]), or
-//! `L = 1.05 ‖P AᵀWA P‖` with adaptive restart, where `P` removes each kernel's mean. The
+//! restart (the former step), or `L = 1.05 ‖P AᵀWA P‖` with adaptive restart (what the
+//! diagnosis uses, [`super::fit::KERNEL_STEP`]), where `P` removes each kernel's mean. The
 //! iterates stay on the simplices' affine hull, where the projection discards the gradient's
 //! per-kernel flat component, so only the Hessian on the tangent space (zero-sum kernels)
 //! bounds the step, as in [`crate::estimate::joint`]. The whole-space norm is set by the flat

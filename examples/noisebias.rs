@@ -36,6 +36,10 @@ fn main() {
     let mut f = fit(&data, &init.corrections, &init, settings);
     let raw = residual_curves(open, &f);
     let dof = measure_kernel_dof(&data, &f, settings, 0x00d0_f5eed);
+    if std::env::var_os("PROBE_ROUNDS1").is_some() {
+        let one = measure_kernel_dof(&data, &f, FitSettings { rounds: 1, ..settings }, 0x00d0_f5eed);
+        println!("probe 3 rounds: df {:.1} α {:?}; 1 round: df {:.1} α {:?}", dof.df, dof.highpass_absorbed, one.df, one.highpass_absorbed);
+    }
     f.set_dof(dof.clone());
     let corrected = residual_curves(open, &f);
     let sensor = Sensor::default();

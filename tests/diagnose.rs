@@ -62,6 +62,10 @@ fn clean_data_is_no_mismatch_and_the_noise_model_matches_the_sensor() {
         }
         (s / n as f64).sqrt()
     };
+    let rendered = true_noise_reduced_chi2(&d.final_fit, &c);
+    // the statistic the tilt test bounds from below (measured 0.972 here)
+    let bound = lensrig::diagnose::DiagnoseOptions::default().consistent;
+    assert!(rendered <= bound, "reduced χ² on the rendered noise {rendered:.4} above {bound}");
     let floor = d.final_fit.noise_rms();
     assert!((floor / true_floor - 1.0).abs() < 0.10, "noise floor {floor:.3e} vs true {true_floor:.3e}");
 }
@@ -174,25 +178,49 @@ fn psf_field_variation_is_named() {
 
 /// Named first and at the floor: the reference's blur is modelled as the band-averaged Airy
 /// pattern times a Gaussian of the lens's residual aberrations at the stop
-/// (`aberration_sigma_px`). At f/11 (this seed) the aberrations are not Gaussian and trade off
-/// against the Airy radius (a smaller core with a wider Gaussian blurs alike), so the figure
-/// checked against the rendered PSFs is the one the data determine: the reference's MTF50
-/// (the radius alone comes out within 2 % at f/17–f/21, README table).
+/// (`aberration_sigma_px`). What the data determine is the transfer from the reference to the
+/// wide-open capture, `K̂/D̂` (the fitted kernels over the fitted reference PSF): any `D`
+/// predicts alike once the kernels absorb the difference, as long as they stay non-negative.
+/// With converged kernels (the tangent step) the fit at f/11 (this seed) puts more of the blur
+/// in both: kernels and reference 26 % lower at 0.30 cycles/px than rendered, their ratio
+/// within 0.6 % (reference MTF50 0.230 against 0.262 rendered, Airy radius 0.71 against
+/// 1.49 px). So the figure checked is `K̂/D̂`, mean over tiles along a pixel row, against the
+/// rendered `K̂/D̂` on 0.05–0.40 cycles/px (where the rendered reference passes ≥ 34 %):
+/// within [`TRANSFER_TOLERANCE`] (measured 0.85 %; the base model, `D = δ`, misses by 5.9 %
+/// at 0.40 cycles/px, where the reference's blur shows).
 #[test]
-fn pinhole_diffraction_is_named_and_its_mtf_estimated() {
+fn pinhole_diffraction_is_named_and_its_transfer_recovered() {
+    use lensrig::diagnose::proof::kernel_modulation;
     let (row, d, c) = case(Some("pinhole_diffraction"), 1);
     assert_eq!(d.effects.first().map(|e| e.name.as_str()), Some("pinhole_diffraction"), "rounds {:?}", d.rounds);
     let e = &d.effects[0];
     assert!(e.after.reduced_chi2 < 0.85 * e.before.reduced_chi2, "{:?} → {:?}", e.before.reduced_chi2, e.after.reduced_chi2);
     assert!(e.evidence.contains("non-negative kernel"), "{}", e.evidence);
-    let got = e.parameters["mtf50_cycles_per_px"][0].as_f64().unwrap();
-    let want = c.truth["mtf50_cycles_per_px"].as_f64().unwrap();
-    assert!((got / want - 1.0).abs() < 0.10, "reference MTF50 {got:.3} vs rendered {want:.3} cycles/px");
+    let psf = d.final_fit.model.corrections.pinhole_diffraction.as_ref().expect("the correction is in the final model").channel(0).0;
+    let fitted = &d.final_fit.model.grid.kernels[0];
+    let (open, pin) = (c.open.psfs.as_ref().expect("rendered PSFs"), c.pinhole.psfs.as_ref().expect("rendered PSFs"));
+    let base = &d.base.model.grid.kernels[0];
+    let mut worst = (0.0f64, 0.0f64, 0.0f64);
+    for i in 1..=8 {
+        let f = 0.05 * i as f64;
+        let want = kernel_modulation(&open.kernels[0], f) / kernel_modulation(&pin.kernels[0], f);
+        let got = kernel_modulation(fitted, f) / psf.transfer(f, 0.0);
+        let err = (got / want - 1.0).abs();
+        eprintln!("K̂/D̂ at {f:.2} cycles/px: fitted {got:.4}, rendered {want:.4} (base model {:.4})", kernel_modulation(base, f));
+        if err > worst.0 {
+            worst = (err, f, got / want);
+        }
+    }
+    assert!(worst.0 < TRANSFER_TOLERANCE, "transfer from the reference to the wide-open capture off by {:.1}% at {:.2} cycles/px; parameters {}, truth {}", 100.0 * worst.0, worst.1, e.parameters, c.truth);
     let r = e.parameters["airy_radius_px"][0].as_f64().unwrap();
     assert!(r > 0.0 && r < 2.0 * c.truth["airy_radius_px"].as_f64().unwrap(), "Airy radius {r}");
     assert!(e.parameters["aberration_sigma_px"].as_f64().is_some_and(|v| (0.0..=1.5).contains(&v)), "{}", e.parameters);
     assert!(row.floor_ratio <= FLOOR, "final residual {:.3}× the floor", row.floor_ratio);
 }
+
+/// Relative error allowed on the fitted `K̂/D̂` of `pinhole_diffraction`: between the fit's
+/// measured error (0.85 %, seed 1) and the base model's (5.9 %).
+const TRANSFER_TOLERANCE: f64 = 0.025;
 
 /// Two effects concealed together (issue 17): both named first, in either order, and the fit
 /// at the floor (the verdict is not checked: on vignetting + black level, seed 12, it reads
@@ -240,19 +268,46 @@ fn misregistration_and_pinhole_diffraction_are_both_named() {
 }
 
 /// A target tilted between the captures (a keystone) with `target_tilt` left out of the
-/// catalogue: the verdict is "unexplained", says where the residual is and what it depends
-/// on, and the fit stays above the floor (a finer kernel grid, the nearest catalogue effect,
-/// follows the keystone only at its tile centres).
+/// catalogue: the verdict is "unexplained" because χ² remains (not for the noise law), says
+/// where the residual is and what it depends on, and the fit stays above the floor. "Above the
+/// floor" is tested on χ², not on the residual's RMS: the keystone's misfit sits at the corners
+/// and on edges, and a finer kernel grid (`psf_field_variation`, the nearest catalogue effect)
+/// follows it at its tile centres, so the field-wide RMS is only 1.027× the true floor
+/// (clean data: 0.98×) while χ² is well above its sampling spread `√(2/(N − p_eff))` (0.007):
+/// reduced χ² 1.189 on the measured noise curve and 1.210 on the rendered noise (clean data:
+/// 0.990 and 0.972). Both must exceed the verdict's consistency bound by three sampling
+/// standard deviations.
 #[test]
 fn target_tilt_is_unexplained_without_its_model() {
     let spec = CaseSpec::default();
     let mut opts = proof_options(&spec);
     opts.excluded = vec!["target_tilt".into()];
-    let (row, d, c) = bench_case(Some("target_tilt"), 13, &spec, &opts).expect("diagnosis runs");
-    assert!(d.verdict.starts_with("unexplained"), "{} (truth {})", d.verdict, c.truth);
+    let (_, d, c) = bench_case(Some("target_tilt"), 13, &spec, &opts).expect("diagnosis runs");
+    assert!(d.verdict.starts_with("unexplained") && d.verdict.contains("remains"), "{} (truth {})", d.verdict, c.truth);
     assert!(d.verdict.contains("worst at tile") && d.verdict.contains("residual depends on"), "{}", d.verdict);
     assert!(d.effects.iter().all(|e| e.name != "target_tilt"));
-    assert!(row.floor_ratio > FLOOR, "final residual {:.3}× the floor: the excluded effect was absorbed", row.floor_ratio);
+    let f = &d.final_fit;
+    let dof = f.n() as f64 - f.effective_params();
+    let bound = opts.consistent + 3.0 * (2.0 / dof).sqrt();
+    let rendered = true_noise_reduced_chi2(f, &c);
+    eprintln!("tilt without its model: reduced χ² {:.4} (measured curve), {rendered:.4} (rendered noise), bound {bound:.4}", f.reduced_chi2());
+    assert!(f.reduced_chi2() > bound, "reduced χ² {:.4} ≤ {bound:.4}: the excluded effect was absorbed", f.reduced_chi2());
+    assert!(rendered > bound, "χ² on the rendered noise {rendered:.4} ≤ {bound:.4}: the excluded effect was absorbed");
+}
+
+/// `Σ r² / σ²_true / (N − p_eff)` over the fit's evaluated pixels: the reduced χ² against the
+/// case's rendered noise variance instead of the measured curve.
+fn true_noise_reduced_chi2(f: &lensrig::diagnose::fit::Fit, c: &lensrig::diagnose::proof::Case) -> f64 {
+    let mut s = 0.0f64;
+    for ch in 0..f.eval.len() {
+        for (i, &m) in f.eval[ch].iter().enumerate() {
+            if m {
+                let r2 = (f.normalized[ch].data[i] as f64).powi(2) * f.variance[ch].data[i] as f64;
+                s += r2 / c.true_variance[ch].data[i] as f64;
+            }
+        }
+    }
+    s / (f.n() as f64 - f.effective_params())
 }
 
 /// The same pair with `target_tilt` in the catalogue: named first, the perspective row within

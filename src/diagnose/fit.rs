@@ -23,7 +23,7 @@
 //!
 //! Parameters: `C·(T·(k² − 1) + 1)` for the kernels and sums plus each correction's own.
 
-use super::kernels::{fit_kernels, kernel_divergence, KernelFitSettings, KernelStep};
+use super::kernels::{fit_kernels_warm, kernel_divergence, KernelFitSettings, KernelStep, StepNorm};
 use crate::optics::kernel_operator::KernelOperator;
 use super::model::{model_transfer, reference_planes, Corrections, GlareCorrection};
 use super::noise::{srgb_slope, NoiseCurve};
@@ -33,14 +33,11 @@ use crate::image::filter::gaussian_blur;
 use crate::optics::psf_grid::PsfGrid;
 use crate::profile::RegistrationInfo;
 
-/// The kernel step of every fit. [`KernelStep::Tangent`] converges at 31–45 px where this one
-/// stalls (docs/diagnosis.md, "The kernel step on the tangent space"), and with the noise
-/// curve's corrections ([`super::noise::measure_residual`]'s level normalisation,
-/// [`Fit::highpass_absorbed`]) it passes 17 of the 19 proof tests; not switched on yet because
-/// `pinhole_diffraction`'s MTF50 then comes out 12 % low (0.230 against 0.262 cycles/px,
-/// bound 10 %) and the tilted target without its model ends at 1.027× the true floor (the test
-/// wants it above 1.10).
-pub const KERNEL_STEP: KernelStep = KernelStep::WholeSpace;
+/// The kernel step of every fit: [`KernelStep::Tangent`], which converges at 31–45 px where
+/// the whole-space step stalls (docs/diagnosis.md, "The kernel step on the tangent space");
+/// with the noise curve's corrections ([`super::noise::measure_residual`]'s level
+/// normalisation, [`Fit::highpass_absorbed`]) the proof suite passes with it.
+pub const KERNEL_STEP: KernelStep = KernelStep::Tangent;
 
 /// Stored values at or above this count as clipped.
 pub const CLIP: f32 = 0.995;
@@ -468,17 +465,18 @@ fn score_channel(mlin: &Plane, vl: &Plane, transfer: Transfer, clip: Option<f32>
 /// Fits `corrections` (their parameter values are starting points) to `data`, starting from
 /// `init`'s kernels and exposure ratios.
 pub fn fit(data: &Data, corrections: &Corrections, init: &Model, settings: FitSettings) -> Fit {
-    fit_masked(data, corrections, init, settings, &|_, _| true)
+    fit_on(data, corrections, init, settings, &|_, _| true, usize::MAX)
 }
 
-/// [`fit`] with the data term restricted to pixels where `keep(x, y)` (for cross-validation;
+/// [`fit`] with the data term restricted to pixels where `keep(x, y)` and, as in
+/// [`fit_subset`], to a spread subset of about `data_pixels` pixels (for cross-validation;
 /// the figures still cover the whole evaluation set).
 ///
 /// Stages: `Setup::new` (linear data and reference on the model's geometry, masks, kernel
 /// operators), `Setup::initial_params`, `settings.rounds` × `Setup::round` (kernels, then
 /// Gauss–Newton on the scalars), `Setup::final_model` and `Setup::figures`.
-pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings: FitSettings, keep: &dyn Fn(usize, usize) -> bool) -> Fit {
-    fit_on(data, corrections, init, settings, keep, usize::MAX)
+pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings: FitSettings, keep: &dyn Fn(usize, usize) -> bool, data_pixels: usize) -> Fit {
+    fit_on(data, corrections, init, settings, keep, data_pixels)
 }
 
 /// [`fit`] with the data term on a spread subset of about `data_pixels` pixels (every n-th
@@ -643,6 +641,8 @@ struct Setup<'a> {
     glare_planes: Option<Vec<Plane>>,
     ops: Vec<KernelOperator>,
     diffraction: Option<super::model::DiffractionCorrection>,
+    /// Per channel, the kernel step's norm estimate, warm-started between rounds.
+    norms: std::sync::Mutex<Vec<StepNorm>>,
 }
 
 /// The free parameters of a fit while it runs (see the module doc's model).
@@ -699,7 +699,8 @@ impl<'a> Setup<'a> {
         let masks = Masks::new(data, corr, &registration, grid0.kernel_size / 2, &kept);
         let glare_planes: Option<Vec<Plane>> = corr.veiling_glare.map(|g| reference.iter().map(|p| gaussian_blur(p, g.sigma_px)).collect());
         let diffraction = corr.pinhole_diffraction.clone();
-        Self { data, transfer, w, h, nch, reference, open_lin, noise_factor, grid0, masks, glare_planes, ops, diffraction }
+        let norms = std::sync::Mutex::new(vec![StepNorm::new(); nch]);
+        Self { data, transfer, w, h, nch, reference, open_lin, noise_factor, grid0, masks, glare_planes, ops, diffraction, norms }
     }
 
     /// The starting parameters: the initial kernels scaled by the exposure (less the glare's
@@ -795,7 +796,8 @@ impl<'a> Setup<'a> {
         p.variance_lin[c] = self.update_variance(c, &p.a_parts[c], &p.u[c], g, p.glare_amp[c], p.beta[c]);
         let (y, wt) = self.kernel_target(c, g, p);
         if kset.iterations > 0 {
-            let (nu, _s) = fit_kernels(&self.ops[c], &y, &wt, &p.u[c], kset);
+            let mut norms = self.norms.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+            let (nu, _s) = fit_kernels_warm(&self.ops[c], &y, &wt, &p.u[c], kset, &mut norms[c]);
             p.u[c] = nu;
             p.a_parts[c] = self.blur_part(c, &p.u[c]);
         }

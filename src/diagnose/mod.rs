@@ -256,7 +256,7 @@ pub fn diagnose(open: &Image, pinhole: &Image, profile: Option<&Profile>, opts: 
     clock.lap("effect search");
     let (current, final_analysis, effects, rounds) = (search.current, search.analysis, search.effects, search.rounds);
     let verdict = verdict(&effects, &current, &final_analysis, opts);
-    let cross_validation = cross_validate(&data, &current, opts.candidate_fit);
+    let cross_validation = cross_validate(&data, &current, opts.candidate_fit, opts.screen_pixels);
     clock.lap("cross-validation");
     let noise = noise_reports(&data, &current, open, repeat_noise);
     let out_profile = corrected_profile(&base_profile, &current, open, &verdict)?;
@@ -550,10 +550,10 @@ fn corrected_profile(base_profile: &Profile, current: &Fit, open: &Image, verdic
 
 /// Held-out χ²: the model is refitted on one colour of a 16-px checkerboard and evaluated on
 /// the other, both ways; returns `[held-out reduced χ², in-sample reduced χ²]`.
-fn cross_validate(data: &Data, current: &Fit, settings: FitSettings) -> [f64; 2] {
+fn cross_validate(data: &Data, current: &Fit, settings: FitSettings, data_pixels: usize) -> [f64; 2] {
     let mut held = (0.0f64, 0usize);
     for parity in 0..2 {
-        let f = fit::fit_masked(data, &current.model.corrections, &current.model, settings, &|x, y| ((x / 16) + (y / 16)) % 2 == parity);
+        let f = fit::fit_masked(data, &current.model.corrections, &current.model, settings, &|x, y| ((x / 16) + (y / 16)) % 2 == parity, data_pixels);
         for c in 0..f.normalized.len() {
             for (i, z) in f.normalized[c].data.iter().enumerate() {
                 let (x, y) = (i % f.normalized[c].width, i / f.normalized[c].width);

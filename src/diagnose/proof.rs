@@ -411,29 +411,32 @@ fn true_variance(open: &Rendered, pinhole: &Rendered, sc: &[Plane], s: &Setup, (
         .collect()
 }
 
-/// MTF50 of a set of kernels along a pixel row: the frequency (cycles per pixel) at which
-/// the tiles' mean modulation `mean_t |Σ K_t(x, y)·e^{−2πi·f·x}| / ΣK_t` falls to one half
-/// (bisection; 0.5 when still above one half at Nyquist).
-pub fn kernel_mtf50(kernels: &[Plane]) -> f64 {
-    let m = |f: f64| {
-        kernels
-            .iter()
-            .map(|k| {
-                let (mut re, mut im) = (0.0f64, 0.0f64);
-                for y in 0..k.height {
-                    for x in 0..k.width {
-                        let a = -2.0 * std::f64::consts::PI * f * x as f64;
-                        let v = k.get(x, y) as f64;
-                        re += v * a.cos();
-                        im += v * a.sin();
-                    }
+/// Mean modulation of a set of kernels along a pixel row at `f` cycles per pixel:
+/// `mean_t |Σ K_t(x, y)·e^{−2πi·f·x}| / ΣK_t`.
+pub fn kernel_modulation(kernels: &[Plane], f: f64) -> f64 {
+    kernels
+        .iter()
+        .map(|k| {
+            let (mut re, mut im) = (0.0f64, 0.0f64);
+            for y in 0..k.height {
+                for x in 0..k.width {
+                    let a = -2.0 * std::f64::consts::PI * f * x as f64;
+                    let v = k.get(x, y) as f64;
+                    re += v * a.cos();
+                    im += v * a.sin();
                 }
-                re.hypot(im) / k.sum().max(1e-30)
-            })
-            .sum::<f64>()
-            / kernels.len().max(1) as f64
-    };
-    super::diffraction::half_modulation(m)
+            }
+            re.hypot(im) / k.sum().max(1e-30)
+        })
+        .sum::<f64>()
+        / kernels.len().max(1) as f64
+}
+
+/// MTF50 of a set of kernels along a pixel row: the frequency (cycles per pixel) at which
+/// their mean modulation ([`kernel_modulation`]) falls to one half (bisection; 0.5 when still
+/// above one half at Nyquist).
+pub fn kernel_mtf50(kernels: &[Plane]) -> f64 {
+    super::diffraction::half_modulation(|f| kernel_modulation(kernels, f))
 }
 
 /// Radially averaged power spectral density of a plane (mean removed; per-pixel

@@ -214,7 +214,7 @@ fn bench(a: &DiagnoseArgs, seeds: u64) -> Result<()> {
             if a.bench_effect.is_some() {
                 print_details(&c.truth, &d);
             }
-            eprintln!("{} seed {seed}: rendering {:.1} s; {}", r.effect, r.render_seconds, d.stage_seconds.iter().map(|(n, s)| format!("{n} {s:.1} s")).collect::<Vec<_>>().join(", "));
+            eprintln!("{} seed {seed}: rendering {:.1} s; {}", r.effect, r.render_seconds, d.stage_seconds.iter().map(|t| format!("{} {:.1} s", t.stage, t.wall)).collect::<Vec<_>>().join(", "));
             total += 1;
             ok += r.correct as usize;
             print_row(&r);

@@ -138,6 +138,11 @@ impl StepNorm {
     }
 }
 
+/// Pixels per kernel, `k²` (1 without kernels).
+fn kernel_area(init: &[Plane]) -> usize {
+    init.first().map_or(1, |k| k.width * k.height).max(1)
+}
+
 /// Fits the kernels of one channel (see the module docs), starting from `init` (each tile's
 /// kernel is scaled to the common sum first). Returns the kernels `U_t` (summing to the fitted
 /// `S`) and `S`.
@@ -147,8 +152,7 @@ pub fn fit_kernels(op: &KernelOperator, y: &Plane, weight: &[f32], init: &[Plane
 
 /// [`fit_kernels`] with the step's norm estimated from `norm`'s warm start ([`StepNorm`]).
 pub fn fit_kernels_warm(op: &KernelOperator, y: &Plane, weight: &[f32], init: &[Plane], settings: KernelFitSettings, norm: &mut StepNorm) -> (Vec<Plane>, f32) {
-    let k2 = init.first().map_or(1, |k| k.width * k.height).max(1);
-    let l = norm.lipschitz(op, weight, k2, settings.step);
+    let l = norm.lipschitz(op, weight, kernel_area(init), settings.step);
     fit_kernels_with_step(op, y, weight, init, settings, l)
 }
 
@@ -220,8 +224,7 @@ pub fn kernel_divergence(op: &KernelOperator, y: &Plane, weight: &[f32], init: &
         }
     }
     // the two solves share the weights, hence the step
-    let k2 = init.first().map_or(1, |k| k.width * k.height).max(1);
-    let l = StepNorm::new().lipschitz(op, weight, k2, settings.step);
+    let l = StepNorm::new().lipschitz(op, weight, kernel_area(init), settings.step);
     let (ua, _) = fit_kernels_with_step(op, y, weight, init, settings, l);
     let (ub, _) = fit_kernels_with_step(op, &yp, weight, init, settings, l);
     let (pa, pb) = (op.apply_planes(&ua), op.apply_planes(&ub));

@@ -227,9 +227,10 @@ pub struct Diagnosis {
     /// The corrected profile.
     pub profile: Profile,
     pub open: Image,
-    /// Wall-clock seconds per stage: base estimate, base fit (with its degrees-of-freedom
-    /// probe), effect search (rounds, polish, probes), cross-validation.
-    pub stage_seconds: Vec<(&'static str, f64)>,
+    /// Wall and CPU seconds per stage ([`crate::estimate::stage_clock`]): base estimate, base
+    /// fit (with its degrees-of-freedom probe), effect search (rounds, polish, probes),
+    /// cross-validation.
+    pub stage_seconds: Vec<crate::estimate::StageTime>,
 }
 
 /// Diagnoses a wide-open / pinhole pair (as stored; `open.transfer` is the declared encoding)
@@ -243,43 +244,24 @@ pub fn diagnose(open: &Image, pinhole: &Image, profile: Option<&Profile>, opts: 
     if dims(open) != dims(pinhole) {
         return Err(DiagnoseError::Mismatch { open: dims(open), pinhole: dims(pinhole) });
     }
-    let mut clock = Stages::default();
+    let (mut lap, mut stage_seconds) = (crate::estimate::stage_clock(), Vec::new());
     let base_profile = base_profile(open, pinhole, profile, opts)?;
-    clock.lap("base estimate");
+    stage_seconds.push(lap("base estimate"));
     let (mut data, base, repeat_noise) = base_model(open, pinhole, &base_profile, opts);
-    clock.lap("base fit");
+    stage_seconds.push(lap("base fit"));
     let base_analysis = analyse(&base);
     if opts.progress {
         eprintln!("base model: reduced χ² {:.3} (noise floor {:.3e} RMS; {} pixels, {} parameters, {:.0} effective)", base.reduced_chi2(), base.noise_rms(), base.n(), base.params, base.effective_params());
     }
     let search = add_effects(&mut data, base.clone(), base_analysis.clone(), repeat_noise, opts);
-    clock.lap("effect search");
+    stage_seconds.push(lap("effect search"));
     let (current, final_analysis, effects, rounds) = (search.current, search.analysis, search.effects, search.rounds);
     let verdict = verdict(&effects, &current, &final_analysis, opts);
     let cross_validation = cross_validate(&data, &current, opts.candidate_fit, opts.screen_pixels);
-    clock.lap("cross-validation");
+    stage_seconds.push(lap("cross-validation"));
     let noise = noise_reports(&data, &current, open, repeat_noise);
     let out_profile = corrected_profile(&base_profile, &current, open, &verdict)?;
-    Ok(Diagnosis { noise, base, base_analysis, final_fit: current, final_analysis, effects, rounds, verdict, cross_validation, profile: out_profile, open: open.clone(), stage_seconds: clock.laps })
-}
-
-/// Wall-clock laps of [`diagnose`]'s stages.
-struct Stages {
-    start: std::time::Instant,
-    laps: Vec<(&'static str, f64)>,
-}
-
-impl Default for Stages {
-    fn default() -> Self {
-        Self { start: std::time::Instant::now(), laps: Vec::new() }
-    }
-}
-
-impl Stages {
-    fn lap(&mut self, name: &'static str) {
-        self.laps.push((name, self.start.elapsed().as_secs_f64()));
-        self.start = std::time::Instant::now();
-    }
+    Ok(Diagnosis { noise, base, base_analysis, final_fit: current, final_analysis, effects, rounds, verdict, cross_validation, profile: out_profile, open: open.clone(), stage_seconds })
 }
 
 /// The given profile (checked against the captures), or one estimated from them.

@@ -301,8 +301,9 @@ pub struct StageTime {
     pub cpu: Option<f64>,
 }
 
-/// A lap clock: each call returns the time since the previous call (or its creation).
-fn stage_clock() -> impl FnMut(&'static str) -> StageTime {
+/// A lap clock: each call returns the time since the previous call (or its creation); the
+/// stages of [`estimate`] and of [`crate::diagnose::diagnose`].
+pub fn stage_clock() -> impl FnMut(&'static str) -> StageTime {
     let (mut last, mut last_cpu) = (std::time::Instant::now(), process_cpu_seconds());
     move |stage| {
         let (now, cpu) = (std::time::Instant::now(), process_cpu_seconds());

@@ -24,21 +24,62 @@ pub fn project_simplex(v: &mut [f32], total: f32) {
 
 /// The threshold of [`project_simplex`]: the fixed point of `S ← {i ∈ S : v_i > θ(S)}`,
 /// `θ(S) = (Σ_S v − total)/|S|`, from `S` = all entries (`θ` only grows, so `S` only shrinks).
+/// The active set is compacted in place in a per-thread buffer (no allocation per call) and
+/// summed by [`sum_f64`].
 fn simplex_threshold(v: &[f32], total: f64) -> f64 {
+    thread_local! {
+        static ACTIVE: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
+    }
     let n = v.len().max(1);
-    let mut theta = (v.iter().map(|&x| x as f64).sum::<f64>() - total) / n as f64;
-    let mut active: Vec<f32> = v.iter().copied().filter(|&x| x as f64 > theta).collect();
+    let mut theta = (sum_f64(v) - total) / n as f64;
+    let mut active = ACTIVE.with(|c| std::mem::take(&mut *c.borrow_mut()));
+    active.clear();
+    active.extend(v.iter().copied().filter(|&x| x as f64 > theta));
     loop {
-        let sum: f64 = active.iter().map(|&x| x as f64).sum();
-        let next = (sum - total) / active.len().max(1) as f64;
+        let next = (sum_f64(&active) - total) / active.len().max(1) as f64;
         let before = active.len();
-        active.retain(|&x| x as f64 > next);
+        let kept = retain_above(&mut active, next);
+        active.truncate(kept);
         theta = next;
-        if active.len() == before || active.is_empty() {
-            return theta;
+        if kept == before || kept == 0 {
+            break;
         }
     }
+    ACTIVE.with(|c| *c.borrow_mut() = active);
+    theta
 }
+
+/// Moves the entries of `a` above `t` to its front (order kept), branch-free; returns how many.
+fn retain_above(a: &mut [f32], t: f64) -> usize {
+    let mut j = 0;
+    for i in 0..a.len() {
+        let x = a[i];
+        a[j] = x;
+        j += usize::from(x as f64 > t);
+    }
+    j
+}
+
+/// `Σ v` in `f64` with [`SUM_LANES`] independent partial sums (entry `i` into lane `i mod
+/// SUM_LANES`, lanes added in order): the same value up to rounding as the sequential sum, without
+/// its chain of dependent additions.
+pub fn sum_f64(v: &[f32]) -> f64 {
+    let mut acc = [0.0f64; SUM_LANES];
+    let chunks = v.chunks_exact(SUM_LANES);
+    let rest = chunks.remainder();
+    for c in chunks {
+        for (a, &x) in acc.iter_mut().zip(c) {
+            *a += x as f64;
+        }
+    }
+    for (a, &x) in acc.iter_mut().zip(rest) {
+        *a += x as f64;
+    }
+    acc.iter().sum()
+}
+
+/// Partial sums of [`sum_f64`].
+const SUM_LANES: usize = 8;
 
 /// Forward differences of a `k × k` kernel that is zero outside its support, on the
 /// `(k+1) × (k+1)` grid of positions `-1..k` (so the steps into and out of the support count):
@@ -65,16 +106,17 @@ pub fn tv_gradient(b: &[f32], k: usize, out: &mut [f32]) {
     }
 }
 
-/// The adjoint of [`tv_gradient`].
+/// The adjoint of [`tv_gradient`]: kernel `(x, y)` (grid `(x + 1, y + 1)`, index `i`) gets
+/// `gx[i − 1] − gx[i] + gy[i − (k+1)] − gy[i]`, row by row on slices.
 pub fn tv_gradient_adjoint(g: &[f32], k: usize, out: &mut [f32]) {
     let k1 = k + 1;
     let (gx, gy) = g.split_at(k1 * k1);
-    for y in 0..k {
-        for x in 0..k {
-            // kernel (x, y) sits at grid (x + 1, y + 1)
-            let (gxx, gyy) = (x + 1, y + 1);
-            let i = gyy * k1 + gxx;
-            out[y * k + x] = gx[i - 1] - gx[i] + gy[i - k1] - gy[i];
+    for (y, o) in out[..k * k].chunks_exact_mut(k).enumerate() {
+        let i0 = (y + 1) * k1 + 1;
+        let (gxl, gxc) = (&gx[i0 - 1..i0 - 1 + k], &gx[i0..i0 + k]);
+        let (gyu, gyc) = (&gy[i0 - k1..i0 - k1 + k], &gy[i0..i0 + k]);
+        for ((((o, &a), &b), &c), &d) in o.iter_mut().zip(gxl).zip(gxc).zip(gyu).zip(gyc) {
+            *o = a - b + c - d;
         }
     }
 }
@@ -99,12 +141,11 @@ pub fn project_tv_dual(y: &mut [f32], radius: f32) {
     let m = y.len() / 2;
     let lam = radius.max(1e-30);
     let (gx, gy) = y.split_at_mut(m);
+    // branch-free: dividing by max(s, 1) leaves the pairs inside the disc exactly as they are
     for (a, b) in gx.iter_mut().zip(gy.iter_mut()) {
-        let s = (*a * *a + *b * *b).sqrt() / lam;
-        if s > 1.0 {
-            *a /= s;
-            *b /= s;
-        }
+        let s = ((*a * *a + *b * *b).sqrt() / lam).max(1.0);
+        *a /= s;
+        *b /= s;
     }
 }
 
@@ -113,21 +154,31 @@ pub fn project_tv_dual(y: &mut [f32], radius: f32) {
 /// `‖K‖² ≤ 8`. `q` ([`tv_dual_len`] long) is the warm start and is updated in place;
 /// `iterations` dual steps. Kernel-sized work only.
 pub fn prox_tv_simplex(v: &[f32], q: &mut [f32], gamma: f32, total: f32, k: usize, iterations: usize, out: &mut [f32]) {
-    let d = q.len();
-    let mut kx = vec![0.0f32; d];
-    let mut ktq = vec![0.0f32; k * k];
+    thread_local! {
+        static WORK: std::cell::RefCell<(Vec<f32>, Vec<f32>)> = const { std::cell::RefCell::new((Vec::new(), Vec::new())) };
+    }
+    let (mut kx, mut ktq) = WORK.with(|c| std::mem::take(&mut *c.borrow_mut()));
+    kx.resize(q.len(), 0.0);
+    ktq.resize(k * k, 0.0);
+    prox_tv_simplex_with(v, q, gamma, total, k, iterations, out, &mut kx, &mut ktq);
+    WORK.with(|c| *c.borrow_mut() = (kx, ktq));
+}
+
+/// [`prox_tv_simplex`] with caller-owned work buffers `kx` (`q.len()`) and `ktq` (`k²`).
+#[allow(clippy::too_many_arguments)]
+fn prox_tv_simplex_with(v: &[f32], q: &mut [f32], gamma: f32, total: f32, k: usize, iterations: usize, out: &mut [f32], kx: &mut [f32], ktq: &mut [f32]) {
     let gamma = gamma.max(1e-30);
     for it in 0..=iterations {
-        tv_gradient_adjoint(q, k, &mut ktq);
-        for ((o, &a), &b) in out.iter_mut().zip(v).zip(&ktq) {
+        tv_gradient_adjoint(q, k, ktq);
+        for ((o, &a), &b) in out.iter_mut().zip(v).zip(ktq.iter()) {
             *o = a - b;
         }
         project_simplex(out, total);
         if it == iterations {
             break;
         }
-        tv_gradient(out, k, &mut kx);
-        for (a, &g) in q.iter_mut().zip(&kx) {
+        tv_gradient(out, k, kx);
+        for (a, &g) in q.iter_mut().zip(kx.iter()) {
             *a += g / 8.0;
         }
         project_tv_dual(q, gamma);
@@ -183,6 +234,30 @@ mod tests {
                 assert_eq!(g[yy * k1 + xx], at(x + 1, y) - at(x, y));
                 assert_eq!(g[k1 * k1 + yy * k1 + xx], at(x, y + 1) - at(x, y));
             }
+        }
+    }
+
+    /// The lane sum equals the sequential `f64` sum up to rounding (lengths around the lane
+    /// count, a large one with mixed signs), and the slice form of the TV adjoint is the adjoint:
+    /// `⟨∇b, g⟩ = ⟨b, ∇ᵀg⟩` for random `b`, `g`.
+    #[test]
+    fn lane_sum_and_tv_adjoint_match_their_definitions() {
+        let mut r = Rng::new(17);
+        for n in [0usize, 1, 7, 8, 9, 4097] {
+            let v: Vec<f32> = (0..n).map(|_| r.normal() as f32).collect();
+            let seq: f64 = v.iter().map(|&x| x as f64).sum();
+            let scale: f64 = v.iter().map(|&x| (x as f64).abs()).sum::<f64>().max(1.0);
+            assert!((sum_f64(&v) - seq).abs() <= 1e-12 * scale, "n {n}: {} vs {seq}", sum_f64(&v));
+        }
+        for k in [1usize, 5, 8] {
+            let b: Vec<f32> = (0..k * k).map(|_| r.normal() as f32).collect();
+            let g: Vec<f32> = (0..tv_dual_len(k)).map(|_| r.normal() as f32).collect();
+            let (mut kb, mut ktg) = (vec![0.0; tv_dual_len(k)], vec![0.0; k * k]);
+            tv_gradient(&b, k, &mut kb);
+            tv_gradient_adjoint(&g, k, &mut ktg);
+            let dot = |a: &[f32], c: &[f32]| a.iter().zip(c).map(|(x, y)| *x as f64 * *y as f64).sum::<f64>();
+            let (lhs, rhs) = (dot(&kb, &g), dot(&b, &ktg));
+            assert!((lhs - rhs).abs() <= 1e-5 * lhs.abs().max(1.0), "k {k}: {lhs} vs {rhs}");
         }
     }
 

@@ -238,7 +238,10 @@ fn run_fista(p: &mut JointProblem, x: &mut [f32], opts: &SplitOptions, l_f: f32,
 /// on the subset's data (before the noise rescaling of [`refine_channel`]).
 fn selection_problem(p: &JointProblem, open: &Plane, sharp: &Plane, valid: &[bool], grid: &PsfGrid, kernels: &[Plane], fits: &[(f32, usize, f64)]) -> Option<JointProblem> {
     let pixels = p.op.covered().iter().filter(|&&c| c).count();
-    let mut sub = build_problem(open, sharp, valid, grid, kernels, fits, pixels.div_ceil(SELECT_BLOCK_STRIDE));
+    let cap = pixels.div_ceil(SELECT_BLOCK_STRIDE);
+    // the subset of p's blocks shares their sharp-image spectra
+    let op = p.op.subsampled(cap).unwrap_or_else(|| KernelOperator::new(sharp, grid, cap));
+    let mut sub = problem_on(op, open, valid, grid, kernels, fits);
     sub.q = p.q.clone();
     sub.op.every_tile_has_data().then_some(sub)
 }
@@ -254,7 +257,11 @@ fn rescale_noise(lambda: &mut [f32], fits: &[(f32, usize, f64)], sigma: f64) {
 /// Builds the joint problem of one channel (see [`refine_channel`]); the data are subsampled
 /// to about `max_pixels` pixels.
 fn build_problem(open: &Plane, sharp: &Plane, valid: &[bool], grid: &PsfGrid, kernels: &[Plane], fits: &[(f32, usize, f64)], max_pixels: usize) -> JointProblem {
-    let op = KernelOperator::new(sharp, grid, max_pixels);
+    problem_on(KernelOperator::new(sharp, grid, max_pixels), open, valid, grid, kernels, fits)
+}
+
+/// The joint problem of one channel on the operator `op` (see [`build_problem`]).
+fn problem_on(op: KernelOperator, open: &Plane, valid: &[bool], grid: &PsfGrid, kernels: &[Plane], fits: &[(f32, usize, f64)]) -> JointProblem {
     let mask: Vec<bool> = valid.iter().zip(op.covered()).map(|(&v, &c)| v && c).collect();
     // λ = c · σ · sd · √N: rescale the window's √N to the effective data Σ w_t² M here
     let lambda: Vec<f32> = fits.par_iter().enumerate().take(grid.tile_count()).map(|(t, &(l0, n0, _))| l0 * (op.weighted_count(t, &mask) / n0.max(1) as f64).sqrt() as f32).collect();

@@ -46,7 +46,10 @@ use std::sync::{Arc, Mutex};
 
 /// One block of the image: a `sw × sh` piece at `(x0, y0)`, the spectrum of the sharp image on
 /// the piece plus a kernel radius, and the tiles whose weight is non-zero on it.
+#[derive(Clone)]
 struct Block {
+    /// Position in the full layout (row-major index over all blocks, kept or not).
+    index: usize,
     x0: usize,
     y0: usize,
     sw: usize,
@@ -77,7 +80,28 @@ pub struct KernelOperator {
     index: Vec<usize>,
     /// Pixels of the kept blocks.
     covered: Vec<bool>,
+    /// Blocks per row of the full layout, its pixel count, and the kept share `1/keep_every`.
+    blocks_per_row: usize,
+    layout_pixels: usize,
+    keep_every: usize,
     buffers: Mutex<Buffers>,
+}
+
+/// What [`KernelOperator::assemble`] builds an operator from.
+struct OperatorParts {
+    width: usize,
+    height: usize,
+    k: usize,
+    columns: usize,
+    tiles: usize,
+    fft: Arc<Fft2>,
+    blocks: Vec<Block>,
+    cx: Vec<Vec<f32>>,
+    cy: Vec<Vec<f32>>,
+    index: Vec<usize>,
+    blocks_per_row: usize,
+    layout_pixels: usize,
+    keep_every: usize,
 }
 
 /// Per-task work buffers for one `F × F` plan.
@@ -210,19 +234,13 @@ fn block_layout(cx: &[Vec<f32>], cy: &[Vec<f32>], xs: &[f64], ys: &[f64], k: usi
     }
 }
 
-/// A block before its spectrum: `(x0, y0, sw, sh, tiles)`.
-type BlockSpec = (usize, usize, usize, usize, Vec<usize>);
+/// A block before its spectrum: `(index, x0, y0, sw, sh, tiles)`.
+type BlockSpec = (usize, usize, usize, usize, usize, Vec<usize>);
 
-/// Keeps every `keep_every`-th block in a staggered pattern (`(ix + 2·iy) mod n = 0`, so every
-/// tile keeps data) and marks the pixels of the kept ones in `covered`.
-fn subsample_blocks(blocks: Vec<BlockSpec>, nbx: usize, keep_every: usize, width: usize, covered: &mut [bool]) -> Vec<BlockSpec> {
-    let kept: Vec<BlockSpec> = blocks.into_iter().enumerate().filter(|(i, _)| (i % nbx + 2 * (i / nbx)) % keep_every == 0).map(|(_, b)| b).collect();
-    for (x0, y0, sw, sh, _) in &kept {
-        for y in *y0..y0 + sh {
-            covered[y * width + x0..y * width + x0 + sw].fill(true);
-        }
-    }
-    kept
+/// Whether block `i` of a layout with `nbx` blocks per row is kept when one in `keep_every` is:
+/// the staggered pattern `(ix + 2·iy) mod n = 0`, so every tile keeps data.
+fn block_kept(i: usize, nbx: usize, keep_every: usize) -> bool {
+    (i % nbx + 2 * (i / nbx)) % keep_every == 0
 }
 
 impl KernelOperator {
@@ -243,31 +261,74 @@ impl KernelOperator {
                 let tiles: Vec<usize> = (0..grid.tile_count())
                     .filter(|&t| cx[t % grid.columns][x0..x0 + sw].iter().any(|&v| v != 0.0) && cy[t / grid.columns][y0..y0 + sh].iter().any(|&v| v != 0.0))
                     .collect();
-                specs.push((x0, y0, sw, sh, tiles));
+                specs.push((specs.len(), x0, y0, sw, sh, tiles));
             }
         }
-        let total: usize = specs.iter().map(|b| b.2 * b.3).sum();
-        let keep_every = total.div_ceil(max_pixels.max(1)).max(1);
-        let mut covered = vec![false; w * h];
-        let specs = subsample_blocks(specs, bx.len(), keep_every, w, &mut covered);
+        let layout_pixels: usize = specs.iter().map(|b| b.3 * b.4).sum();
+        let keep_every = layout_pixels.div_ceil(max_pixels.max(1)).max(1);
+        let nbx = bx.len();
         let blocks: Vec<Block> = specs
             .into_par_iter()
-            .map(|(x0, y0, sw, sh, tiles)| {
+            .filter(|b| block_kept(b.0, nbx, keep_every))
+            .map(|(index, x0, y0, sw, sh, tiles)| {
                 let win = sharp.window_reflect(x0 as isize - r as isize, y0 as isize - r as isize, f, f);
                 let a_hat = fft.forward(&win.data);
                 let groups = group_by_column(&tiles, grid.columns);
-                Block { x0, y0, sw, sh, a_hat, tiles, groups }
+                Block { index, x0, y0, sw, sh, a_hat, tiles, groups }
             })
             .collect();
-        let mut blocks_of = vec![Vec::new(); grid.tile_count()];
-        for (bi, blk) in blocks.iter().enumerate() {
+        let index = kernel_origin_index(k, f, f);
+        Self::assemble(OperatorParts { width: w, height: h, k, columns: grid.columns, tiles: grid.tile_count(), fft, blocks, cx, cy, index, blocks_per_row: nbx, layout_pixels, keep_every })
+    }
+
+    /// The operator on a subset of this one's blocks, about `max_pixels` pixels: the blocks
+    /// [`KernelOperator::new`] with `max_pixels` would keep, with the sharp image's block spectra
+    /// shared (copied, not recomputed). `None` when those blocks are not a subset of the kept
+    /// ones (the new share `1/n` is not a divisor of the kept share `1/keep_every`).
+    pub fn subsampled(&self, max_pixels: usize) -> Option<KernelOperator> {
+        let keep_every = self.layout_pixels.div_ceil(max_pixels.max(1)).max(1);
+        if keep_every % self.keep_every != 0 {
+            return None;
+        }
+        let blocks = self.blocks.iter().filter(|b| block_kept(b.index, self.blocks_per_row, keep_every)).cloned().collect();
+        let (width, height, k, columns, tiles) = (self.width, self.height, self.k, self.columns, self.tiles());
+        let (cx, cy, index) = (self.cx.clone(), self.cy.clone(), self.index.clone());
+        Some(Self::assemble(OperatorParts { width, height, k, columns, tiles, fft: self.fft.clone(), blocks, cx, cy, index, blocks_per_row: self.blocks_per_row, layout_pixels: self.layout_pixels, keep_every }))
+    }
+
+    /// The operator from its kept blocks: the blocks of every tile and grid column, the covered
+    /// pixels.
+    fn assemble(p: OperatorParts) -> Self {
+        let mut blocks_of = vec![Vec::new(); p.tiles];
+        let mut covered = vec![false; p.width * p.height];
+        for (bi, blk) in p.blocks.iter().enumerate() {
             for &t in &blk.tiles {
                 blocks_of[t].push(bi);
             }
+            for y in blk.y0..blk.y0 + blk.sh {
+                covered[y * p.width + blk.x0..y * p.width + blk.x0 + blk.sw].fill(true);
+            }
         }
-        let index = kernel_origin_index(k, f, f);
-        let column_blocks = (0..grid.columns).map(|c| (0..blocks.len()).filter(|&bi| blocks[bi].groups.iter().any(|(cc, _)| *cc == c)).collect()).collect();
-        Self { width: w, height: h, k, columns: grid.columns, fft, blocks, blocks_of, column_blocks, cx, cy, index, covered, buffers: Mutex::new(Buffers::default()) }
+        let blocks = p.blocks;
+        let column_blocks = (0..p.columns).map(|c| (0..blocks.len()).filter(|&bi| blocks[bi].groups.iter().any(|(cc, _)| *cc == c)).collect()).collect();
+        Self {
+            width: p.width,
+            height: p.height,
+            k: p.k,
+            columns: p.columns,
+            fft: p.fft,
+            blocks,
+            blocks_of,
+            column_blocks,
+            cx: p.cx,
+            cy: p.cy,
+            index: p.index,
+            covered,
+            blocks_per_row: p.blocks_per_row,
+            layout_pixels: p.layout_pixels,
+            keep_every: p.keep_every,
+            buffers: Mutex::new(Buffers::default()),
+        }
     }
 
     /// Image width.
@@ -548,6 +609,31 @@ pub(crate) mod tests {
             let want = if c { *y } else { 0.0 };
             assert!((x - want).abs() < 1e-4, "{x} vs {want}");
         }
+    }
+
+    /// A subset taken from a built operator is the operator built with the same cap: same
+    /// covered pixels, same `A b` and `Aᵀ r` (bit for bit: same spectra, same order), from the
+    /// full operator and from a subsampled one; a share that is not a subset is refused.
+    #[test]
+    fn subsampled_operator_equals_the_one_built_with_the_cap() {
+        let (w, h, k) = (192, 144, 11);
+        let mut rng = Rng::new(12);
+        let sharp = Plane::from_fn(w, h, |_, _| rng.uniform() as f32);
+        let resid: Vec<f32> = (0..w * h).map(|_| rng.normal() as f32).collect();
+        let g = grid(w, h, k, 4, 3, 13);
+        for (first, cap) in [(usize::MAX, w * h / 2), (w * h / 2, w * h / 4)] {
+            let parent = KernelOperator::new(&sharp, &g, first);
+            let sub = parent.subsampled(cap).expect("a subset");
+            let built = KernelOperator::new(&sharp, &g, cap);
+            assert!(sub.block_count() < parent.block_count() && sub.block_count() == built.block_count());
+            assert_eq!(sub.covered(), built.covered());
+            assert_eq!(sub.apply_planes(&g.kernels[0]).data, built.apply_planes(&g.kernels[0]).data);
+            let (mut a, mut b) = (vec![0.0f32; sub.input_len()], vec![0.0f32; built.input_len()]);
+            sub.apply_adjoint(&resid, &mut a);
+            built.apply_adjoint(&resid, &mut b);
+            assert_eq!(a, b);
+        }
+        assert!(KernelOperator::new(&sharp, &g, w * h / 2).subsampled(w * h / 3).is_none(), "one in 3 is not a subset of one in 2");
     }
 
     /// The factored adjoint equals the direct sum

@@ -290,7 +290,7 @@ pub fn bootstrap_estimate(est: &Estimate, opts: &EstimateOptions, o: &BootstrapO
     // on another grid
     let (w, h) = (est.open_linear[0].width, est.open_linear[0].height);
     let tile = super::tile_for_grid(w, h, g.columns, g.rows).or(opts.tile);
-    let ropts = EstimateOptions { kernel_size: Some(g.kernel_size), tile, progress: false, ..opts.clone() };
+    let ropts = EstimateOptions { kernel_size: Some(g.kernel_size), tile, progress: false, field_variation: Some(est.field_variation.clone()), ..opts.clone() };
     let zero = EstimateOptions { lambda_scale: 0.0, ..ropts.clone() };
     let black = &opts.black_level;
     let data = (encoded(est.open_linear.clone(), est, black), encoded(est.pinhole_registered.clone(), est, black));

@@ -9,7 +9,7 @@
 //! This module fits all kernels of a channel at once to exactly that model, over the whole
 //! image:
 //!
-//! `min Σ_x ½ M(x) (pred(x) − j(x))² + Σ_t λ_t TV(b_t),  b_t ≥ 0, 1ᵀb_t = σ_t`
+//! `min Σ_x ½ M(x) (pred(x) − j(x))² + Σ_t λ_t TV(b_t) [+ field prior],  b_t ≥ 0, 1ᵀb_t = σ_t`
 //!
 //! (`M` the valid-data mask, `I` the registered pinhole image times the exposure ratio, `λ_t`,
 //! `σ_t` from the window fits), with FISTA and adaptive restart ([`crate::solve::fista`])
@@ -18,6 +18,14 @@
 //! kernel-sized work only), the step is `1/L` with `L` measured on the simplices' tangent
 //! space. `pred` and the gradient `Pᵀ Iᵀ (w_t ⊙ r)` (`r` the masked residual) are the blocked
 //! kernel operator [`crate::optics::kernel_operator::KernelOperator`] and its adjoint.
+//!
+//! # Field-smoothness prior
+//! With the channel's field variation rate `g_c` (from the probes), the objective also holds
+//! `½ Σ_{(t,t')} μ_{tt'} ‖b_t − b_{t'}‖²` over adjacent grid centres, `μ_{tt'} = σ̂² / τ²_{tt'}`,
+//! `τ²_{tt'} = (2 g_c d_{tt'})² · q²` ([`field_pairs`]; `d` in pixels, `q = median ‖b_t‖²`, `σ̂`
+//! the noise level): the MAP weight of a Gaussian prior on the difference of neighbouring
+//! kernels (docs/estimation.md "Field-smoothness prior"). It is smooth, so it joins the data
+//! term's gradient, and its Gershgorin bound the step's Lipschitz constant.
 //!
 //! # TV weight chosen on held-out pixels
 //! After the first quarter of the iterations (and the re-measured noise level), the weights of
@@ -62,6 +70,11 @@ struct JointProblem {
     pred: Vec<f32>,
     /// The TV duals of the prox, carried over between steps (warm starts).
     q: Vec<f32>,
+    /// The field-smoothness prior: neighbouring tiles `(t, t')` and their weight `μ_{tt'}`
+    /// ([`field_pairs`]); empty when off.
+    pairs: Vec<(usize, usize, f32)>,
+    /// The data term `½‖M r‖²` of the last [`Composite::gradient`] call (without the prior).
+    last_data: f64,
 }
 
 impl JointProblem {
@@ -114,9 +127,43 @@ impl JointProblem {
     }
 }
 
+impl JointProblem {
+    /// Adds the field-smoothness prior `½ Σ_{(t,t')} μ_{tt'} ‖b_t − b_{t'}‖²` to the gradient
+    /// `out` at `x`; returns its value.
+    fn add_field_prior(&self, x: &[f32], out: &mut [f32]) -> f64 {
+        let k2 = self.k * self.k;
+        let mut f = 0.0f64;
+        for &(a, b, mu) in &self.pairs {
+            for i in 0..k2 {
+                let d = x[a * k2 + i] - x[b * k2 + i];
+                out[a * k2 + i] += mu * d;
+                out[b * k2 + i] -= mu * d;
+                f += 0.5 * (mu as f64) * (d as f64) * (d as f64);
+            }
+        }
+        f
+    }
+
+    /// Upper bound of the field prior's Hessian norm: `2 max_t Σ_{t' ~ t} μ_{tt'}` (Gershgorin).
+    fn field_lipschitz(&self) -> f32 {
+        let mut deg = vec![0.0f32; self.lambda.len()];
+        for &(a, b, mu) in &self.pairs {
+            deg[a] += mu;
+            deg[b] += mu;
+        }
+        2.0 * deg.iter().copied().fold(0.0, f32::max)
+    }
+
+    /// Sets the weights of the field prior for the noise level `sigma` (`μ ∝ σ²`).
+    fn scale_field_prior(&mut self, ratio: f64) {
+        self.pairs.iter_mut().for_each(|p| p.2 *= (ratio * ratio) as f32);
+    }
+}
+
 impl Composite for JointProblem {
     fn gradient(&mut self, x: &[f32], out: &mut [f32]) -> f64 {
-        self.normal(x, out, true)
+        self.last_data = self.normal(x, out, true);
+        self.last_data + self.add_field_prior(x, out)
     }
 
     /// The TV–simplex prox of every kernel (in parallel), duals warm-started.
@@ -267,7 +314,48 @@ fn problem_on(op: KernelOperator, open: &Plane, valid: &[bool], grid: &PsfGrid, 
     let lambda: Vec<f32> = fits.par_iter().enumerate().take(grid.tile_count()).map(|(t, &(l0, n0, _))| l0 * (op.weighted_count(t, &mask) / n0.max(1) as f64).sqrt() as f32).collect();
     let totals: Vec<f32> = kernels.iter().map(|p| p.sum() as f32).collect();
     let q = vec![0.0f32; grid.tile_count() * tv_dual_len(grid.kernel_size)];
-    JointProblem { k: grid.kernel_size, blurred: open.data.clone(), mask, lambda, totals, pred: vec![0.0; open.width * open.height], q, op }
+    JointProblem { k: grid.kernel_size, blurred: open.data.clone(), mask, lambda, totals, pred: vec![0.0; open.width * open.height], q, op, pairs: vec![], last_data: 0.0 }
+}
+
+/// The largest local field variation rate relative to the mean rate `g` from the centre to the
+/// corners that the field-smoothness prior allows for: a change that grows with the square of
+/// the field radius (the Seidel terms, field curvature) has its local rate `2g` at the corner.
+pub const FIELD_RATE_PEAK: f64 = 2.0;
+
+/// The field-smoothness prior's pairs (docs/estimation.md "Field-smoothness prior"): every
+/// pair of grid neighbours `(t, t')` (same row or column, adjacent) with the weight
+///
+/// `μ_{tt'} = σ² / τ²_{tt'}`,  `τ²_{tt'} = (2g · d_{tt'} · ‖b‖)² / n_eff = (2g · d_{tt'})² · ‖b‖⁴`,
+///
+/// the MAP weight of a Gaussian prior on the difference of neighbouring kernels: `g` the
+/// channel's field variation rate (relative L2 change per pixel, [`super::variation_rate`]),
+/// `d_{tt'}` the centres' distance in pixels, so `g·d·‖b‖` is the expected L2 difference,
+/// spread over the kernel's `n_eff = 1/‖b‖²` effective pixels (the participation ratio of a
+/// unit-sum kernel); `‖b‖²` the median over the channel's kernels, `σ` the noise level. A wide
+/// kernel (small `‖b‖`) whose PSF barely changes over the field is coupled strongly to its
+/// neighbours, a sharp one hardly. Empty when `g` is not positive.
+fn field_pairs(grid: &PsfGrid, kernels: &[Plane], g: f64, sigma: f64) -> Vec<(usize, usize, f32)> {
+    if !(g.is_finite() && g > 0.0) {
+        return vec![];
+    }
+    let mut n2: Vec<f64> = kernels.iter().map(|p| p.data.iter().map(|&v| (v as f64).powi(2)).sum()).collect();
+    n2.sort_by(f64::total_cmp);
+    let q = n2.get(n2.len() / 2).copied().unwrap_or(0.0);
+    let (cols, rows) = (grid.columns, grid.rows);
+    let mut out = Vec::new();
+    for t in 0..cols * rows {
+        let (c, r) = (t % cols, t / cols);
+        for u in [(c + 1 < cols).then_some(t + 1), (r + 1 < rows).then_some(t + cols)].into_iter().flatten() {
+            let [x0, y0] = grid.centers[t];
+            let [x1, y1] = grid.centers[u];
+            let d = ((x1 - x0).powi(2) + (y1 - y0).powi(2)).sqrt();
+            let tau2 = (FIELD_RATE_PEAK * g * d).powi(2) * q * q;
+            if tau2 > 0.0 {
+                out.push((t, u, (sigma * sigma / tau2) as f32));
+            }
+        }
+    }
+    out
 }
 
 /// Refines `kernels` (one channel, in the grid's tile order) in place. `fits[t] = (λ, N, σ̂)`
@@ -279,7 +367,9 @@ fn problem_on(op: KernelOperator, open: &Plane, valid: &[bool], grid: &PsfGrid, 
 /// the result). `power` carries the Lipschitz power iteration's vector from one channel to the
 /// next (start with an empty vector): a warm start needs 2 iterations instead of 5.
 /// `progress` advances by one per iteration. The data are subsampled to about `max_pixels`
-/// pixels (the pipeline passes [`JOINT_DATA_PIXELS`]).
+/// pixels (the pipeline passes [`JOINT_DATA_PIXELS`]). `field`: the channel's field variation
+/// rate `g_c`, which switches on the field-smoothness prior ([`field_pairs`], its weights
+/// scaled with `σ̂²` when `σ̂` is re-measured); `None` leaves it off.
 #[allow(clippy::too_many_arguments)]
 pub fn refine_channel(
     open: &Plane,
@@ -293,23 +383,32 @@ pub fn refine_channel(
     progress: &indicatif::ProgressBar,
     max_pixels: usize,
     select: bool,
+    field: Option<f64>,
 ) -> (Stats, f64) {
     let mut p = build_problem(open, sharp, valid, grid, kernels, fits, max_pixels);
     let k = grid.kernel_size;
+    let mut sig: Vec<f64> = fits.iter().map(|f| f.2).collect();
+    sig.sort_by(f64::total_cmp);
+    let sigma0 = sig.get(sig.len() / 2).copied().unwrap_or(0.0);
+    p.pairs = field.map_or(vec![], |g| field_pairs(grid, kernels, g, sigma0));
     let mut x: Vec<f32> = kernels.iter().flat_map(|p| p.data.iter().copied()).collect();
-    let l_f = p.lipschitz(if power.is_empty() { 5 } else { 2 }, power);
+    let l_data = p.lipschitz(if power.is_empty() { 5 } else { 2 }, power);
+    let l_f = l_data + p.field_lipschitz();
     let count = p.mask.iter().filter(|&&b| b).count().max(1);
     let first = SplitOptions { max_iterations: opts.max_iterations / 4, min_iterations: usize::MAX, tolerance: 0.0 };
     let st1 = run_fista(&mut p, &mut x, &first, l_f, progress);
     let mut g = vec![0.0f32; x.len()];
-    let f1 = if st1.iterations > 0 { st1.primal_objective } else { p.normal(&x, &mut g, true) };
+    let f1 = if st1.iterations > 0 { p.last_data } else { p.normal(&x, &mut g, true) };
     let sigma_joint = (2.0 * f1 / count as f64).sqrt();
     rescale_noise(&mut p.lambda, fits, sigma_joint);
+    p.scale_field_prior(sigma_joint / sigma0.max(1e-12));
+    let l_f = l_data + p.field_lipschitz();
     let (_, selecting) = if select && st1.iterations > 0 {
         match selection_problem(&p, open, sharp, valid, grid, kernels, fits) {
             Some(mut sub) => {
                 rescale_noise(&mut sub.lambda, fits, sigma_joint);
-                let l_sub = sub.lipschitz(2, &mut power.clone());
+                sub.pairs = p.pairs.clone();
+                let l_sub = sub.lipschitz(2, &mut power.clone()) + sub.field_lipschitz();
                 // the rungs fit half the data: the main fit goes on from its own iterate
                 let (m, n) = select_lambda(&mut sub, &mut x.clone(), l_sub, progress);
                 p.lambda.iter_mut().for_each(|l| *l *= m);
@@ -322,7 +421,7 @@ pub fn refine_channel(
     };
     let rest = SplitOptions { max_iterations: opts.max_iterations.saturating_sub(st1.iterations), ..opts.clone() };
     let mut stats = run_fista(&mut p, &mut x, &rest, l_f, progress);
-    let f = if stats.iterations > 0 { stats.primal_objective } else { p.normal(&x, &mut g, true) };
+    let f = if stats.iterations > 0 { p.last_data } else { p.normal(&x, &mut g, true) };
     stats.iterations += st1.iterations + selecting;
     for (kp, xb) in kernels.iter_mut().zip(x.chunks(k * k)) {
         kp.data.copy_from_slice(xb);
@@ -423,6 +522,74 @@ mod tests {
         (ss / n as f64).sqrt()
     }
 
+    /// The field-smoothness prior: its gradient is that of its value (central differences),
+    /// its Hessian norm is within the Gershgorin bound, and the weights follow
+    /// `μ = σ² / ((2 g d)² ‖b‖⁴)`: four times weaker at twice the rate, none without a rate.
+    #[test]
+    fn field_prior_gradient_bound_and_weights() {
+        let (w, h, k) = (192, 144, 9);
+        let g = truth(w, h, k);
+        let (open, sharp) = pair(&g, w, h, 0.003, 6);
+        let fits = vec![(1e-3f32, 48 * 48, 0.003f64); g.tile_count()];
+        let mut p = super::build_problem(&open, &sharp, &vec![true; w * h], &g, &g.kernels[0], &fits, usize::MAX);
+        p.pairs = super::field_pairs(&g, &g.kernels[0], 1e-3, 0.003);
+        assert_eq!(p.pairs.len(), 3 * 3 + 4 * 2, "4×3 grid: 17 neighbour pairs");
+        let weaker = super::field_pairs(&g, &g.kernels[0], 2e-3, 0.003);
+        for (a, b) in p.pairs.iter().zip(&weaker) {
+            assert!((a.2 / b.2 - 4.0).abs() < 1e-3, "μ at g and 2g: {} vs {}", a.2, b.2);
+        }
+        assert!(super::field_pairs(&g, &g.kernels[0], 0.0, 0.003).is_empty());
+        let mut r = Rng::new(2);
+        let x: Vec<f32> = (0..g.tile_count() * k * k).map(|_| r.uniform() as f32 * 0.02).collect();
+        let mut grad = vec![0.0f32; x.len()];
+        let f0 = p.add_field_prior(&x, &mut grad);
+        let mut z = vec![0.0f32; x.len()];
+        for i in [0, 5 * k * k + 3, 11 * k * k + k * k - 1] {
+            let (mut xp, mut xm) = (x.clone(), x.clone());
+            let hstep = 1e-3f32;
+            xp[i] += hstep;
+            xm[i] -= hstep;
+            let num = (p.add_field_prior(&xp, &mut z) - p.add_field_prior(&xm, &mut z)) / (2.0 * hstep as f64);
+            assert!((num - grad[i] as f64).abs() <= 1e-3 * (grad[i].abs() as f64).max(1e-3 * f0.max(1e-12)), "coefficient {i}: {num} vs {}", grad[i]);
+        }
+        // ½⟨x, Hx⟩ = f and ‖Hx‖ ≤ bound ‖x‖
+        let hx_norm = grad.iter().map(|v| (*v as f64).powi(2)).sum::<f64>().sqrt();
+        let x_norm = x.iter().map(|v| (*v as f64).powi(2)).sum::<f64>().sqrt();
+        assert!(hx_norm <= p.field_lipschitz() as f64 * x_norm * 1.0001, "‖Hx‖ {hx_norm} vs bound {} ‖x‖", p.field_lipschitz());
+    }
+
+    /// On a field whose PSF does not change, the field prior (at a small assumed variation rate)
+    /// brings the kernels closer to the truth than the fit without it, from the same noisy
+    /// starts (the window fits' role).
+    #[test]
+    fn field_prior_helps_a_constant_field() {
+        let (w, h, k, noise) = (192, 144, 11, 0.02f32);
+        let mut g = truth(w, h, k);
+        let centre = g.kernels[0][5].clone();
+        g.kernels[0].iter_mut().for_each(|b| *b = centre.clone());
+        let (open, sharp) = pair(&g, w, h, noise, 7);
+        let fits = vec![(2e-4f32, 48 * 48, noise as f64); g.tile_count()];
+        let mut r = Rng::new(12);
+        let peak = centre.data.iter().copied().fold(0.0f32, f32::max);
+        let starts: Vec<Plane> = (0..g.tile_count())
+            .map(|_| {
+                let data = centre.data.iter().map(|&v| (v + 0.3 * peak * (r.uniform() as f32 - 0.5)).max(0.0)).collect();
+                let mut b = Plane { width: k, height: k, data };
+                let s = b.sum() as f32;
+                b.scale(1.0 / s);
+                b
+            })
+            .collect();
+        let run = |field: Option<f64>| {
+            let mut kernels = starts.clone();
+            let o = crate::solve::primal_dual::SplitOptions { max_iterations: 40, min_iterations: usize::MAX, tolerance: 0.0 };
+            super::refine_channel(&open, &sharp, &vec![true; w * h], &g, &mut kernels, &fits, &o, &mut Vec::new(), &indicatif::ProgressBar::hidden(), usize::MAX, false, field);
+            kernels.iter().map(|b| relative_error(b, &centre)).sum::<f64>() / kernels.len() as f64
+        };
+        let (plain, coupled) = (run(None), run(Some(1e-3)));
+        assert!(coupled < 0.8 * plain, "with the field prior {coupled:.4}, without {plain:.4}");
+    }
+
     /// With the data subsampled to a third, every tile keeps data and the joint fit still
     /// brings the prediction of an independent pair to within 10% of the noise.
     #[test]
@@ -445,7 +612,7 @@ mod tests {
         assert!(kept < w * h / 2 && kept > w * h / 6, "kept {kept} of {}", w * h);
         assert!(p.op.every_tile_has_data(), "a tile lost all its data");
         let o = crate::solve::primal_dual::SplitOptions { max_iterations: 200, min_iterations: 5, tolerance: 1e-5 };
-        super::refine_channel(&est.open_linear[0], &sharp_s, &est.valid_masks[0], &grid, &mut kernels, &fits, &o, &mut Vec::new(), &indicatif::ProgressBar::hidden(), cap, false);
+        super::refine_channel(&est.open_linear[0], &sharp_s, &est.valid_masks[0], &grid, &mut kernels, &fits, &o, &mut Vec::new(), &indicatif::ProgressBar::hidden(), cap, false, None);
         let mut refined = grid.clone();
         refined.kernels[0] = kernels;
         let cv = |gr: &PsfGrid| interior_rms(&blur_channel(&sharp2.map(|v| v * s), gr, 0), &open2, k / 2) / noise as f64;

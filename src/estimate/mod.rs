@@ -92,6 +92,10 @@ pub struct EstimateOptions {
     /// Black level per channel (or one for all) on the full-scale axis, subtracted first.
     pub black_level: Vec<f32>,
     pub progress: bool,
+    /// The field variation rates `g_c` of the field-smoothness prior ([`joint`]) when both
+    /// `kernel_size` and `tile` are given (no probe then measures them; the bootstrap passes the
+    /// profile's, [`Estimate::field_variation`]); `None`: from the probes, or no such prior.
+    pub field_variation: Option<Vec<f64>>,
 }
 
 impl Default for EstimateOptions {
@@ -110,6 +114,7 @@ impl Default for EstimateOptions {
             saturation: 0.995,
             black_level: vec![],
             progress: false,
+            field_variation: None,
         }
     }
 }
@@ -126,6 +131,8 @@ pub struct Estimate {
     /// Time of each stage, in order: `registration`, `layout` (the probe fits that choose the
     /// kernel size and grid), `window fits`, `joint refinement` (≈ 0 when skipped).
     pub stage_seconds: Vec<StageTime>,
+    /// The field variation rate `g_c` per channel the field-smoothness prior used (empty: none).
+    pub field_variation: Vec<f64>,
 }
 
 /// Robust noise standard deviation of a plane: MAD of a zero-mean 3×3 high-pass normalised to
@@ -289,7 +296,8 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
     let mut profile = assemble_profile(open, &layout, kernels, data.ratio, reg.info, info, opts);
     // the sensor's noise law from the wide-open capture (issue 12; crate::profile::noise)
     profile.meta.noise = crate::profile::noise::NoiseLaw::fit_image(&open_lin, opts.saturation).ok();
-    Ok(Estimate { profile, noise_sigma: noise, valid_masks: data.valid_masks, pinhole_registered: pin_reg, open_linear: open_lin, stage_seconds: stages })
+    let field_variation = if opts.joint_iterations > 0 && opts.lambda_scale > 0.0 { layout.variation.clone() } else { vec![] };
+    Ok(Estimate { profile, noise_sigma: noise, valid_masks: data.valid_masks, pinhole_registered: pin_reg, open_linear: open_lin, stage_seconds: stages, field_variation })
 }
 
 /// Wall and CPU seconds of one stage of [`estimate`] (CPU: user + system of the whole process,
@@ -376,13 +384,16 @@ struct Layout {
     rows: usize,
     window: usize,
     centers: Vec<[f64; 2]>,
+    /// Field variation rate `g_c` per channel from the probes (empty when none ran): the scale
+    /// of the field-smoothness prior ([`joint`]).
+    variation: Vec<f64>,
 }
 
 impl Layout {
     fn choose(open_lin: &[Plane], pin_reg: &[Plane], opts: &EstimateOptions) -> Result<Layout, EstimateError> {
         let (w, h) = (open_lin[0].width, open_lin[0].height);
         let probe = match (opts.kernel_size, opts.tile) {
-            (Some(k), Some(_)) => FieldProbe { kernel: k, variation: 0.0 },
+            (Some(k), Some(_)) => FieldProbe { kernel: k, variation: 0.0, channel_variation: opts.field_variation.clone().unwrap_or_default() },
             (fixed, _) => probe_field(open_lin, pin_reg, fixed, opts)?,
         };
         let k = probe.kernel;
@@ -395,7 +406,7 @@ impl Layout {
         if window < k {
             return Err(EstimateError::WindowTooSmall { window, kernel: k });
         }
-        Ok(Layout { kernel: k, columns, rows, window, centers: PsfGrid::regular_centers(w, h, columns, rows) })
+        Ok(Layout { kernel: k, columns, rows, window, centers: PsfGrid::regular_centers(w, h, columns, rows), variation: probe.channel_variation })
     }
 
     fn tiles(&self) -> usize {
@@ -536,7 +547,8 @@ fn refine_jointly(open_lin: &[Plane], pin_reg: &[Plane], data: &ValidData, layou
     for c in 0..open_lin.len() {
         let mut sharp = pin_reg[c].clone();
         sharp.scale(data.ratio[c] as f32);
-        let (st, rms) = joint::refine_channel(&open_lin[c], &sharp, &data.valid_masks[c], &shape, &mut kernels[c], &fits[c], &o, &mut power, &bar, joint::JOINT_DATA_PIXELS, opts.select_lambda && opts.lambda_scale > 0.0);
+        let field = if opts.lambda_scale > 0.0 { layout.variation.get(c).copied() } else { None };
+        let (st, rms) = joint::refine_channel(&open_lin[c], &sharp, &data.valid_masks[c], &shape, &mut kernels[c], &fits[c], &o, &mut power, &bar, joint::JOINT_DATA_PIXELS, opts.select_lambda && opts.lambda_scale > 0.0, field);
         bar.set_position(((c + 1) * opts.joint_iterations) as u64);
         for t in 0..layout.tiles() {
             info.iterations[c][t] += st.iterations;
@@ -602,13 +614,15 @@ pub const SUPPORT_ENERGY: f64 = 0.99;
 pub const SUPPORT_MARGIN: f64 = 1.15;
 
 /// What the probe kernels measured (docs/estimation.md "Kernel size", "Grid").
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Debug)]
 pub struct FieldProbe {
     /// Kernel size (odd, pixels).
     pub kernel: usize,
     /// Field variation rate `g` (relative L2 change of the kernel per pixel of field distance,
-    /// [`variation_rate`]).
+    /// [`variation_rate`]): the largest over channels.
     pub variation: f64,
+    /// `g_c` per channel (empty when no probe ran).
+    pub channel_variation: Vec<f64>,
 }
 
 #[cfg(test)]
@@ -645,8 +659,9 @@ fn probe_field(open: &[Plane], pin: &[Plane], fixed: Option<usize>, opts: &Estim
         (2 * (SUPPORT_MARGIN * radius + 2.0).ceil() as usize + 1).clamp(7, probe_k)
     });
     let centres: Vec<[f64; 2]> = spots.iter().map(|&(x, y)| [x as f64 + tsz as f64 / 2.0, y as f64 + tsz as f64 / 2.0]).collect();
-    let variation = probes.chunks(spots.len()).map(|p| variation_rate(p, &centres, kernel)).fold(0.0, f64::max);
-    Ok(FieldProbe { kernel, variation })
+    let channel_variation: Vec<f64> = probes.chunks(spots.len()).map(|p| variation_rate(p, &centres, kernel)).collect();
+    let variation = channel_variation.iter().copied().fold(0.0, f64::max);
+    Ok(FieldProbe { kernel, variation, channel_variation })
 }
 
 /// Field variation rate of one channel from its probes (`probes[0]` at the centre spot, the

@@ -294,10 +294,50 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
     info.noise_sigma = noise.clone();
     info.seconds = t0.elapsed().as_secs_f64();
     let mut profile = assemble_profile(open, &layout, kernels, data.ratio, reg.info, info, opts);
-    // the sensor's noise law from the wide-open capture (issue 12; crate::profile::noise)
+    // the sensor's noise law (issue 12; crate::profile::noise): first from the wide-open capture
+    // alone, then the lower of that and the residual's law per channel (profile_noise_law)
     profile.meta.noise = crate::profile::noise::NoiseLaw::fit_image(&open_lin, opts.saturation).ok();
     let field_variation = if opts.joint_iterations > 0 && opts.lambda_scale > 0.0 { layout.variation.clone() } else { vec![] };
-    Ok(Estimate { profile, noise_sigma: noise, valid_masks: data.valid_masks, pinhole_registered: pin_reg, open_linear: open_lin, stage_seconds: stages, field_variation })
+    let mut est = Estimate { profile, noise_sigma: noise, valid_masks: data.valid_masks, pinhole_registered: pin_reg, open_linear: open_lin, stage_seconds: stages, field_variation };
+    est.profile.meta.noise = profile_noise_law(&est);
+    Ok(est)
+}
+
+/// The noise law stored in the profile (docs/estimation.md "Noise law of the profile"): per
+/// channel, the lower at the channel's median level `m_c` of two fits that can only over-count
+/// the sensor's variance: the wide-open capture's local differences
+/// ([`crate::profile::noise::NoiseLaw::fit_image`], which also count the texture a nearly sharp
+/// channel keeps) and the fitted model's residual ([`bootstrap::residual_noise_law`], which
+/// also counts the model's misfit),
+///
+/// `law_c = argmin_{L ∈ {image, residual}} g_L·m_c + r_L²`.
+///
+/// Either alone when the other cannot be fitted; `None` when neither can.
+fn profile_noise_law(est: &Estimate) -> Option<crate::profile::noise::NoiseLaw> {
+    let image = est.profile.meta.noise.clone();
+    let residual = bootstrap::residual_noise_law(est, &bootstrap::predictions(est));
+    let (image, residual) = match (image, residual) {
+        (Some(i), Some(r)) if i.channels() == r.channels() => (i, r),
+        (i, r) => return r.or(i),
+    };
+    let mut law = residual.clone();
+    let mut picked = Vec::with_capacity(law.channels());
+    for c in 0..law.channels() {
+        let mut v: Vec<f32> = est.open_linear[c].data.iter().copied().filter(|x| x.is_finite()).collect();
+        let mid = v.len() / 2;
+        let m = if v.is_empty() { 0.0 } else { *v.select_nth_unstable_by(mid, f32::total_cmp).1 };
+        let from_image = image.variance(c, m) < residual.variance(c, m);
+        if from_image {
+            (law.gain[c], law.read[c]) = (image.gain[c], image.read[c]);
+        }
+        picked.push(from_image);
+    }
+    law.source = match (picked.iter().all(|&p| p), picked.iter().any(|&p| p)) {
+        (true, _) => "image".into(),
+        (false, true) => "image+residual".into(),
+        (false, false) => "residual".into(),
+    };
+    Some(law)
 }
 
 /// Wall and CPU seconds of one stage of [`estimate`] (CPU: user + system of the whole process,

@@ -4,7 +4,9 @@
 //! Also the estimator alone (the residual of the noise-free render: the real noise), the same
 //! signal with homoscedastic white noise, and the reference-noise share ρ.
 //! `cargo run --release --example noisebias -- EFFECT|clean SEED W H K CHANNELS ITERS`
-//! (`K` the kernel size; `ITERS` kernel iterations per round of the 3-round provisional fit).
+//! (`K` the kernel size; `ITERS` kernel iterations per round of the 3-round provisional fit;
+//! `PROBE_SUBSET=PIXELS` also runs the probe on the screening subset of that size and prints
+//! its count and scaled `α_hp` next to the whole-image probe's).
 use lensrig::diagnose::bench::proof_options;
 use lensrig::diagnose::fit::{fit, measure_kernel_dof, Data, FitSettings, Model, KERNEL_STEP};
 use lensrig::diagnose::proof::{render_case, CaseSpec};
@@ -35,9 +37,14 @@ fn main() {
     let settings = FitSettings { rounds: 3, kernel_iterations: iters };
     let mut f = fit(&data, &init.corrections, &init, settings);
     let raw = residual_curves(open, &f);
-    let dof = measure_kernel_dof(&data, &f, settings, 0x00d0_f5eed);
+    let dof = measure_kernel_dof(&data, &f, settings, 0x00d0_f5eed, usize::MAX);
+    if let Some(px) = std::env::var("PROBE_SUBSET").ok().and_then(|v| v.parse::<usize>().ok()) {
+        let sub = measure_kernel_dof(&data, &f, settings, 0x00d0_f5eed, px);
+        let scaled: Vec<String> = sub.highpass_absorbed.iter().map(|a| format!("{:.4}", a * sub.share)).collect();
+        println!("probe on every pixel: df {:.1} α {:?}; on ~{px} pixels per channel (share {:.3}): df {:.1} α×share {scaled:?}", dof.df, dof.highpass_absorbed, sub.share, sub.df);
+    }
     if std::env::var_os("PROBE_ROUNDS1").is_some() {
-        let one = measure_kernel_dof(&data, &f, FitSettings { rounds: 1, ..settings }, 0x00d0_f5eed);
+        let one = measure_kernel_dof(&data, &f, FitSettings { rounds: 1, ..settings }, 0x00d0_f5eed, usize::MAX);
         println!("probe 3 rounds: df {:.1} α {:?}; 1 round: df {:.1} α {:?}", dof.df, dof.highpass_absorbed, one.df, one.highpass_absorbed);
     }
     f.set_dof(dof.clone());

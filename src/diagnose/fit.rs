@@ -528,9 +528,16 @@ fn fit_on(data: &Data, corrections: &Corrections, init: &Model, settings: FitSet
 /// solver run with `settings`' budget from the fitted kernels, on the fit's own target and
 /// weights; summed over channels and clamped to `[0, nominal]`, with each channel's absorbed
 /// high-pass fraction. Costs two kernel solves per channel. `seed` picks the probe.
-pub fn measure_kernel_dof(data: &Data, fit: &Fit, settings: FitSettings, seed: u64) -> KernelDof {
+///
+/// `data_pixels`: the probe's data term keeps about this many pixels per channel, the spread
+/// blocks of [`fit_subset`] (all of them below that size). The count `df` then stands for the
+/// whole fit's, and the absorbed share `α_hp`, of the probe's pixels' noise, is scaled to every
+/// pixel by [`KernelDof::share`] ([`Fit::set_dof`]). The subset's count is lower than the whole
+/// image's (docs/diagnosis.md, "Speed at camera resolution"), but the reduced χ² barely moves:
+/// with `α ≈ df/N`, `χ²/(N − df)` on a curve divided by `1 − α` is `≈ χ²_raw/N` whatever `df`.
+pub fn measure_kernel_dof(data: &Data, fit: &Fit, settings: FitSettings, seed: u64, data_pixels: usize) -> KernelDof {
     let corr = fit.model.corrections.clone();
-    let setup = Setup::new(data, &corr, &fit.model, &|_, _| true, usize::MAX);
+    let setup = Setup::new(data, &corr, &fit.model, &|_, _| true, data_pixels);
     let mut p = setup.initial_params(&corr, &fit.model);
     let g = gain_plane(&corr, setup.w, setup.h);
     let kset = KernelFitSettings { iterations: settings.kernel_iterations, rounds: settings.rounds.max(1), step: KERNEL_STEP };
@@ -544,7 +551,11 @@ pub fn measure_kernel_dof(data: &Data, fit: &Fit, settings: FitSettings, seed: u
         df += d.df;
         highpass_absorbed.push(d.highpass_absorbed);
     }
-    KernelDof { df: df.clamp(0.0, fit.kernel_params as f64), highpass_absorbed }
+    let interior = &setup.masks.interior;
+    let covered = setup.ops.first().map_or(&[][..], |o| o.covered());
+    let kept = interior.iter().enumerate().filter(|&(i, &e)| e && covered.get(i).copied().unwrap_or(true)).count();
+    let share = kept as f64 / interior.iter().filter(|&&b| b).count().max(1) as f64;
+    KernelDof { df: df.clamp(0.0, fit.kernel_params as f64), highpass_absorbed, share }
 }
 
 /// What [`measure_kernel_dof`] measured.
@@ -552,15 +563,21 @@ pub fn measure_kernel_dof(data: &Data, fit: &Fit, settings: FitSettings, seed: u
 pub struct KernelDof {
     /// Effective kernel parameters, all channels.
     pub df: f64,
-    /// Per channel, the absorbed share of the noise's high-pass ([`Fit::highpass_absorbed`]).
+    /// Per channel, the absorbed share of the noise's high-pass on the probe's pixels; on every
+    /// pixel it is `share` times this ([`Fit::set_dof`]).
     pub highpass_absorbed: Vec<f64>,
+    /// The probe's pixels (the evaluation set within the kept blocks) over the evaluation
+    /// set's (1 when the probe kept every pixel).
+    pub share: f64,
 }
 
 impl Fit {
-    /// Stores a [`measure_kernel_dof`] result.
+    /// Stores a [`measure_kernel_dof`] result: its count, and its absorbed share scaled to
+    /// every pixel (`α_hp · share`: the absorbed energy is the same, the noise's is spread over
+    /// `1/share` times as many pixels).
     pub fn set_dof(&mut self, d: KernelDof) {
         self.kernel_dof = Some(d.df);
-        self.highpass_absorbed = Some(d.highpass_absorbed);
+        self.highpass_absorbed = Some(d.highpass_absorbed.iter().map(|a| (a * d.share).min(super::kernels::MAX_ABSORBED)).collect());
     }
 }
 

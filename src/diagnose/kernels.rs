@@ -353,6 +353,39 @@ mod tests {
         assert!(early_whole < 0.5 * converged, "2 iterations, whole-space step: {early_whole:.1}, converged {converged:.1}");
     }
 
+    /// The probe on a spread subset of blocks (the diagnosis' screening subset): its absorbed
+    /// high-pass share, scaled by the subset's share of the pixels (what `Fit::set_dof` stores),
+    /// matches the whole image's; unscaled it would be `1/share` times too large.
+    #[test]
+    fn subset_probe_scaled_by_its_share_matches_the_whole_image() {
+        let (w, h, k) = (160, 120, 5);
+        let mut r = Rng::new(7);
+        let sharp = Plane::from_fn(w, h, |_, _| r.uniform() as f32);
+        let mut truth = grid(w, h, k, 6);
+        for kk in truth.kernels[0].iter_mut() {
+            *kk = kk.map(|v| v + 0.02);
+            let s = kk.sum() as f32;
+            kk.scale(1.0 / s);
+        }
+        let settings = KernelFitSettings { iterations: 400, rounds: 2, step: KernelStep::Tangent };
+        let probe = |max_pixels: usize| {
+            let op = KernelOperator::new(&sharp, &truth, max_pixels);
+            let y = op.apply_planes(&truth.kernels[0]);
+            let wt: Vec<f32> = op.covered().iter().map(|&c| if c { 1e4 } else { 0.0 }).collect();
+            let share = op.covered().iter().filter(|&&c| c).count() as f64 / (w * h) as f64;
+            let d: Vec<Divergence> = (0..4).map(|s| kernel_divergence(&op, &y, &wt, &truth.kernels[0], settings, &mut Rng::new(s))).collect();
+            let mean = |f: &dyn Fn(&Divergence) -> f64| d.iter().map(f).sum::<f64>() / d.len() as f64;
+            (mean(&|d| d.df), mean(&|d| d.highpass_absorbed), share)
+        };
+        let (df_all, alpha_all, share_all) = probe(usize::MAX);
+        let (df_sub, alpha_sub, share) = probe(w * h / 3);
+        assert_eq!(share_all, 1.0);
+        assert!(share < 0.6, "the subset keeps {share:.2} of the pixels");
+        eprintln!("probe: every pixel df {df_all:.1} α {alpha_all:.4}; subset ({share:.2}) df {df_sub:.1} α {alpha_sub:.4} → scaled {:.4}", alpha_sub * share);
+        assert!((alpha_sub * share / alpha_all - 1.0).abs() < 0.25, "scaled {:.4} vs {alpha_all:.4}", alpha_sub * share);
+        assert!((df_sub / df_all - 1.0).abs() < 0.25, "df on the subset {df_sub:.1} vs {df_all:.1}");
+    }
+
     /// A compact PSF (a Gaussian of `sigma` px, zero beyond `k/2`) in every tile.
     fn gaussian_kernels(k: usize, tiles: usize, sigma: f32) -> Vec<Plane> {
         let r = (k / 2) as f32;

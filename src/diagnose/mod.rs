@@ -283,18 +283,23 @@ fn base_profile(open: &Image, pinhole: &Image, profile: Option<&Profile>, opts: 
     }
 }
 
-/// The fit data and the base model fitted with its noise curve: a provisional fit, the noise
-/// curve from its residual (module docs of `noise`) or from repeated frames, then the base
+/// The fit data and the base model fitted with its noise curve: a provisional fit, its
+/// degrees-of-freedom probe on the screening subset ([`DiagnoseOptions::screen_pixels`]; the
+/// absorbed share scaled to every pixel, [`Fit::set_dof`]), the noise curve from the
+/// provisional fit's residual (module docs of `noise`) or from repeated frames, then the base
 /// model refitted with it; the curve stays fixed for every later model. Returns whether the
 /// curve came from repeated frames.
 fn base_model(open: &Image, pinhole: &Image, base_profile: &Profile, opts: &DiagnoseOptions) -> (Data, Fit, bool) {
+    let mut lap = crate::estimate::stage_clock();
     let mut data = Data::new(open, pinhole, opts.pinhole_variance_scale);
     let init = Model { corrections: model::Corrections::default(), grid: base_profile.grid.clone(), exposure: base_profile.meta.exposure_ratio.clone() };
     let mut provisional = fit::fit(&data, &init.corrections, &init, opts.base_fit);
+    progress_lap(opts, lap("provisional fit"));
     // the probe measures what the kernel fit absorbs (its dof, and its share of the noise's
     // high-pass, which the residual's curve is corrected for); the probe's response does not
     // depend on the curve's overall scale, so the refit inherits it
     measure_dof(&data, &mut provisional, opts, 0);
+    progress_lap(opts, lap("dof probe"));
     let repeat_noise = opts.repeat_noise.as_ref().filter(|r| r.len() == open.channel_count() && r.iter().all(|c| !c.bins.is_empty()));
     data.curves = match repeat_noise {
         Some(r) => r.clone(),
@@ -302,28 +307,36 @@ fn base_model(open: &Image, pinhole: &Image, base_profile: &Profile, opts: &Diag
     };
     let mut base = fit::fit(&data, &provisional.model.corrections, &provisional.model, FitSettings { rounds: 1, kernel_iterations: opts.base_fit.kernel_iterations });
     base.inherit_dof(&provisional);
+    progress_lap(opts, lap("base refit"));
     (data, base, repeat_noise.is_some())
 }
 
+/// A sub-stage's wall and CPU seconds on stderr, with progress on.
+fn progress_lap(opts: &DiagnoseOptions, t: crate::estimate::StageTime) {
+    if opts.progress {
+        eprintln!("  {}: {:.1} s, {} CPU-s", t.stage, t.wall, t.cpu.map_or("–".to_string(), |c| format!("{c:.1}")));
+    }
+}
+
 /// Measures `f`'s effective kernel degrees of freedom ([`fit::measure_kernel_dof`]) with the
-/// base fit's budget; `round` seeds the probe.
+/// base fit's budget on the screening subset; `round` seeds the probe.
 fn measure_dof(data: &Data, f: &mut Fit, opts: &DiagnoseOptions, round: u64) {
-    f.set_dof(fit::measure_kernel_dof(data, f, opts.base_fit, DOF_PROBE_SEED + round));
+    f.set_dof(fit::measure_kernel_dof(data, f, opts.base_fit, DOF_PROBE_SEED + round, opts.screen_pixels));
 }
 
 /// Seed of the divergence probe (any fixed value: the run stays reproducible).
 const DOF_PROBE_SEED: u64 = 0x00d0_f5eed;
 
-/// The noise curve of each channel from a fit's residual, divided by the share of the noise
-/// the fit keeps (`1 − α_hp`, [`Fit::highpass_absorbed`]) when that is known.
+/// The noise curve of each channel from a fit's residual on its evaluation set, divided by
+/// the share of the noise the fit keeps (`1 − α_hp`, [`Fit::highpass_absorbed`]) when that is
+/// known.
 pub fn residual_curves(open: &Image, f: &Fit) -> Vec<NoiseCurve> {
-    (0..open.channel_count())
-        .map(|c| {
-            let curve = noise::measure_residual(&open.planes[c], &f.predicted[c], &f.eval[c], 16, 8, Some(&f.reference_highpass[c]));
-            let alpha = f.highpass_absorbed.as_ref().and_then(|a| a.get(c)).copied().unwrap_or(0.0);
-            curve.absorbed(alpha)
-        })
-        .collect()
+    let alpha: Vec<f64> = (0..open.channel_count()).map(|c| f.highpass_absorbed.as_ref().and_then(|a| a.get(c)).copied().unwrap_or(0.0)).collect();
+    (0..open.channel_count()).map(|c| residual_curve(open, f, c, &f.eval[c], alpha[c])).collect()
+}
+
+fn residual_curve(open: &Image, f: &Fit, c: usize, mask: &[bool], alpha: f64) -> NoiseCurve {
+    noise::measure_residual(&open.planes[c], &f.predicted[c], mask, 16, 8, Some(&f.reference_highpass[c])).absorbed(alpha)
 }
 
 /// Where the effect search ended.
@@ -339,7 +352,9 @@ struct Search {
 fn add_effects(data: &mut Data, base: Fit, base_analysis: Analysis, repeat_noise: bool, opts: &DiagnoseOptions) -> Search {
     let mut s = Search { current: base, analysis: base_analysis, effects: Vec::new(), rounds: Vec::new() };
     while s.effects.len() < opts.max_effects && !consistent(&s.current, opts) {
+        let mut lap = crate::estimate::stage_clock();
         let (scores, best) = search_round(data, &s.current, &s.analysis, opts);
+        progress_lap(opts, lap("screening round"));
         s.rounds.push(scores);
         let Some((cand, f, dbic)) = best else {
             if opts.progress {
@@ -350,23 +365,7 @@ fn add_effects(data: &mut Data, base: Fit, base_analysis: Analysis, repeat_noise
         if opts.progress {
             eprintln!("round {}: {} explains most (reduced χ² {:.3} → {:.3}, ΔBIC {:.0})", s.rounds.len(), cand.name, s.current.reduced_chi2(), f.reduced_chi2(), dbic);
         }
-        let previous = s.current.clone();
-        // polish the winner with the base budget
-        let mut polished = fit::fit(data, &f.model.corrections, &f.model, opts.base_fit);
-        polished.inherit_dof(&s.current);
-        let f = if polished.chi2() <= f.chi2() { polished } else { f };
-        let parameters = candidates::parameters_json(cand.name, &f.model.corrections);
-        // the better model's residual gives a cleaner noise curve; refigure with it (a curve
-        // from repeated frames does not depend on the model), and state the effect's before
-        // and after on that same curve
-        if !repeat_noise {
-            data.curves = residual_curves(&data.open, &f);
-        }
-        let (before, after) = (Figures::of(&rescore(data, &previous)), Figures::of(&rescore(data, &f)));
-        s.effects.push(FoundEffect { name: cand.name.to_string(), evidence: cand.evidence, location: cand.location, parameters, before, after, delta_bic: dbic });
-        s.current = fit::fit(data, &f.model.corrections, &f.model, FitSettings { rounds: 1, kernel_iterations: opts.candidate_fit.kernel_iterations });
-        measure_dof(data, &mut s.current, opts, s.rounds.len() as u64);
-        s.analysis = analyse(&s.current);
+        adopt(data, &mut s, cand, f, dbic, repeat_noise, opts);
     }
     // backward elimination: drop effects a later one made redundant ([`prune`])
     while let Some((name, f)) = prune::weakest_redundant(data, &s.current, opts) {
@@ -379,8 +378,7 @@ fn add_effects(data: &mut Data, base: Fit, base_analysis: Analysis, repeat_noise
     }
     if !s.effects.is_empty() {
         // a last polish of the final model with a larger budget
-        let mut polished = fit::fit(data, &s.current.model.corrections, &s.current.model, FitSettings { rounds: 2, kernel_iterations: 2 * opts.base_fit.kernel_iterations });
-        polished.inherit_dof(&s.current);
+        let polished = final_polish(data, &s.current, opts);
         if polished.chi2() < s.current.chi2() {
             s.current = polished;
             s.analysis = analyse(&s.current);
@@ -390,6 +388,65 @@ fn add_effects(data: &mut Data, base: Fit, base_analysis: Analysis, repeat_noise
         }
     }
     s
+}
+
+/// Whether the screening subset thins the data at this size: the kernel operator keeps every
+/// block of a capture with at most [`DiagnoseOptions::screen_pixels`] pixels per channel.
+fn screens(data: &Data, opts: &DiagnoseOptions) -> bool {
+    data.open.width() * data.open.height() > opts.screen_pixels
+}
+
+/// Makes the round's winner `f` (a screening fit of `cand`) the current model: polished
+/// ([`polish_winner`]), the noise curve re-measured from its residual (a curve from repeated
+/// frames does not depend on the model), the effect's before and after stated on that same
+/// curve, then refitted once with it and its degrees of freedom measured.
+fn adopt(data: &mut Data, s: &mut Search, cand: candidates::Candidate, f: Fit, dbic: f64, repeat_noise: bool, opts: &DiagnoseOptions) {
+    let mut lap = crate::estimate::stage_clock();
+    let previous = s.current.clone();
+    let f = polish_winner(data, &s.current, f, opts);
+    progress_lap(opts, lap("winner's polish"));
+    let parameters = candidates::parameters_json(cand.name, &f.model.corrections);
+    if !repeat_noise {
+        data.curves = residual_curves(&data.open, &f);
+    }
+    let (before, after) = (Figures::of(&rescore(data, &previous)), Figures::of(&rescore(data, &f)));
+    s.effects.push(FoundEffect { name: cand.name.to_string(), evidence: cand.evidence, location: cand.location, parameters, before, after, delta_bic: dbic });
+    s.current = fit::fit(data, &f.model.corrections, &f.model, FitSettings { rounds: 1, kernel_iterations: opts.candidate_fit.kernel_iterations });
+    measure_dof(data, &mut s.current, opts, s.rounds.len() as u64);
+    s.analysis = analyse(&s.current);
+    progress_lap(opts, lap("rescore, refit and dof probe"));
+}
+
+/// The winner polished with the base budget (kept if it lowers χ²), with `current`'s degrees of
+/// freedom. Where the screening subset thins the data ([`screens`]) the polish runs on the
+/// subset and one round of the base budget on every pixel follows, so that the residual the
+/// noise curve is measured from is in-sample everywhere.
+fn polish_winner(data: &Data, current: &Fit, f: Fit, opts: &DiagnoseOptions) -> Fit {
+    let budget = if screens(data, opts) { opts.screen_pixels } else { usize::MAX };
+    let mut polished = fit::fit_subset(data, &f.model.corrections, &f.model, opts.base_fit, budget);
+    polished.inherit_dof(current);
+    let f = if polished.chi2() <= f.chi2() { polished } else { f };
+    if !screens(data, opts) {
+        return f;
+    }
+    let mut full = fit::fit(data, &f.model.corrections, &f.model, FitSettings { rounds: 1, kernel_iterations: opts.base_fit.kernel_iterations });
+    full.inherit_dof(current);
+    full
+}
+
+/// The final model polished with twice the base budget per round, two rounds; where the
+/// screening subset thins the data ([`screens`]) those rounds run on the subset and one round
+/// of the base budget on every pixel follows.
+fn final_polish(data: &Data, current: &Fit, opts: &DiagnoseOptions) -> Fit {
+    let settings = FitSettings { rounds: 2, kernel_iterations: 2 * opts.base_fit.kernel_iterations };
+    let mut polished = if screens(data, opts) {
+        let sub = fit::fit_subset(data, &current.model.corrections, &current.model, settings, opts.screen_pixels);
+        fit::fit(data, &sub.model.corrections, &sub.model, FitSettings { rounds: 1, kernel_iterations: opts.base_fit.kernel_iterations })
+    } else {
+        fit::fit(data, &current.model.corrections, &current.model, settings)
+    };
+    polished.inherit_dof(current);
+    polished
 }
 
 /// `f`'s model scored with `data`'s current noise curves, unchanged (no fitting round), with

@@ -583,7 +583,7 @@ mod tests {
         let mut data = convolve_spec_test(&ChannelProblem::new(&fft, &ks, &truth, None, 0.0, &[], None), &truth);
         data.iter_mut().zip(&noise).for_each(|(d, z)| *d += 0.004 * (z - 0.5));
         let other: Vec<f32> = truth.iter().map(|v| 0.05 + v).collect();
-        let cross = vec![CrossChannel { beta: 0.002, grad: gradients(&other, w, h), image: &other, pixel: None }];
+        let cross = [CrossChannel { beta: 0.002, grad: gradients(&other, w, h), image: &other, pixel: None }];
         let mask: Vec<f32> = (0..n).map(|i| if i % 11 == 4 { 0.0 } else { 1.0 }).collect();
         for (m, split, cc, cg) in [(None, None, &[][..], 1), (Some(&mask[..]), Some(2.0), &cross[..], 1), (Some(&mask[..]), None, &cross[..], 10)] {
             let run = |bound: bool| {

@@ -61,7 +61,7 @@ const SENSOR: (usize, usize) = (1024, 768);
 const RL_ITERATIONS: [usize; 3] = [10, 30, 100];
 const WIENER_BALANCE: [f32; 7] = [1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2, 1e-1];
 /// lensrig's options other than the noise and the denoiser's noise model (`--cross-weight`,
-/// `--stationary-noise` for experiments; the defaults otherwise).
+/// `--stationary-noise`, `--coloured-windows N`, `--positivity on|off` for experiments; the defaults otherwise).
 static BASE: std::sync::OnceLock<DeconvOptions> = std::sync::OnceLock::new();
 /// Seed of every cell's noise.
 const SEED: u64 = 2013;
@@ -317,9 +317,29 @@ fn region_errors(sharp: &[Plane], out: &[Plane], bright: &[bool]) -> Vec<[f64; 4
         .collect()
 }
 
+/// The MSE of `out` against `sharp` (clipped to [0, 1]) split by frequency: the error smoothed
+/// by a Gaussian of 2 px (below ≈ 0.08 cycles/px: shading, lost contrast of large structures)
+/// and the rest (texture, edges and noise), summed over the channels.
+fn band_errors(sharp: &[Plane], out: &[Plane]) -> (f64, f64) {
+    let (mut lo, mut hi, mut n) = (0.0, 0.0, 0.0);
+    for (s, o) in sharp.iter().zip(out) {
+        let e = Plane::from_fn(s.width, s.height, |x, y| o.get(x, y).clamp(0.0, 1.0) - s.get(x, y).clamp(0.0, 1.0));
+        let low = lensrig::image::filter::gaussian_blur(&e, 2.0);
+        for (a, b) in e.data.iter().zip(&low.data) {
+            lo += (*b as f64).powi(2);
+            hi += ((a - b) as f64).powi(2);
+        }
+        n += e.data.len() as f64;
+    }
+    (lo / n, hi / n)
+}
+
 /// `regions L N S`: the error of lensrig (defaults, flat denoiser, stationary noise level,
-/// cross-channel term off) and of Richardson–Lucy (100 iterations) split into bright objects (the sharp scene's
-/// luminance, Gaussian-smoothed over 3 px, above 2 × its median) and the background, per channel.
+/// cross-channel term off, positivity on/off, denoiser off at κ = 7, and the defaults on the
+/// noise-free blurred input: what the regularisation and the denoiser lose without noise) and of
+/// Richardson–Lucy (100 iterations) split into bright objects (the sharp scene's
+/// luminance, Gaussian-smoothed over 3 px, above 2 × its median) and the background, per
+/// channel, and into a low and a high frequency band ([`band_errors`]).
 fn regions(l: &str, nz: &str, s: &str) -> anyhow::Result<()> {
     let sharp = scene(s)?;
     let grid = lens(l)?;
@@ -340,15 +360,21 @@ fn regions(l: &str, nz: &str, s: &str) -> anyhow::Result<()> {
         ("lensrig, flat denoiser", DeconvOptions { coloured_noise: false, ..base.clone() }),
         ("lensrig, stationary noise", DeconvOptions { local_noise: false, ..base.clone() }),
         ("lensrig, cross-channel off", DeconvOptions { cross_weight: 0.0, ..base.clone() }),
+        ("lensrig, positivity toggled", DeconvOptions { positivity: !base.positivity, ..base.clone() }),
+        ("lensrig, denoiser off (κ = 7)", DeconvOptions { denoise: 0.0, ..base.clone() }),
     ];
     let mut outs: Vec<(String, Vec<Plane>)> = vec![("blurred".into(), blurred.clone()), ("RL 100".into(), rl)];
     for (name, o) in variants {
         outs.push((name.to_string(), deblur(&blurred, &grid, &o, &|_, _| {})?.0));
     }
+    // the same law and settings on the noise-free blurred input (what is lost without noise)
+    let clean: Vec<Plane> = sharp.iter().enumerate().map(|(c, p)| blur_channel(p, &grid, c).map(|v| v.clamp(0.0, 1.0))).collect();
+    outs.push(("lensrig (defaults), noise-free input".into(), deblur(&clean, &grid, &base, &|_, _| {})?.0));
     for (name, o) in &outs {
         let e = region_errors(&sharp, o, &bright);
         let f = |i: usize| e.iter().map(|c| format!("{:.2e}", c[i])).collect::<Vec<_>>().join(" ");
-        println!("{name:32} PSNR {:.2} | MSE bright {} | background {} | bias bright {} | background {}", psnr(&sharp, &clipped(o)), f(0), f(1), f(2), f(3));
+        let (lo, hi) = band_errors(&sharp, o);
+        println!("{name:38} PSNR {:.2} | MSE bright {} | background {} | bias bright {} | background {} | MSE low {lo:.2e} high {hi:.2e}", psnr(&sharp, &clipped(o)), f(0), f(1), f(2), f(3));
     }
     Ok(())
 }
@@ -385,7 +411,14 @@ fn main() -> anyhow::Result<()> {
     let with_estimate = !a.iter().any(|x| x == "--no-estimate");
     let cross_weight: f32 = list("--cross-weight", &["3"])[0].parse()?;
     let local_noise = !a.iter().any(|x| x == "--stationary-noise");
-    let _ = BASE.set(DeconvOptions { cross_weight, local_noise, ..DeconvOptions::default() });
+    let coloured_windows: usize = list("--coloured-windows", &["3"])[0].parse()?;
+    let positivity = match list("--positivity", &["default"])[0].as_str() {
+        "on" => true,
+        "off" => false,
+        _ => DeconvOptions::default().positivity,
+    };
+    let _ = BASE.set(DeconvOptions { cross_weight, local_noise, coloured_windows, positivity, ..DeconvOptions::default() });
+    eprintln!("coloured windows per axis {coloured_windows}, positivity {positivity}");
     let mut cache = PeerCache::load(Path::new(list("--peer-cache", &["target/deblur_matrix_peers.tsv"])[0].as_str()));
     let total = noises.len() * lenses.len() * scenes.len();
     let start = Instant::now();

@@ -16,9 +16,10 @@
 //!
 //! The solver is not that linear inverse: its ℓ1 prior shrinks small (noise-sized) gradients and
 //! its cross-channel term couples the channels. So the variances handed to the denoiser are
-//! **propagated through the solver itself** ([`through_solver`]): one flat window per channel at
-//! the channel's mean level, with white noise of the law's variance there, restored with the
-//! channel's own centre kernel, its own `λ` and the same options as the photograph; `σ²_k` is
+//! **propagated through the solver itself** ([`through_solver`]): a window of the photograph
+//! (`deblur` takes up to 3 × 3 of them over the field, see `coloured_field` in `deconv`), with
+//! white noise of the law's per-pixel variance added, restored with the kernels at the window
+//! centre, each channel's `λ` at the window's level and the same options as the photograph; `σ²_k` is
 //! then the mean of `(φ_k · n_out)²` over the 8×8 blocks of the restored window's interior,
 //! which is the same sum evaluated by Monte Carlo. For RGB the blocks are taken in the
 //! opponent space the denoiser works in (`Y = (R+G+B)/√3`, …), so the cross-channel correlation
@@ -34,8 +35,15 @@ use super::{restore_tile, TileSetup};
 use crate::image::Plane;
 use crate::solve::fft::Fft2;
 
-/// Side of the flat window restored by [`through_solver`] (pixels).
+/// Side of the largest window restored by [`through_solver`] (pixels).
 pub const WINDOW: usize = 192;
+
+/// Side of the window [`through_solver`] restores for kernels of `kernel_size` pixels: four
+/// kernel widths (the interior measured lies a kernel width inside the edge), rounded up to a
+/// multiple of 32, between 96 and [`WINDOW`].
+pub fn window_side(kernel_size: usize) -> usize {
+    (4 * kernel_size).div_ceil(32).saturating_mul(32).clamp(96, WINDOW)
+}
 
 /// The orthonormal 8×8 DCT-II basis function `φ_k` (row-major).
 pub fn basis(k: usize) -> [f32; 64] {
@@ -88,26 +96,27 @@ pub fn block_variance(x: &[f32], w: usize, h: usize, m: usize) -> [f32; 64] {
 }
 
 /// Noise through the solver, per decorrelated plane (opponent for three channels) and DCT
-/// coefficient: the difference `restore(j + n) − restore(j)` on [`WINDOW`]² windows `base[c]`
-/// of data `j` (a flat level, or a crop of the photograph), `n` white with the per-pixel
-/// variance `variance(c, j)`, `kernels[c]` the channel's kernel, `setup` the solver settings
-/// (its `width`/`height` are replaced by [`WINDOW`]). Deterministic (fixed seed).
+/// coefficient: the difference `restore(j + n) − restore(j)` on square windows `base[c]`
+/// (side `setup.width`, e.g. [`window_side`]) of data `j` (a flat level, or a crop of the
+/// photograph), `n` white with the per-pixel variance `variance(c, j)`, `kernels[c]` the
+/// channel's kernel, `setup` the solver settings. Deterministic (fixed seed).
 pub fn through_solver(base: &[Vec<f32>], variance: &dyn Fn(usize, f32) -> f32, kernels: &[Plane], setup: &TileSetup) -> Vec<[f32; 64]> {
-    let n = WINDOW * WINDOW;
+    let side = setup.width;
+    let n = side * side;
     let mut rng = crate::rng::Rng::new(0x5eed);
     let noisy: Vec<Vec<f32>> = base.iter().enumerate().map(|(c, b)| b.iter().map(|j| j + (variance(c, *j).max(0.0).sqrt() as f64 * rng.normal()) as f32).collect()).collect();
-    let setup = TileSetup { width: WINDOW, height: WINDOW, field: None, ..*setup };
+    let setup = TileSetup { width: side, height: side, field: None, ..*setup };
     let (mut restored, _) = restore_tile(&noisy, kernels, &setup);
     let (clean, _) = restore_tile(base, kernels, &setup);
     restored.iter_mut().zip(&clean).for_each(|(r, c)| r.iter_mut().zip(c).for_each(|(a, b)| *a -= b));
     // the unknown-boundary solve extrapolates the outer kernel radius; keep well inside
-    let m = kernels.iter().map(|k| k.width).max().unwrap_or(1).min(WINDOW / 4);
+    let m = kernels.iter().map(|k| k.width).max().unwrap_or(1).min(side / 4);
     let planes: Vec<Vec<f32>> = if restored.len() == 3 {
         (0..3).map(|i| (0..n).map(|p| (0..3).map(|c| OPP[i][c] * restored[c][p]).sum()).collect()).collect()
     } else {
         restored
     };
-    planes.iter().map(|p| block_variance(p, WINDOW, WINDOW, m)).collect()
+    planes.iter().map(|p| block_variance(p, side, side, m)).collect()
 }
 
 #[cfg(test)]

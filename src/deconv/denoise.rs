@@ -60,8 +60,9 @@ pub struct DenoiseOptions {
     /// (opponent `Y, C₁, C₂` for RGB, else the channels), the linear-axis variance `σ²_k` of each
     /// 8×8 DCT coefficient (row-major `k = 8u + v`) of the noise the stage faces. When set, it
     /// replaces `sigma` and `chroma`: the plane's level is `σ = √(mean_k σ²_k)` and coefficient
-    /// `k` is thresholded and Wiener-shrunk at `σ_b √(σ²_k / mean σ²)`.
-    pub coefficient_variance: Option<Vec<[f32; 64]>>,
+    /// `k` is thresholded and Wiener-shrunk at `σ_b √(σ²_k / mean σ²)`. The variances may vary
+    /// across the field ([`CoefficientField`]: interpolated between nodes at the block centre).
+    pub coefficient_variance: Option<CoefficientField>,
     /// Exponent `p`: the block noise level is `σ g'(0.18) (g'(v̄_b)/g'(0.18))^p` (1: the delta
     /// method; smaller values account for the solver's prior, which already regularises dark
     /// regions more).
@@ -74,6 +75,70 @@ pub struct DenoiseOptions {
     /// centre. `None`: stationary noise.
     pub local_variance: Option<Vec<Plane>>,
     pub parallel: bool,
+}
+
+/// Field-varying coloured noise (docs/deconvolution.md "Per-tile coloured noise"): the
+/// variances `σ²_k` of [`DenoiseOptions::coefficient_variance`] at the nodes of a rectangular
+/// lattice of image positions, blended bilinearly between them (a partition of unity, as the
+/// deconvolution blends its tiles) and held constant beyond the outer nodes:
+///
+/// ```text
+/// σ²_k(x, y) = Σ_ij a_i(x) b_j(y) σ²_k,ij        (a, b the 1-D linear hat weights)
+/// ```
+///
+/// Positions in pixels (block centres); variances on the linear axis, per decorrelated plane.
+#[derive(Clone, Debug)]
+pub struct CoefficientField {
+    /// Node columns (pixels, increasing).
+    pub xs: Vec<f32>,
+    /// Node rows (pixels, increasing).
+    pub ys: Vec<f32>,
+    /// `variance[j · xs.len() + i][plane]`: the node `(xs[i], ys[j])`'s variances.
+    pub variance: Vec<Vec<[f32; 64]>>,
+}
+
+impl CoefficientField {
+    /// The same variances everywhere (one node).
+    pub fn uniform(variance: Vec<[f32; 64]>) -> Self {
+        Self { xs: vec![0.0], ys: vec![0.0], variance: vec![variance] }
+    }
+
+    /// Planes described (the smallest count over the nodes).
+    pub fn planes(&self) -> usize {
+        self.variance.iter().map(Vec::len).min().unwrap_or(0)
+    }
+
+    /// The linear hat weights of position `v` between `nodes`: (lower node, upper node, weight
+    /// of the upper one).
+    fn hat(nodes: &[f32], v: f32) -> (usize, usize, f32) {
+        let n = nodes.len();
+        if n < 2 || v <= nodes[0] {
+            return (0, 0, 0.0);
+        }
+        if v >= nodes[n - 1] {
+            return (n - 1, n - 1, 0.0);
+        }
+        let i = nodes.partition_point(|x| *x <= v).clamp(1, n - 1) - 1;
+        let span = (nodes[i + 1] - nodes[i]).max(1e-6);
+        (i, i + 1, ((v - nodes[i]) / span).clamp(0.0, 1.0))
+    }
+
+    /// `σ²_k` of `plane` at pixel `(x, y)`.
+    pub fn at(&self, plane: usize, x: f32, y: f32) -> [f32; 64] {
+        let (i0, i1, tx) = Self::hat(&self.xs, x);
+        let (j0, j1, ty) = Self::hat(&self.ys, y);
+        let nx = self.xs.len();
+        let mut v = [0.0f32; 64];
+        for (j, wy) in [(j0, 1.0 - ty), (j1, ty)] {
+            for (i, wx) in [(i0, 1.0 - tx), (i1, tx)] {
+                let wt = wx * wy;
+                if wt > 0.0 {
+                    v.iter_mut().zip(&self.variance[j * nx + i][plane]).for_each(|(a, b)| *a += wt * b);
+                }
+            }
+        }
+        v
+    }
 }
 
 impl Default for DenoiseOptions {
@@ -214,7 +279,7 @@ pub fn denoise(planes: &[Plane], opts: &DenoiseOptions) -> Vec<Plane> {
     let nch = planes.len();
     let (w, h) = (planes[0].width, planes[0].height);
     let silent = match &opts.coefficient_variance {
-        Some(v) => v.len() < nch || v.iter().all(|c| c.iter().all(|s| *s <= 1e-18)),
+        Some(f) => f.planes() < nch || f.variance.iter().flatten().all(|c| c.iter().all(|s| *s <= 1e-18)),
         None => opts.sigma.len() < nch || opts.sigma.iter().all(|s| *s <= 1e-9),
     };
     if w < B || h < B || nch == 0 || silent {
@@ -333,6 +398,16 @@ impl<'a> Plan<'a> {
         a.iter().zip(maps).map(|(a, m)| a * m.data[k].max(0.0)).sum::<f32>().sqrt()
     }
 
+    /// The linear noise level of plane `ch` for the block at (image row `py`, column `px`) and
+    /// each DCT coefficient's level relative to it: the plane's constants, or, with a
+    /// field-varying [`CoefficientField`], its variances at the block centre.
+    fn plane_noise_at(&self, ch: usize, py: usize, px: usize) -> (f32, [f32; 64]) {
+        match &self.opts.coefficient_variance {
+            Some(f) if f.variance.len() > 1 => level_and_rel(&f.at(ch, (px + B / 2) as f32, (py + B / 2) as f32)),
+            _ => (self.sig_lin[ch], self.rel[ch]),
+        }
+    }
+
     /// Block origins (image rows) in `[lo, hi)`.
     fn blocks(&self, lo: isize, hi: isize) -> Vec<usize> {
         self.ys.iter().copied().filter(|&py| (py as isize) >= lo && (py as isize) < hi).collect()
@@ -398,10 +473,11 @@ impl<'a> Plan<'a> {
                     if self.bm && ch < self.nbm {
                         continue;
                     }
-                    let sg = self.sig_lin[ch] * g * self.local_gain(s, ly, px, ch);
+                    let (sl, rc) = self.plane_noise_at(ch, py, px);
+                    let sg = sl * g * self.local_gain(s, ly, px, ch);
                     load_block(plane, w, ly, px, &mut x);
                     dct2(&x, &mut c);
-                    let rc = &self.rel[ch];
+                    let rc = &rc;
                     // the estimate's noise variance, in units of sg²: Σ over kept coefficients
                     let kept = hard_threshold(&mut c, self.opts.threshold * sg, rc, 0.0);
                     idct2(&c, &mut o);
@@ -432,13 +508,14 @@ impl<'a> Plan<'a> {
                     if self.bm && ch < self.nbm {
                         continue;
                     }
-                    let sg = self.sig_lin[ch] * g * self.local_gain(s, ly, px, ch);
+                    let (sl, rc) = self.plane_noise_at(ch, py, px);
+                    let sg = sl * g * self.local_gain(s, ly, px, ch);
                     let s2v = sg * sg;
                     load_block(&s.noisy[ch], w, ly, px, &mut x);
                     dct2(&x, &mut c);
                     load_block(&pilot[ch], w, ly, px, &mut x);
                     dct2(&x, &mut pc);
-                    let wn = wiener_shrink(&mut c, &pc, s2v, &self.rel[ch]);
+                    let wn = wiener_shrink(&mut c, &pc, s2v, &rc);
                     idct2(&c, &mut o);
                     add_block(&o, 1.0 / (s2v * wn).max(1e-20), w, ly, px, &mut num[ch], &mut den[ch]);
                 }
@@ -457,8 +534,11 @@ impl<'a> Plan<'a> {
     fn bm_planes(&self, s: &Strip, pilot: Option<&[Vec<f32>]>, refs: &[usize], num: &mut [Vec<f32>], den: &mut [Vec<f32>]) {
         let ctx = BmContext { w: self.w, h: self.h, a: s.a, b: s.a + s.rows, xs: &self.xs, opts: self.opts };
         for ch in 0..self.nbm.min(s.noisy.len()) {
-            let sigma = |ly: usize, px: usize| self.sig_lin[ch] * self.block_gain(s, ly, px) * self.local_gain(s, ly, px, ch);
-            bm_stage(&ctx, &s.noisy[ch], pilot.map(|p| p[ch].as_slice()), refs, (&sigma, &self.rel[ch]), &mut num[ch], &mut den[ch]);
+            let noise = |ly: usize, px: usize| {
+                let (sl, rc) = self.plane_noise_at(ch, s.a + ly, px);
+                (sl * self.block_gain(s, ly, px) * self.local_gain(s, ly, px, ch), rc)
+            };
+            bm_stage(&ctx, &s.noisy[ch], pilot.map(|p| p[ch].as_slice()), refs, &noise, &mut num[ch], &mut den[ch]);
         }
     }
 
@@ -541,15 +621,8 @@ fn local_weights(opts: &DenoiseOptions, nch: usize, opponent: bool) -> Vec<Vec<f
 /// The noise level `σ` of each decorrelated plane (linear axis, before the transfer slope) and
 /// each DCT coefficient's level relative to it (`√(σ²_k / mean_k σ²_k)`; all 1 for white noise).
 fn plane_noise(opts: &DenoiseOptions, opponent: bool) -> (Vec<f32>, Vec<[f32; 64]>) {
-    if let Some(var) = &opts.coefficient_variance {
-        return var
-            .iter()
-            .map(|v| {
-                let mean = v.iter().sum::<f32>() / 64.0;
-                let rel = std::array::from_fn(|k| if mean > 0.0 { (v[k] / mean).max(0.0).sqrt() } else { 1.0 });
-                (mean.max(0.0).sqrt(), rel)
-            })
-            .unzip();
+    if let Some(f) = &opts.coefficient_variance {
+        return f.variance[0].iter().map(level_and_rel).unzip();
     }
     let sig: Vec<f32> = if opponent {
         (0..3)
@@ -565,9 +638,17 @@ fn plane_noise(opts: &DenoiseOptions, opponent: bool) -> (Vec<f32>, Vec<[f32; 64
     (sig, vec![[1.0; 64]; n])
 }
 
+/// A plane's level `σ = √(mean_k σ²_k)` and each coefficient's level relative to it,
+/// `√(σ²_k / mean_k σ²_k)` (all 1 when the variances vanish).
+fn level_and_rel(v: &[f32; 64]) -> (f32, [f32; 64]) {
+    let mean = v.iter().sum::<f32>() / 64.0;
+    let rel = std::array::from_fn(|k| if mean > 0.0 { (v[k] / mean).max(0.0).sqrt() } else { 1.0 });
+    (mean.max(0.0).sqrt(), rel)
+}
+
 /// A block's noise for [`bm_stage`]: its level `σ_b` at (local row, column) and each DCT
 /// coefficient's level relative to it.
-type BlockNoise<'n> = (&'n dyn Fn(usize, usize) -> f32, &'n [f32; 64]);
+type BlockNoise<'n> = &'n dyn Fn(usize, usize) -> (f32, [f32; 64]);
 
 struct BmContext<'a> {
     w: usize,
@@ -623,7 +704,6 @@ fn haar_inverse(g: &mut [[f32; 64]], t: &mut [[f32; 64]], n: usize) {
 /// pilot group, and aggregated into `num`/`den`. `noise` is the block's level `σ_b` and the
 /// relative level of each DCT coefficient (all 1 for white noise).
 fn bm_stage(ctx: &BmContext, noisy: &[f32], pilot: Option<&[f32]>, refs: &[usize], noise: BlockNoise, num: &mut [f32], den: &mut [f32]) {
-    let (sigma, rel) = noise;
     let (w, opts) = (ctx.w, ctx.opts);
     let gmax = opts.group.clamp(1, 32).next_power_of_two().min(32);
     let gmax = if gmax > opts.group.max(1) { gmax / 2 } else { gmax };
@@ -638,8 +718,8 @@ fn bm_stage(ctx: &BmContext, noisy: &[f32], pilot: Option<&[f32]>, refs: &[usize
     for &py in refs {
         let ly = py - ctx.a;
         for &px in ctx.xs {
-            let sg = sigma(ly, px);
-            let s2 = sg * sg;
+            let (sg, rel) = noise(ly, px);
+            let (s2, rel) = (sg * sg, &rel);
             match_blocks(ctx, guide, (py, px), opts.match_tau * s2, &mut cand);
             let mut n = 1usize;
             while n * 2 <= gmax && n * 2 - 1 <= cand.len() {
@@ -759,6 +839,42 @@ mod tests {
     }
 
     /// A local variance map of 4 everywhere is the same as twice the stationary level; a map of
+    /// A field of coefficient variances: exact at the nodes, the bilinear blend between them
+    /// (a partition of unity), constant beyond the outer nodes; a uniform field of the same
+    /// variances denoises exactly as a one-node field does, and a field whose right half is
+    /// noisier smooths the right half more.
+    #[test]
+    fn coefficient_field_blends_the_nodes() {
+        let a: [f32; 64] = std::array::from_fn(|k| 1e-4 * (1.0 + k as f32));
+        let b: [f32; 64] = std::array::from_fn(|k| 4e-4 / (1.0 + k as f32));
+        let f = CoefficientField { xs: vec![10.0, 30.0], ys: vec![5.0], variance: vec![vec![a], vec![b]] };
+        for (x, t) in [(10.0, 0.0), (30.0, 1.0), (20.0, 0.5), (15.0, 0.25), (0.0, 0.0), (50.0, 1.0)] {
+            let v = f.at(0, x, 5.0);
+            for k in 0..64 {
+                let want = (1.0 - t) * a[k] + t * b[k];
+                assert!((v[k] - want).abs() <= 1e-6 * want, "x {x} k {k}: {} vs {want}", v[k]);
+            }
+        }
+        let mut rng = crate::rng::Rng::new(3);
+        let (w, h) = (64, 48);
+        let planes: Vec<Plane> = (0..3).map(|_| Plane::from_fn(w, h, |_, _| 0.3 + (0.02 * rng.normal()) as f32)).collect();
+        let white = [4e-4f32; 64];
+        let base = DenoiseOptions { sigma: vec![0.02; 3], parallel: false, ..DenoiseOptions::default() };
+        let one = denoise(&planes, &DenoiseOptions { coefficient_variance: Some(CoefficientField::uniform(vec![white; 3])), ..base.clone() });
+        let two = CoefficientField { xs: vec![0.0, 63.0], ys: vec![0.0], variance: vec![vec![white; 3], vec![white; 3]] };
+        let two = denoise(&planes, &DenoiseOptions { coefficient_variance: Some(two), ..base.clone() });
+        assert!(one.iter().zip(&two).all(|(p, q)| p.data.iter().zip(&q.data).all(|(a, b)| (a - b).abs() < 1e-6)));
+        let ramp = CoefficientField { xs: vec![16.0, 48.0], ys: vec![0.0], variance: vec![vec![[1e-6; 64]; 3], vec![[4e-3; 64]; 3]] };
+        let out = denoise(&planes, &DenoiseOptions { coefficient_variance: Some(ramp), ..base });
+        let dev = |p: &Plane, x0: usize, x1: usize| {
+            let v: Vec<f32> = (8..h - 8).flat_map(|y| (x0..x1).map(move |x| (y, x))).map(|(y, x)| p.data[y * w + x]).collect();
+            let m = v.iter().sum::<f32>() / v.len() as f32;
+            (v.iter().map(|a| (a - m).powi(2)).sum::<f32>() / v.len() as f32).sqrt()
+        };
+        let (left, right) = (dev(&out[1], 4, 14), dev(&out[1], 50, 60));
+        assert!(right < 0.5 * left, "left {left} right {right}");
+    }
+
     /// 1 changes nothing.
     #[test]
     fn local_variance_scales_the_block_noise_level() {

@@ -1,6 +1,8 @@
 //! [`ChannelProblem`]'s steps for the one ADMM loop ([`crate::solve::admm`]): the splits
 //! `z_a = H_a x` and `z = (D_{i_l} H_a − D_{H_a i_l}) x` (per cross-channel block), the
-//! per-pixel weights folded into the shrinkage thresholds, the optional data split `v = B x`
+//! per-pixel weights folded into the shrinkage thresholds, the optional positivity split
+//! `z_+ = x` (prox: the projection onto `x ≥ ℓ`; it adds `ρ I` to the `x`-update's system),
+//! the optional data split `v = B x`
 //! (kept here, with its own scaled dual `u_v`), and the three `x`-updates: a Fourier division
 //! (no mask, no cross-channel block), one preconditioned steepest-descent step with `P x` and
 //! `ρ CᵀC x` carried along (unmasked, one CG step), or a few preconditioned, warm-started
@@ -70,7 +72,8 @@ impl<'p, 'a> ChannelAdmm<'p, 'a> {
     /// Precomputes the spectra, thresholds and path state; `x` is the warm start.
     pub(super) fn new(p: &'p ChannelProblem<'a>, x: &[f32], rho: f32, cg_iterations: usize) -> Self {
         let n = p.n();
-        let sh = p.derivative_power();
+        // the positivity split z_+ = x adds ρ I to the x-update's system
+        let sh: Vec<f32> = p.derivative_power().into_iter().map(|v| v + if p.lower_bound.is_some() { 1.0 } else { 0.0 }).collect();
         // with the data split v = Bx the data enters the x-update as ρ_v BᵀB, and the mask
         // lives in the v-prox only
         let split = p.data_split;
@@ -290,7 +293,7 @@ impl AdmmSteps for ChannelAdmm<'_, '_> {
     }
 
     fn blocks(&self) -> usize {
-        self.scale.len()
+        self.scale.len() + usize::from(self.p.lower_bound.is_some())
     }
 
     /// The data split: `v = argmin ‖M(v − ΔJ)‖² + ρ_v/2 ‖v − (Bx + u_v)‖²` (elementwise),
@@ -315,6 +318,10 @@ impl AdmmSteps for ChannelAdmm<'_, '_> {
 
     fn apply_split(&self, x: &[f32], out: &mut [f32]) {
         self.p.apply_split(x, out);
+        if self.p.lower_bound.is_some() {
+            let k = self.scale.len() * self.p.n();
+            out[k..k + x.len()].copy_from_slice(x);
+        }
     }
 
     /// Clamps to the block's threshold (times the per-pixel weight); with reweighting the
@@ -322,6 +329,11 @@ impl AdmmSteps for ChannelAdmm<'_, '_> {
     /// hyper-Laplacian-like prior that shrinks strong edges less than noise-sized gradients.
     fn project_dual(&self, blk: usize, kx: &[f32], v: &mut [f32]) {
         let p = self.p;
+        if let (Some(lb), true) = (&p.lower_bound, blk == self.scale.len()) {
+            // v − max(v, ℓ): the projection onto {z ≥ ℓ} through Moreau's identity
+            v.iter_mut().zip(lb).for_each(|(v, l)| *v = (*v - l).min(0.0));
+            return;
+        }
         let s = self.scale[blk];
         if let (Some((q, eps)), true) = (p.reweight, blk < ALL.len()) {
             let inv = 1.0 / eps;
@@ -347,6 +359,10 @@ impl AdmmSteps for ChannelAdmm<'_, '_> {
     /// `rhs = ρ Kᵀ(z − u) (+ 2BᵀMΔJ)`, then the path's solve.
     fn x_update(&mut self, t: &[f32], x: &mut [f32]) -> usize {
         self.p.apply_split_adjoint(t, &mut self.rhs);
+        if self.p.lower_bound.is_some() {
+            let k = self.scale.len() * self.p.n();
+            self.rhs.iter_mut().zip(&t[k..]).for_each(|(r, t)| *r += t);
+        }
         if self.mode == XUpdate::Direct {
             self.x_update_direct(x);
             return 0;

@@ -227,9 +227,7 @@ pub fn residual_noise_law(est: &Estimate, pred: &[Plane]) -> Option<NoiseLaw> {
     let mut residuals = Vec::with_capacity(pred.len());
     for (c, p) in pred.iter().enumerate() {
         let s = est.profile.meta.exposure_ratio.get(c).copied().unwrap_or(1.0);
-        let mut norms: Vec<f64> = g.kernels[c].iter().map(|k| k.data.iter().map(|&v| (v as f64).powi(2)).sum()).collect();
-        norms.sort_by(f64::total_cmp);
-        let q = norms.get(norms.len() / 2).copied().unwrap_or(0.0);
+        let q = super::joint::median_kernel_energy(&g.kernels[c]);
         let (a, b) = ((1.0 + s * q) / (1.0 + s * s * q), 1.0 / (1.0 + s * s * q).sqrt());
         signals.push(p.map(|v| (v as f64 * a) as f32));
         residuals.push(Plane { width: p.width, height: p.height, data: est.open_linear[c].data.iter().zip(&p.data).map(|(&j, &v)| ((j - v) as f64 * b) as f32).collect() });

@@ -322,6 +322,16 @@ fn problem_on(op: KernelOperator, open: &Plane, valid: &[bool], grid: &PsfGrid, 
 /// the field radius (the Seidel terms, field curvature) has its local rate `2g` at the corner.
 pub const FIELD_RATE_PEAK: f64 = 2.0;
 
+/// The median over `kernels` of `‖b‖² = Σ_u b(u)²` (the upper median; 0 when empty): the
+/// inverse of a unit-sum kernel's effective pixel count, shared by the field prior
+/// ([`field_pairs`]) and the pinhole noise a kernel propagates
+/// ([`super::bootstrap::residual_noise_law`]).
+pub(crate) fn median_kernel_energy(kernels: &[Plane]) -> f64 {
+    let mut n2: Vec<f64> = kernels.iter().map(|p| p.data.iter().map(|&v| (v as f64).powi(2)).sum()).collect();
+    n2.sort_by(f64::total_cmp);
+    n2.get(n2.len() / 2).copied().unwrap_or(0.0)
+}
+
 /// The field-smoothness prior's pairs (docs/estimation.md "Field-smoothness prior"): every
 /// pair of grid neighbours `(t, t')` (same row or column, adjacent) with the weight
 ///
@@ -338,9 +348,7 @@ fn field_pairs(grid: &PsfGrid, kernels: &[Plane], g: f64, sigma: f64) -> Vec<(us
     if !(g.is_finite() && g > 0.0) {
         return vec![];
     }
-    let mut n2: Vec<f64> = kernels.iter().map(|p| p.data.iter().map(|&v| (v as f64).powi(2)).sum()).collect();
-    n2.sort_by(f64::total_cmp);
-    let q = n2.get(n2.len() / 2).copied().unwrap_or(0.0);
+    let q = median_kernel_energy(kernels);
     let (cols, rows) = (grid.columns, grid.rows);
     let mut out = Vec::new();
     for t in 0..cols * rows {

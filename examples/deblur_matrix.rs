@@ -424,7 +424,7 @@ fn probe(l: &str, nz: &str, s: &str) -> anyhow::Result<()> {
     println!("{l} × {nz} × {s}: black {:.1} %, edges {:.1} %, flat {:.1} %, outer frame {:.1} % of pixels; MSE (share of the image's) per channel R G B", share(&black), share(&edge), share(&flat), share(&outer));
     let bal = PeerCache::load(Path::new("/work/cache/peers_m14.tsv")).rows.get(&PeerCache::key(l, nz, s)).map_or(0.01, |p| p.balance);
     let wiener: Vec<Plane> = blurred.iter().enumerate().map(|(c, b)| wiener_tiled(b, &grid, c, &[bal]).remove(0)).collect();
-    let (out, wall, cpu) = run_lensrig(&blurred, &grid, &law, BASE.get().is_none_or(|b| b.coloured_noise))?;
+    let (out, wall, cpu) = run_lensrig(&blurred, &grid, &law, BASE.get().map_or(true, |b| b.coloured_noise))?;
     for (name, o) in [("blurred", &blurred), (&*format!("Wiener b={bal:.0e}"), &wiener), (&*format!("lensrig ({wall:.1} s / {cpu:.1} CPU-s)"), &out)] {
         let f = |m: &[bool]| masked_mse(&sharp, o, m).iter().map(|v| format!("{v:.2e}")).collect::<Vec<_>>().join(" ");
         let (lo, hi) = band_errors(&sharp, o);

@@ -6,6 +6,12 @@
 //! `cargo run --release --example deblur_matrix -- [--lens L,…] [--noise N,…] [--scene S,…]
 //! [--denoise-noise flat|coloured] [--no-estimate]`, or
 //! `cargo run --release --example deblur_matrix -- scenes DIR` to write the procedural scenes.
+//! `… -- probe L N S [options]`: one cell's error of lensrig (the options given), the blurred
+//! input and the cell's best Wiener balance, split by channel, region (black, edges, flat),
+//! field position (outer fifth of the frame / inner part) and frequency band. Experiment
+//! overrides of lensrig's options: `--set key=value,…` with `denoise`, `kappa` (the solver's κ
+//! with the denoiser), `kappa7` (κ without it), `tile`, `no_harm` (on/off), `iterations`,
+//! `sure` (on/off: [`DeconvOptions::coloured_sure`]).
 //!
 //! Every cell is a 1024 × 768 sensor (one profile per lens, as a camera has): the photographs
 //! are mirror-tiled or cropped to that size ([`lensrig::image::Plane::window_reflect`]).
@@ -379,6 +385,55 @@ fn regions(l: &str, nz: &str, s: &str) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// MSE of `out` against `sharp` (clipped to [0, 1]) per channel in the pixels where `sel` holds,
+/// as a share of the whole image's MSE (so the parts of a partition add up).
+fn masked_mse(sharp: &[Plane], out: &[Plane], sel: &[bool]) -> Vec<f64> {
+    let n = sel.len() as f64;
+    sharp.iter().zip(out).map(|(s, o)| s.data.iter().zip(&o.data).zip(sel).filter(|(_, m)| **m).map(|((a, b), _)| ((b.clamp(0.0, 1.0) - a.clamp(0.0, 1.0)) as f64).powi(2) / n).sum()).collect()
+}
+
+/// `probe L N S`: lensrig (the options of the command line) against the blurred input and the
+/// cell's best Wiener balance, the MSE split by channel, by region (black: sharp luminance
+/// < 0.01; edges: the sharp luminance's gradient, smoothed over 2 px, above 4× its median;
+/// flat: the rest), by field position (the outer fifth of the frame against the inner part) and by
+/// frequency band ([`band_errors`]).
+fn probe(l: &str, nz: &str, s: &str) -> anyhow::Result<()> {
+    let sharp = scene(s)?;
+    let grid = lens(l)?;
+    let (law, pg) = noise_law(nz)?;
+    let blurred = blurred_noisy(&sharp, &grid, pg, SEED);
+    let (w, h) = SENSOR;
+    let luma = Plane::sum_of(&sharp).map(|v| v / 3.0);
+    let gm = Plane::from_fn(w, h, |x, y| {
+        let (xa, xb, ya, yb) = (x.saturating_sub(1), (x + 1).min(w - 1), y.saturating_sub(1), (y + 1).min(h - 1));
+        ((luma.get(xb, y) - luma.get(xa, y)).powi(2) + (luma.get(x, yb) - luma.get(x, ya)).powi(2)).sqrt()
+    });
+    let gm = lensrig::image::filter::gaussian_blur(&gm, 2.0);
+    let mut sorted = gm.data.clone();
+    sorted.sort_by(f32::total_cmp);
+    let thr = 4.0 * sorted[sorted.len() / 2];
+    let black: Vec<bool> = luma.data.iter().map(|v| *v < 0.01).collect();
+    let edge: Vec<bool> = gm.data.iter().zip(&black).map(|(g, b)| !b && *g > thr).collect();
+    let flat: Vec<bool> = black.iter().zip(&edge).map(|(b, e)| !b && !e).collect();
+    let outer: Vec<bool> = (0..w * h).map(|i| {
+        let (x, y) = (i % w, i / w);
+        x < w / 5 || x >= w - w / 5 || y < h / 5 || y >= h - h / 5
+    }).collect();
+    let inner: Vec<bool> = outer.iter().map(|o| !o).collect();
+    let share = |m: &[bool]| 100.0 * m.iter().filter(|v| **v).count() as f64 / m.len() as f64;
+    println!("{l} × {nz} × {s}: black {:.1} %, edges {:.1} %, flat {:.1} %, outer frame {:.1} % of pixels; MSE (share of the image's) per channel R G B", share(&black), share(&edge), share(&flat), share(&outer));
+    let bal = PeerCache::load(Path::new("/work/cache/peers_m14.tsv")).rows.get(&PeerCache::key(l, nz, s)).map_or(0.01, |p| p.balance);
+    let wiener: Vec<Plane> = blurred.iter().enumerate().map(|(c, b)| wiener_tiled(b, &grid, c, &[bal]).remove(0)).collect();
+    let (out, wall, cpu) = run_lensrig(&blurred, &grid, &law, BASE.get().map_or(true, |b| b.coloured_noise))?;
+    for (name, o) in [("blurred", &blurred), (&*format!("Wiener b={bal:.0e}"), &wiener), (&*format!("lensrig ({wall:.1} s / {cpu:.1} CPU-s)"), &out)] {
+        let f = |m: &[bool]| masked_mse(&sharp, o, m).iter().map(|v| format!("{v:.2e}")).collect::<Vec<_>>().join(" ");
+        let (lo, hi) = band_errors(&sharp, o);
+        let per: Vec<String> = (0..3).map(|c| format!("{:.2}", psnr(&sharp[c..c + 1], &clipped(&o[c..c + 1])))).collect();
+        println!("{name:28} PSNR {:.2} ({}) | black {} | edges {} | flat {} | outer {} | inner {} | low {lo:.2e} high {hi:.2e}", psnr(&sharp, &clipped(o)), per.join("/"), f(&black), f(&edge), f(&flat), f(&outer), f(&inner));
+    }
+    Ok(())
+}
+
 fn write_scenes(dir: &Path) -> anyhow::Result<()> {
     std::fs::create_dir_all(dir)?;
     let (w, h) = SENSOR;
@@ -399,6 +454,7 @@ fn main() -> anyhow::Result<()> {
     if a.first().is_some_and(|x| x == "regions") && a.len() >= 4 {
         return regions(&a[1], &a[2], &a[3]);
     }
+    let probe_cell = (a.first().is_some_and(|x| x == "probe") && a.len() >= 4).then(|| (a[1].clone(), a[2].clone(), a[3].clone()));
     let list = |flag: &str, all: &[&str]| -> Vec<String> {
         a.iter().position(|x| x == flag).and_then(|i| a.get(i + 1)).map_or_else(|| all.iter().map(|s| s.to_string()).collect(), |v| v.split(',').map(str::to_string).collect())
     };
@@ -417,8 +473,27 @@ fn main() -> anyhow::Result<()> {
         "off" => false,
         _ => DeconvOptions::default().positivity,
     };
-    let _ = BASE.set(DeconvOptions { cross_weight, local_noise, coloured_windows, positivity, ..DeconvOptions::default() });
+    let mut base = DeconvOptions { cross_weight, local_noise, coloured_windows, positivity, coloured_noise: coloured, ..DeconvOptions::default() };
+    // experiment overrides: `--set key=value,…` (denoise, kappa, tile, no_harm, iterations)
+    for kv in list("--set", &[""])[0].split(',').filter(|kv| !kv.is_empty()) {
+        let (k, v) = kv.split_once('=').ok_or_else(|| anyhow::anyhow!("--set {kv}: key=value"))?;
+        match k {
+            "denoise" => base.denoise = v.parse()?,
+            "kappa" => base.denoise_lambda_per_variance = v.parse()?,
+            "tile" => base.tile_core = Some(v.parse()?),
+            "no_harm" => base.no_harm.enabled = v == "on",
+            "iterations" => base.max_iterations = v.parse()?,
+            "kappa7" => base.lambda_per_variance = v.parse()?,
+            "sure" => base.coloured_sure = v == "on",
+            _ => anyhow::bail!("--set: unknown key {k}"),
+        }
+    }
+    eprintln!("options: {base:?}");
+    let _ = BASE.set(base);
     eprintln!("coloured windows per axis {coloured_windows}, positivity {positivity}");
+    if let Some((l, nz, s)) = probe_cell {
+        return probe(&l, &nz, &s);
+    }
     let mut cache = PeerCache::load(Path::new(list("--peer-cache", &["target/deblur_matrix_peers.tsv"])[0].as_str()));
     let total = noises.len() * lenses.len() * scenes.len();
     let start = Instant::now();

@@ -26,10 +26,17 @@
 //! the solver introduces is included (for independent channels this is `S_Y = (S_R+S_G+S_B)/3`).
 //! Nothing is fitted: the inputs are the PSFs, the noise law and the solver options.
 //!
+//! Optionally ([`sure_scale`], `DeconvOptions::coloured_sure`, off by default) each window's
+//! variances are scaled by `s²`, `s ∈ {½, 1, 2, 4, 8, 16}` chosen by Stein's unbiased risk
+//! estimate of the re-blurred, denoised window. It gains on smooth scenes behind a mild blur
+//! and loses on textured ones (docs/deconvolution.md "Issue-12, m14").
+//!
 //! # Units
 //! Linear full-scale values squared; `k = 8u + v` (row-major, `u` the vertical frequency).
 
-use super::denoise::{dct2, OPP};
+use super::denoise::{dct2, denoise, CoefficientField, DenoiseOptions, OPP};
+use super::problem::KernelSpectrum;
+use crate::solve::conv::kernel_to_origin;
 use super::spectrum::bin_weight;
 use super::{restore_tile, TileSetup};
 use crate::image::Plane;
@@ -100,23 +107,109 @@ pub fn block_variance(x: &[f32], w: usize, h: usize, m: usize) -> [f32; 64] {
 /// (side `setup.width`, e.g. [`window_side`]) of data `j` (a flat level, or a crop of the
 /// photograph), `n` white with the per-pixel variance `variance(c, j)`, `kernels[c]` the
 /// channel's kernel, `setup` the solver settings. Deterministic (fixed seed).
-pub fn through_solver(base: &[Vec<f32>], variance: &dyn Fn(usize, f32) -> f32, kernels: &[Plane], setup: &TileSetup) -> Vec<[f32; 64]> {
+pub fn through_solver(base: &[Vec<f32>], variance: &dyn Fn(usize, f32) -> f32, kernels: &[Plane], setup: &TileSetup) -> Propagation {
     let side = setup.width;
     let n = side * side;
     let mut rng = crate::rng::Rng::new(0x5eed);
     let noisy: Vec<Vec<f32>> = base.iter().enumerate().map(|(c, b)| b.iter().map(|j| j + (variance(c, *j).max(0.0).sqrt() as f64 * rng.normal()) as f32).collect()).collect();
     let setup = TileSetup { width: side, height: side, field: None, ..*setup };
-    let (mut restored, _) = restore_tile(&noisy, kernels, &setup);
+    let (perturbed, _) = restore_tile(&noisy, kernels, &setup);
     let (clean, _) = restore_tile(base, kernels, &setup);
-    restored.iter_mut().zip(&clean).for_each(|(r, c)| r.iter_mut().zip(c).for_each(|(a, b)| *a -= b));
-    // the unknown-boundary solve extrapolates the outer kernel radius; keep well inside
-    let m = kernels.iter().map(|k| k.width).max().unwrap_or(1).min(side / 4);
+    let restored: Vec<Vec<f32>> = perturbed.iter().zip(&clean).map(|(r, c)| r.iter().zip(c).map(|(a, b)| a - b).collect()).collect();
+    let m = interior_margin(kernels, side);
     let planes: Vec<Vec<f32>> = if restored.len() == 3 {
         (0..3).map(|i| (0..n).map(|p| (0..3).map(|c| OPP[i][c] * restored[c][p]).sum()).collect()).collect()
     } else {
         restored
     };
-    planes.iter().map(|p| block_variance(p, side, side, m)).collect()
+    let variances = planes.iter().map(|p| block_variance(p, side, side, m)).collect();
+    let perturbation = noisy.iter().zip(base).map(|(a, b)| a.iter().zip(b).map(|(x, y)| x - y).collect()).collect();
+    Propagation { variances, restored: clean, perturbed, perturbation }
+}
+
+/// What [`through_solver`] measured on a window.
+pub struct Propagation {
+    /// `σ²_k` per decorrelated plane.
+    pub variances: Vec<[f32; 64]>,
+    /// `restore(j)` per channel.
+    pub restored: Vec<Vec<f32>>,
+    /// `restore(j + n)` per channel.
+    pub perturbed: Vec<Vec<f32>>,
+    /// `n` per channel (white, the law's variance at `j`).
+    pub perturbation: Vec<Vec<f32>>,
+}
+
+/// The margin kept clear of a window's edge when it is measured: the unknown-boundary solve
+/// extrapolates the outer kernel radius, so a kernel width (at most a quarter of the side).
+fn interior_margin(kernels: &[Plane], side: usize) -> usize {
+    kernels.iter().map(|k| k.width).max().unwrap_or(1).min(side / 4)
+}
+
+/// Noise-level scales tried by [`sure_scale`]: powers of two from ½ to 16.
+const SCALES: [f32; 6] = [0.5, 1.0, 2.0, 4.0, 8.0, 16.0];
+
+/// A square window of the photograph (`side²`, per channel), what [`through_solver`] measured
+/// on it, and the channels' kernels at its centre.
+pub struct Window<'a> {
+    pub data: &'a [Vec<f32>],
+    pub propagation: &'a Propagation,
+    pub kernels: &'a [Plane],
+    pub side: usize,
+}
+
+/// The denoising stage's strength on one window, chosen by Stein's unbiased risk estimate
+/// (SURE, heteroscedastic form) of the re-blurred result: for the restoration denoised with the
+/// noise variances `s² σ²_k`, `f_s(j) = B x̂_s(j)`,
+///
+/// ```text
+/// R(s) = Σ_p (f_s(j) − j)²_p − Σ_p V(j_p) + 2 Σ_p n_p (f_s(j + n) − f_s(j))_p
+/// ```
+///
+/// over the window's interior `p`, an unbiased estimate (up to the finite difference) of
+/// `Σ_p (f_s(j) − B x)²_p`, the error of the fit against the noise-free data: the last sum is the
+/// Monte-Carlo divergence `Σ_p V_p ∂f_p/∂j_p` with the perturbation `n ~ N(0, V)` that
+/// [`through_solver`] already restored. `s` from [`SCALES`], walking from 1 towards the smaller
+/// risk while it falls. Nothing is fitted: the law `V`, the kernels and the solver define it.
+pub fn sure_scale(win: &Window, variance: &dyn Fn(usize, f32) -> f32, denoiser: &DenoiseOptions) -> f32 {
+    let (side, prop) = (win.side, win.propagation);
+    let m = interior_margin(win.kernels, side);
+    let inside: Vec<usize> = (m..side - m).flat_map(|y| (m..side - m).map(move |x| y * side + x)).collect();
+    let expected: f64 = win.data.iter().enumerate().map(|(c, j)| inside.iter().map(|p| variance(c, j[*p]).max(0.0) as f64).sum::<f64>()).sum();
+    let fft = Fft2::plan(side, side);
+    let spectra: Vec<KernelSpectrum> = win.kernels.iter().map(|k| KernelSpectrum::new(&fft, &kernel_to_origin(k, side, side))).collect();
+    let fit = |restored: &[Vec<f32>], s: f32| -> Vec<Vec<f32>> {
+        let planes: Vec<Plane> = restored.iter().map(|r| Plane { width: side, height: side, data: r.clone() }).collect();
+        let field = CoefficientField::uniform(prop.variances.iter().map(|v| v.map(|x| x * s * s)).collect());
+        let out = denoise(&planes, &DenoiseOptions { coefficient_variance: Some(field), ..denoiser.clone() });
+        out.iter().zip(&spectra).map(|(x, ks)| super::convolve_spec(&fft, &x.data, ks)).collect()
+    };
+    let risk = |s: f32| -> f64 {
+        let (f0, f1) = (fit(&prop.restored, s), fit(&prop.perturbed, s));
+        let mut r = -expected;
+        for c in 0..win.data.len() {
+            for &p in &inside {
+                r += ((f0[c][p] - win.data[c][p]) as f64).powi(2) + 2.0 * (prop.perturbation[c][p] * (f1[c][p] - f0[c][p])) as f64;
+            }
+        }
+        r
+    };
+    let one = SCALES.iter().position(|s| *s == 1.0).unwrap_or(0);
+    let mut best = (one, risk(SCALES[one]));
+    for dir in [1isize, -1] {
+        let mut i = one as isize + dir;
+        while (0..SCALES.len() as isize).contains(&i) {
+            let r = risk(SCALES[i as usize]);
+            if r >= best.1 {
+                break;
+            }
+            best = (i as usize, r);
+            i += dir;
+        }
+        if best.0 != one {
+            break;
+        }
+    }
+    SCALES[best.0]
 }
 
 #[cfg(test)]
@@ -171,5 +264,36 @@ mod tests {
         let hi = predicted[1..].iter().fold(0.0f32, |a, b| a.max(*b));
         let lo = predicted[1..].iter().fold(f32::INFINITY, |a, b| a.min(*b));
         assert!(hi > 10.0 * lo && hi > 5.0 * sigma2, "{lo:e} {hi:e}");
+    }
+
+    /// SURE's strength on a window with the identity kernel: a flat patch (no signal the
+    /// denoiser can remove) takes more smoothing than the propagated noise suggests (`s > 1`),
+    /// and more than a patch of strong, random fine texture with the same noise.
+    #[test]
+    fn sure_scale_smooths_flat_windows_more_than_textured_ones() {
+        let side = 64;
+        let mut delta = Plane::new(3, 3);
+        delta.set(1, 1, 1.0);
+        let kernels = vec![delta; 3];
+        let opts = super::super::DeconvOptions::default();
+        let (lambda, order) = (vec![2.5 * 1e-4f32; 3], vec![1usize, 0, 2]);
+        let setup = TileSetup { width: side, height: side, lambda: &lambda, order: &order, opts: &opts, field: None };
+        let sigma2 = 1e-4f32;
+        let mut rng = crate::rng::Rng::new(17);
+        let mut noisy = |f: &dyn Fn(usize) -> f32| -> Vec<Vec<f32>> { (0..3).map(|_| (0..side * side).map(|p| f(p) + (sigma2.sqrt() as f64 * rng.normal()) as f32).collect()).collect() };
+        let flat = noisy(&|_| 0.4);
+        // random 2-px cells between 0.2 and 0.7: nothing repeats for block matching to exploit
+        let mut cells = crate::rng::Rng::new(18);
+        let values: Vec<f32> = (0..(side / 2) * (side / 2)).map(|_| 0.2 + 0.5 * cells.uniform() as f32).collect();
+        let texture = noisy(&|p| values[(p / side / 2) * (side / 2) + (p % side) / 2]);
+        let var = |_: usize, _: f32| sigma2;
+        let denoiser = DenoiseOptions { parallel: false, ..DenoiseOptions::default() };
+        let scale = |data: &[Vec<f32>]| {
+            let prop = through_solver(data, &var, &kernels, &setup);
+            sure_scale(&Window { data, propagation: &prop, kernels: &kernels, side }, &var, &denoiser)
+        };
+        let (sf, st) = (scale(&flat), scale(&texture));
+        assert!(sf > 1.0, "flat window: s = {sf}");
+        assert!(st < sf, "textured window s = {st}, flat window s = {sf}");
     }
 }

@@ -271,6 +271,9 @@ pub struct DeconvOptions {
     /// columns) × min(n, grid rows)` windows spread evenly over the image, each with its own
     /// kernels and `λ`, blended bilinearly by the denoiser. 1: the centre window only.
     pub coloured_windows: usize,
+    /// Scale each coloured-noise window's variances by `s²`, `s` chosen by Stein's unbiased
+    /// risk estimate of the re-blurred, denoised window ([`coloured::sure_scale`]).
+    pub coloured_sure: bool,
     /// Positivity ([`problem::ChannelProblem::lower_bound`]): the ADMM solve keeps the restored
     /// channel non-negative (`x ≥ 0`, one more split with the projection as its prox), as light
     /// is. Not applied on the Chambolle–Pock path (dark-region term). On by default: chosen on
@@ -325,6 +328,7 @@ impl Default for DeconvOptions {
             denoiser: denoise::DenoiseOptions::default(),
             coloured_noise: true,
             coloured_windows: 3,
+            coloured_sure: false,
             positivity: true,
             local_noise: true,
             noise: noise::NoiseSource::Profile,
@@ -636,7 +640,15 @@ fn coloured_field(planes: &[Plane], lens: (&PsfGrid, &[usize]), noise: &NoiseSta
         let base: Vec<Vec<f32>> = planes.iter().map(|p| p.window_reflect(x0, y0, side, side).data).collect();
         let kernels: Vec<Plane> = (0..planes.len()).map(|c| grid.kernel_at(c, cx as f64, cy as f64)).collect();
         let setup = TileSetup { width: side, height: side, lambda: &lambda, order, opts, field: None };
-        coloured::through_solver(&base, &variance, &kernels, &setup)
+        let prop = coloured::through_solver(&base, &variance, &kernels, &setup);
+        let mut v = prop.variances.clone();
+        if opts.coloured_sure {
+            let denoiser = denoise::DenoiseOptions { transfer: opts.output_transfer.unwrap_or(crate::image::Transfer::Linear), parallel: false, ..opts.denoiser.clone() };
+            let window = coloured::Window { data: &base, propagation: &prop, kernels: &kernels, side };
+            let s = coloured::sure_scale(&window, &variance, &denoiser);
+            v.iter_mut().for_each(|p| p.iter_mut().for_each(|x| *x *= s * s));
+        }
+        v
     };
     let variance_at: Vec<Vec<[f32; 64]>> = if opts.parallel { nodes.par_iter().map(work).collect() } else { nodes.iter().map(work).collect() };
     denoise::CoefficientField { xs, ys, variance: variance_at }

@@ -72,7 +72,7 @@ fn report(name: &str, profile: &Profile, open: &Rendered, pin: &Rendered, margin
 fn floor(truth: &PsfGrid, open: &Rendered, pin: &Rendered, margin: usize, s: &[f64]) -> f64 {
     let (w, h) = (open.image.width(), open.image.height());
     let (mut num, mut den) = (0.0, 0.0);
-    for c in 0..truth.channels.len() {
+    for (c, &sc) in s.iter().enumerate().take(truth.channels.len()) {
         let mut sq = truth.clone();
         for k in &mut sq.kernels[c] {
             k.data.iter_mut().for_each(|v| *v *= *v);
@@ -80,7 +80,7 @@ fn floor(truth: &PsfGrid, open: &Rendered, pin: &Rendered, margin: usize, s: &[f
         let prop = lensrig::optics::forward::blur_channel(&pin.variance[c], &sq, c);
         for y in margin..h - margin {
             for x in margin..w - margin {
-                num += s[c] * s[c] * prop.get(x, y) as f64;
+                num += sc * sc * prop.get(x, y) as f64;
                 den += open.variance[c].get(x, y) as f64;
             }
         }

@@ -20,7 +20,10 @@
 //! 1024×768 RGB with Poisson–Gaussian noise (full well 15 000 e⁻, read 4 e⁻) and estimated with
 //! the default options; kernel errors (relative L2, per cent) per lens and channel against the
 //! truth blended at each estimated centre ([`lensrig::estimate::testbed`]), cross-validation
-//! (residual RMS ÷ true noise RMS on an independent pair), wall and CPU seconds of `estimate`.
+//! on an independent pair (residual RMS ÷ the noise RMS the true kernels leave: the wide-open
+//! capture's noise plus the pinhole's noise propagated through the true kernels,
+//! [`lensrig::estimate::testbed::CrossValidation`]; then ÷ the wide-open noise alone, the former
+//! figure), wall and CPU seconds of `estimate`.
 use super::args::EstimateArgs;
 use anyhow::{Context, Result};
 use clap::Args;

@@ -20,13 +20,16 @@
 //! 1024×768 RGB with Poisson–Gaussian noise (full well 15 000 e⁻, read 4 e⁻) and estimated with
 //! the default options; kernel errors (relative L2, per cent) per lens and channel against the
 //! truth blended at each estimated centre ([`lensrig::estimate::testbed`]), cross-validation
-//! (residual RMS ÷ true noise RMS on an independent pair), wall and CPU seconds of `estimate`.
+//! on an independent pair (residual RMS ÷ the noise RMS the true kernels leave: the wide-open
+//! capture's noise plus the pinhole's noise propagated through the true kernels,
+//! [`lensrig::estimate::testbed::CrossValidation`]; then ÷ the wide-open noise alone, the former
+//! figure), wall and CPU seconds of `estimate`.
 use super::args::EstimateArgs;
 use anyhow::{Context, Result};
 use clap::Args;
 use lensrig::diagnose::simulate::predict;
 use lensrig::estimate::bootstrap::{bootstrap_estimate, predicted_error, BootstrapOptions, KernelUncertainty};
-use lensrig::estimate::testbed::{errors_against_truth, quantile};
+use lensrig::estimate::testbed::{errors_against_truth, quantile, CrossValidation};
 use lensrig::estimate::{estimate, kernel_errors, median_max, process_cpu_seconds, EstimateOptions};
 use lensrig::image::{Image, Plane};
 use lensrig::optics::capture::{render, Blur, Rendered, Sensor, Shot};
@@ -218,34 +221,17 @@ fn testbed_pair(l: &TestLens, seed: u64) -> Result<(Rendered, Rendered)> {
     Ok((open, pin))
 }
 
-/// RMS of `pred − recorded` and of the recorded image's true noise, per channel, over the
-/// interior (`margin` px from every edge).
-fn residual_vs_noise(pred: &Image, recorded: &Rendered, margin: usize) -> Vec<(f64, f64)> {
-    let (w, h) = (pred.width(), pred.height());
-    (0..pred.channel_count())
-        .map(|c| {
-            let (mut res2, mut var, mut n) = (0.0f64, 0.0f64, 0usize);
-            for y in margin..h.saturating_sub(margin) {
-                for x in margin..w.saturating_sub(margin) {
-                    let d = (pred.planes[c].get(x, y) - recorded.image.planes[c].get(x, y)) as f64;
-                    res2 += d * d;
-                    var += recorded.variance[c].get(x, y) as f64;
-                    n += 1;
-                }
-            }
-            ((res2 / n.max(1) as f64).sqrt(), (var / n.max(1) as f64).sqrt())
-        })
-        .collect()
-}
-
-/// Cross-validation of `profile` on an independent pair: residual RMS / true noise RMS, all
-/// channels pooled (as `lensrig demo`).
-fn cross_validation(profile: &Profile, pair2: &(Rendered, Rendered), margin: usize) -> Result<f64> {
-    let pred = predict(profile, &pair2.1.image)?;
-    let rn = residual_vs_noise(&pred, &pair2.0, margin);
-    let res2: f64 = rn.iter().map(|r| r.0 * r.0).sum();
-    let var: f64 = rn.iter().map(|r| r.1 * r.1).sum();
-    Ok((res2 / var.max(1e-300)).sqrt())
+/// Cross-validation of `profile` on an independent pair (all channels pooled, `margin` px
+/// from every edge left out): the residual against the wide-open capture's noise and against
+/// the noise the true kernels of `truth` leave, which include the pinhole's own noise
+/// ([`CrossValidation`]).
+fn cross_validation(profile: &Profile, truth: &Profile, pair2: &(Rendered, Rendered), margin: usize) -> Result<CrossValidation> {
+    let (open, pin) = pair2;
+    let mut clean = pin.image.clone();
+    clean.planes = pin.clean.clone();
+    let pred = predict(profile, &pin.image)?;
+    let (noisy, quiet) = (predict(truth, &pin.image)?, predict(truth, &clean)?);
+    Ok(CrossValidation::from_planes(&pred.planes, &noisy.planes, &quiet.planes, &open.image.planes, &open.variance, margin))
 }
 
 /// Bootstraps the uncertainty of `est` ([`bootstrap_estimate`]: both captures resampled, the
@@ -295,8 +281,8 @@ fn pct(v: Option<f64>) -> String {
 fn run_testbed(a: &BenchArgs, dir: &Path) -> Result<()> {
     let lenses = testbed_lenses(dir, a.only.as_deref(), a.large)?;
     println!("machine: {} logical cores (rayon), {}; noise: full well {} e-, read {} e-", rayon::current_num_threads(), std::env::consts::ARCH, TESTBED_SENSOR.full_well_e, TESTBED_SENSOR.read_noise_e);
-    println!("| lens | split | channel | kernel est / true | grid | median | p90 | max | cross-validation (÷ noise; true kernels) | seconds wall / CPU |");
-    println!("| --- | --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: |");
+    println!("| lens | split | channel | kernel est / true | grid | median | p90 | max | cross-validation ÷ open + pinhole noise (true kernels) | ÷ open noise only (true kernels) | seconds wall / CPU |");
+    println!("| --- | --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |");
     let mut boot = Vec::new();
     for l in &lenses {
         let pair = testbed_pair(l, 1)?;
@@ -311,9 +297,9 @@ fn run_testbed(a: &BenchArgs, dir: &Path) -> Result<()> {
         let g = &est.profile.grid;
         let errors = errors_against_truth(g, &l.truth);
         let margin = g.kernel_size.max(l.truth.kernel_size) / 2;
-        let cv = cross_validation(&est.profile, &pair2, margin)?;
         let truth_profile = Profile { meta: est.profile.meta.clone(), grid: l.truth.clone() };
-        let cv_truth = cross_validation(&truth_profile, &pair2, margin)?;
+        let cv = cross_validation(&est.profile, &truth_profile, &pair2, margin)?;
+        let cv_truth = cross_validation(&truth_profile, &truth_profile, &pair2, margin)?;
         let all: Vec<f64> = errors.iter().flatten().copied().collect();
         if a.bootstrap > 0 {
             let rows = bootstrap_rows(a.bootstrap, &est, &opts, &errors, l)?;
@@ -334,7 +320,7 @@ fn run_testbed(a: &BenchArgs, dir: &Path) -> Result<()> {
                 pct(quantile(e, 0.5)),
                 pct(quantile(e, 0.9)),
                 pct(quantile(e, 1.0)),
-                if last { format!("{cv:.3} ({cv_truth:.3})") } else { String::new() },
+                if last { format!("{:.3} ({:.3}) | {:.3} ({:.3})", cv.ratio(), cv_truth.ratio(), cv.ratio_open(), cv_truth.ratio_open()) } else { " | ".to_string() },
                 if last { format!("{wall:.1} / {}", cpu.map_or("–".into(), |c| format!("{c:.1}"))) } else { String::new() },
             );
         }

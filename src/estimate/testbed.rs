@@ -55,6 +55,70 @@ pub fn errors_against_truth(est: &PsfGrid, truth: &PsfGrid) -> Vec<Vec<f64>> {
         .collect()
 }
 
+/// The cross-validation of a profile on an independent test-bed pair, as sums over the
+/// channels of interior means (pixels at least `margin` from every edge; full scale²):
+///
+/// - `residual`: `Σ_c mean (pred_c − j_c)²`, the profile's prediction from the recorded pinhole
+///   against the recorded wide-open capture;
+/// - `open_noise`: `Σ_c mean Var[j_c]`, the wide-open capture's true noise variance;
+/// - `pinhole_noise`: `Σ_c mean (P_c(ĩ) − P_c(i))²`, the pinhole's own noise carried into the
+///   prediction by the **true** kernels `P` (`ĩ` the recorded pinhole, `i` its noise-free
+///   signal): the part of the residual that no kernel estimate can remove.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CrossValidation {
+    pub residual: f64,
+    pub open_noise: f64,
+    pub pinhole_noise: f64,
+}
+
+impl CrossValidation {
+    /// Gathers the sums from the profile's prediction `pred`, the truth's predictions from the
+    /// recorded pinhole (`truth_noisy`) and from its noise-free signal (`truth_clean`), the
+    /// recorded wide-open capture `open` and its noise variance `variance`, all per channel.
+    pub fn from_planes(pred: &[Plane], truth_noisy: &[Plane], truth_clean: &[Plane], open: &[Plane], variance: &[Plane], margin: usize) -> Self {
+        Self { residual: pooled_mean_square(pred, open, margin), open_noise: pooled_mean(variance, margin), pinhole_noise: pooled_mean_square(truth_noisy, truth_clean, margin) }
+    }
+
+    /// Residual RMS ÷ the wide-open capture's noise RMS, `√(residual / open_noise)`: 1 for a
+    /// perfect model only when the pinhole is noise-free.
+    pub fn ratio_open(&self) -> f64 {
+        (self.residual / self.open_noise.max(1e-300)).sqrt()
+    }
+
+    /// Residual RMS ÷ the noise the true kernels leave, `√(residual / (open_noise +
+    /// pinhole_noise))`: ≈ 1 for the true kernels whatever the lens; the excess is the model's.
+    pub fn ratio(&self) -> f64 {
+        (self.residual / (self.open_noise + self.pinhole_noise).max(1e-300)).sqrt()
+    }
+}
+
+/// The interior box of a `w × h` plane: pixels at least `margin` from every edge.
+fn interior(p: &Plane, margin: usize) -> impl Iterator<Item = usize> + '_ {
+    let (w, h) = (p.width, p.height);
+    (margin..h.saturating_sub(margin)).flat_map(move |y| (margin..w.saturating_sub(margin)).map(move |x| y * w + x))
+}
+
+/// `Σ_c mean_interior (a_c − b_c)²` (planes paired by index, equal sizes).
+pub fn pooled_mean_square(a: &[Plane], b: &[Plane], margin: usize) -> f64 {
+    a.iter()
+        .zip(b)
+        .map(|(p, q)| {
+            let (s, n) = interior(p, margin).fold((0.0f64, 0usize), |(s, n), i| (s + ((p.data[i] - q.data[i]) as f64).powi(2), n + 1));
+            s / n.max(1) as f64
+        })
+        .sum()
+}
+
+/// `Σ_c mean_interior v_c`.
+pub fn pooled_mean(v: &[Plane], margin: usize) -> f64 {
+    v.iter()
+        .map(|p| {
+            let (s, n) = interior(p, margin).fold((0.0f64, 0usize), |(s, n), i| (s + p.data[i] as f64, n + 1));
+            s / n.max(1) as f64
+        })
+        .sum()
+}
+
 /// The `p`-quantile (`0 ≤ p ≤ 1`, nearest rank on the sorted values) of `v`; `None` when empty.
 pub fn quantile(v: &[f64], p: f64) -> Option<f64> {
     let mut s: Vec<f64> = v.to_vec();
@@ -135,6 +199,35 @@ mod tests {
         let truth = g.clone();
         g.channels = vec!["R".into()];
         assert!(errors_against_truth(&g, &truth)[0].is_empty());
+    }
+
+    /// The true kernels score ≈ 1 against the noise they leave, also when they are sharp and
+    /// carry the pinhole's noise into the prediction (the open-noise ratio then exceeds 1);
+    /// a wrong kernel scores clearly above 1.
+    #[test]
+    fn true_kernels_score_one_against_open_and_pinhole_noise() {
+        use crate::optics::capture::{render, Blur, Sensor, Shot};
+        use crate::optics::lens::LensModel;
+        use crate::rng::Rng;
+        let (w, h, k) = (160, 120, 7);
+        let centers = PsfGrid::regular_centers(w, h, 2, 2);
+        let sharp = |s: f32| -> Vec<Plane> { (0..4).map(|t| gauss(k, 0.2 * t as f32 - 0.3, 0.0, s)).collect() };
+        let truth = PsfGrid { kernel_size: k, columns: 2, rows: 2, centers: centers.clone(), channels: vec!["G".into()], kernels: vec![sharp(0.5)] };
+        let mut lens = LensModel::demo(w, h);
+        lens.bands.truncate(1);
+        let mut rng = Rng::new(7);
+        let scene = vec![Plane::from_fn(w, h, |_, _| 0.2 + 0.6 * rng.uniform() as f32)];
+        let sensor = Sensor { full_well_e: 2000.0, read_noise_e: 3.0, bits: 16, transfer: crate::image::Transfer::Linear, noise: true };
+        let open = render(&scene, &lens, &Shot { blur: Blur::Grid(truth.clone()), ..Shot::ideal(0.75) }, &sensor, &mut Rng::new(1));
+        let pin = render(&scene, &lens, &Shot::ideal(0.75), &sensor, &mut Rng::new(2));
+        let through = |g: &PsfGrid, p: &[Plane]| -> Vec<Plane> { vec![crate::optics::forward::blur_channel(&p[0], g, 0)] };
+        let (noisy, clean) = (through(&truth, &pin.image.planes), through(&truth, &pin.clean));
+        let cv = |g: &PsfGrid| CrossValidation::from_planes(&through(g, &pin.image.planes), &noisy, &clean, &open.image.planes, &open.variance, k / 2);
+        let own = cv(&truth);
+        assert!((own.ratio() - 1.0).abs() < 0.03, "true kernels: {own:?}");
+        assert!(own.ratio_open() > 1.15, "a sharp kernel carries the pinhole's noise: {own:?}");
+        let wrong = PsfGrid { kernels: vec![sharp(1.2)], ..truth.clone() };
+        assert!(cv(&wrong).ratio() > 1.2, "{:?}", cv(&wrong));
     }
 
     #[test]

@@ -15,7 +15,7 @@
 //!   a blurred reference (`pinhole_diffraction`) at high ones.
 
 use super::fit::Fit;
-use crate::image::filter::gaussian_blur;
+use crate::image::filter::gaussian_blur_wide;
 use crate::image::spectrum::{band_centre, radial_power_sums, Range};
 use crate::image::Plane;
 use crate::solve::dense::gauss_jordan;
@@ -218,7 +218,7 @@ pub fn analyse(fit: &Fit) -> Analysis {
         let z = &fit.normalized[c];
         let pred = &fit.predicted[c];
         let mut large = fit.reference[c].clone();
-        large = gaussian_blur(&large, (2.0 * hd / 16.0).max(2.0));
+        large = gaussian_blur_wide(&large, (2.0 * hd / 16.0).max(2.0));
         let mut tsum = vec![(0.0f64, 0.0f64, 0usize); grid.tile_count()];
         for y in 1..h - 1 {
             for x in 1..w - 1 {
@@ -313,7 +313,7 @@ mod tests {
         for &(f, p) in &s {
             assert!((p - 1.0).abs() < 0.15, "band {f:.3}: {p:.3}");
         }
-        let smooth = gaussian_blur(&white, 2.0).map(|v| v * 5.0);
+        let smooth = crate::image::filter::gaussian_blur(&white, 2.0).map(|v| v * 5.0);
         let s = radial_spectrum(&smooth, &vec![true; w * h], 8);
         assert!(s[0].1 > 2.0 && s[7].1 < 0.01, "{s:?}");
     }

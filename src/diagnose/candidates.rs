@@ -15,7 +15,7 @@
 //! | `pinhole_diffraction` | the reference restored by the Wiener filter of its band-averaged Airy ⊛ Gaussian PSF ([`super::diffraction`]) | 2 (the Airy radius, channels scaling by wavelength; the Gaussian `σ_a` of the residual aberrations); reported with the MTF50 they imply |
 
 use super::analysis::{curve, where_text, Analysis};
-use super::fit::{fit, Data, Fit, FitSettings, Model, CLIP};
+use super::fit::{screen as fit, Data, Fit, FitSettings, Model, CLIP};
 use super::model::{BlackLevelCorrection, Corrections, FieldCorrection, GlareCorrection, GradientCorrection, SaturationCorrection, ToneCorrection, VignettingCorrection};
 use crate::image::Transfer;
 use serde_json::json;

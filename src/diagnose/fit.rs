@@ -29,7 +29,7 @@ use super::model::{model_transfer, reference_planes, Corrections, GlareCorrectio
 use super::noise::{srgb_slope, NoiseCurve};
 use crate::estimate::dilate;
 use crate::image::{Image, Plane, Transfer};
-use crate::image::filter::gaussian_blur;
+use crate::image::filter::gaussian_blur_wide;
 use crate::optics::psf_grid::PsfGrid;
 use crate::profile::RegistrationInfo;
 
@@ -54,6 +54,10 @@ pub struct Data {
     /// same level: `frames_open / frames_pinhole` when the captures average frames (1 for equal
     /// captures).
     pub pinhole_variance_scale: f64,
+    /// The quick fits that search a candidate's parameters ([`screen`]) keep about this many
+    /// pixels per channel in their data term (every pixel by default; the diagnosis sets
+    /// [`super::DiagnoseOptions::screen_pixels`]).
+    pub screen_pixels: usize,
 }
 
 impl Data {
@@ -64,7 +68,7 @@ impl Data {
         let lin = |img: &Image| -> Vec<Plane> { img.planes.iter().map(|p| p.map(|v| img.transfer.decode(v))).collect() };
         let model = crate::estimate::register::RegistrationModel::Translation;
         let base_registration = crate::estimate::register::register(&Plane::sum_of(&lin(open)), &Plane::sum_of(&lin(pinhole)), model).info;
-        Data { open: open.clone(), pinhole: pinhole.clone(), curves, base_registration, pinhole_variance_scale }
+        Data { open: open.clone(), pinhole: pinhole.clone(), curves, base_registration, pinhole_variance_scale, screen_pixels: usize::MAX }
     }
 }
 
@@ -487,6 +491,13 @@ pub fn fit_subset(data: &Data, corrections: &Corrections, init: &Model, settings
     fit_on(data, corrections, init, settings, &|_, _| true, data_pixels)
 }
 
+/// [`fit_subset`] on [`Data::screen_pixels`]: the quick fits with which a candidate's
+/// parameters are searched (glare width, similarity, keystone, Airy radius) and backward
+/// elimination's refits. Every pixel when the capture has no more than that per channel.
+pub fn screen(data: &Data, corrections: &Corrections, init: &Model, settings: FitSettings) -> Fit {
+    fit_on(data, corrections, init, settings, &|_, _| true, data.screen_pixels)
+}
+
 fn fit_on(data: &Data, corrections: &Corrections, init: &Model, settings: FitSettings, keep: &dyn Fn(usize, usize) -> bool, data_pixels: usize) -> Fit {
     let mut corr = corrections.clone();
     let setup = Setup::new(data, &corr, init, keep, data_pixels);
@@ -714,7 +725,7 @@ impl<'a> Setup<'a> {
         let covered = ops.first().map(|o| o.covered().to_vec()).unwrap_or_default();
         let kept = |x: usize, y: usize| keep(x, y) && covered.get(y * w + x).copied().unwrap_or(true);
         let masks = Masks::new(data, corr, &registration, grid0.kernel_size / 2, &kept);
-        let glare_planes: Option<Vec<Plane>> = corr.veiling_glare.map(|g| reference.iter().map(|p| gaussian_blur(p, g.sigma_px)).collect());
+        let glare_planes: Option<Vec<Plane>> = corr.veiling_glare.map(|g| reference.iter().map(|p| gaussian_blur_wide(p, g.sigma_px)).collect());
         let diffraction = corr.pinhole_diffraction.clone();
         let norms = std::sync::Mutex::new(vec![StepNorm::new(); nch]);
         Self { data, transfer, w, h, nch, reference, open_lin, noise_factor, grid0, masks, glare_planes, ops, diffraction, norms }

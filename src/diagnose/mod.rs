@@ -292,6 +292,7 @@ fn base_profile(open: &Image, pinhole: &Image, profile: Option<&Profile>, opts: 
 fn base_model(open: &Image, pinhole: &Image, base_profile: &Profile, opts: &DiagnoseOptions) -> (Data, Fit, bool) {
     let mut lap = crate::estimate::stage_clock();
     let mut data = Data::new(open, pinhole, opts.pinhole_variance_scale);
+    data.screen_pixels = opts.screen_pixels;
     let init = Model { corrections: model::Corrections::default(), grid: base_profile.grid.clone(), exposure: base_profile.meta.exposure_ratio.clone() };
     let mut provisional = fit::fit(&data, &init.corrections, &init, opts.base_fit);
     progress_lap(opts, lap("provisional fit"));

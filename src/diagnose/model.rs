@@ -35,7 +35,7 @@
 use crate::estimate::register;
 use crate::image::resample::{warp_projective_with_variance, warp_with_variance, Affine, Interpolation, Projective};
 use crate::image::{Image, Plane, Transfer};
-use crate::image::filter::gaussian_blur;
+use crate::image::filter::gaussian_blur_wide;
 use crate::optics::forward::blur_channel;
 use crate::profile::{Profile, RegistrationInfo};
 use serde::{Deserialize, Serialize};
@@ -320,7 +320,7 @@ pub fn predict_linear(c: &Corrections, profile_grid: &crate::optics::psf_grid::P
             let (w, h) = (p.width, p.height);
             let mut a = blur_channel(p, profile_grid, ch);
             if let Some(g) = c.veiling_glare {
-                let wide = gaussian_blur(p, g.sigma_px);
+                let wide = gaussian_blur_wide(p, g.sigma_px);
                 for (v, b) in a.data.iter_mut().zip(&wide.data) {
                     *v = (1.0 - g.fraction as f32) * *v + g.fraction as f32 * b;
                 }

@@ -14,7 +14,7 @@
 //! `pinhole_diffraction`, `tone_curve`, `saturation`) stay: a short refit without them would
 //! start from kernels fitted to them and score them unfairly.
 
-use super::fit::{fit, Data, Fit};
+use super::fit::{screen as fit, Data, Fit};
 use super::model::Corrections;
 use super::DiagnoseOptions;
 

@@ -12,7 +12,7 @@
 //! the quadratic part is the tilt's.
 
 use super::analysis::{where_text, Analysis};
-use super::fit::{fit, Data, Fit, FitSettings, Model};
+use super::fit::{screen as fit, Data, Fit, FitSettings, Model};
 use super::model::{Corrections, TiltCorrection};
 
 /// Proposed only when the keystone moves some corner by at least this many pixels.

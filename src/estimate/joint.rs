@@ -9,7 +9,7 @@
 //! This module fits all kernels of a channel at once to exactly that model, over the whole
 //! image:
 //!
-//! `min Σ_x ½ M(x) (pred(x) − j(x))² + Σ_t λ_t TV(b_t) [+ field prior],  b_t ≥ 0, 1ᵀb_t = σ_t`
+//! `min Σ_x ½ M(x) (pred(x) − j(x))² + Σ_t λ_t TV_p(b_t) [+ field prior],  b_t ≥ 0, 1ᵀb_t = σ_t`
 //!
 //! (`M` the valid-data mask, `I` the registered pinhole image times the exposure ratio, `λ_t`,
 //! `σ_t` from the window fits), with FISTA and adaptive restart ([`crate::solve::fista`])
@@ -26,6 +26,14 @@
 //! the noise level): the MAP weight of a Gaussian prior on the difference of neighbouring
 //! kernels (docs/estimation.md "Field-smoothness prior"). It is smooth, so it joins the data
 //! term's gradient, and its Gershgorin bound the step's Lipschitz constant.
+//!
+//! # Polar TV
+//! After the first quarter of the iterations, the TV of every kernel is measured in the frame
+//! of its rings: `TV_p(b) = Σ_i √(a² (r̂_i·∇b_i)² + (t̂_i·∇b_i)²)`, `r̂_i` the unit vector from
+//! the kernel's centroid (of the iterate then) to gradient pair `i`, `t̂_i` its perpendicular,
+//! `a =` [`POLAR_RADIAL_WEIGHT`] ([`crate::solve::prox::polar_tv_frames`]): a change along a
+//! ring (noise) costs as before, a radial change (a defocus disc's Fresnel ripples, its edge, a
+//! ring) a quarter. The λ rule and its held-out choice are unchanged.
 //!
 //! # TV weight chosen on held-out pixels
 //! After the first quarter of the iterations (and the re-measured noise level), the weights of
@@ -56,7 +64,7 @@ use crate::solve::fista::{fista, Composite, FistaOptions, Stall};
 use crate::solve::operator::LinearOperator;
 use crate::solve::power::{kernel_start, power_iteration, remove_block_means};
 use crate::solve::primal_dual::{SplitOptions, Stats};
-use crate::solve::prox::{prox_tv_simplex, tv_dual_len};
+use crate::solve::prox::{polar_tv_frames, prox_tv_simplex, tv_dual_len};
 use rayon::prelude::*;
 
 struct JointProblem {
@@ -75,6 +83,9 @@ struct JointProblem {
     pairs: Vec<(usize, usize, f32)>,
     /// The data term `½‖M r‖²` of the last [`Composite::gradient`] call (without the prior).
     last_data: f64,
+    /// The polar TV's frames, `(k+1)²` per tile ([`Self::set_polar_frames`]); empty: the
+    /// isotropic TV.
+    frames: Vec<[f32; 4]>,
 }
 
 impl JointProblem {
@@ -160,6 +171,31 @@ impl JointProblem {
     }
 }
 
+/// The polar TV's weight `a` of a kernel's radial change against its change along the rings
+/// about the centroid ([`crate::solve::prox::polar_tv_frames`], docs/estimation.md "Polar TV").
+pub const POLAR_RADIAL_WEIGHT: f32 = 0.25;
+
+impl JointProblem {
+    /// Switches the prior to the polar TV (docs/estimation.md "Polar TV"), with the frames of
+    /// every kernel centred on the centroid of its current iterate in `x`.
+    fn set_polar_frames(&mut self, x: &[f32]) {
+        let k = self.k;
+        self.frames = x.par_chunks(k * k).flat_map_iter(|b| polar_tv_frames(k, centroid(b, k), POLAR_RADIAL_WEIGHT)).collect();
+    }
+}
+
+/// The centroid `(x, y)` of a `k × k` kernel in pixels (the centre `(k−1)/2` when it is empty).
+fn centroid(b: &[f32], k: usize) -> [f32; 2] {
+    let (mut sx, mut sy, mut s) = (0.0f64, 0.0f64, 0.0f64);
+    for (i, &v) in b.iter().enumerate() {
+        sx += v as f64 * (i % k) as f64;
+        sy += v as f64 * (i / k) as f64;
+        s += v as f64;
+    }
+    let c = (k / 2) as f32;
+    if s > 0.0 { [(sx / s) as f32, (sy / s) as f32] } else { [c, c] }
+}
+
 impl Composite for JointProblem {
     fn gradient(&mut self, x: &[f32], out: &mut [f32]) -> f64 {
         self.last_data = self.normal(x, out, true);
@@ -169,9 +205,11 @@ impl Composite for JointProblem {
     /// The TV–simplex prox of every kernel (in parallel), duals warm-started.
     fn prox(&mut self, l: f32, v: &[f32], x: &mut [f32]) {
         let (k, k2, d) = (self.k, self.k * self.k, tv_dual_len(self.k));
-        let (lambda, totals) = (&self.lambda, &self.totals);
-        x.par_chunks_mut(k2).zip(v.par_chunks(k2)).zip(self.q.par_chunks_mut(d)).zip(lambda.par_iter().zip(totals.par_iter())).for_each(|(((xb, vb), qb), (&lam, &tot))| {
-            prox_tv_simplex(vb, qb, lam / l, tot, k, PROX_ITERATIONS, xb);
+        let (lambda, totals, frames) = (&self.lambda, &self.totals, &self.frames);
+        let n = (k + 1) * (k + 1);
+        x.par_chunks_mut(k2).zip(v.par_chunks(k2)).zip(self.q.par_chunks_mut(d)).zip(lambda.par_iter().zip(totals.par_iter())).enumerate().for_each(|(t, (((xb, vb), qb), (&lam, &tot)))| {
+            let f = frames.get(t * n..(t + 1) * n);
+            prox_tv_simplex(vb, qb, lam / l, f, tot, k, PROX_ITERATIONS, xb);
         });
     }
 }
@@ -318,7 +356,7 @@ fn problem_on(op: KernelOperator, open: &Plane, valid: &[bool], grid: &PsfGrid, 
     let lambda: Vec<f32> = fits.par_iter().enumerate().take(grid.tile_count()).map(|(t, &(l0, n0, _))| l0 * (op.weighted_count(t, &mask) / n0.max(1) as f64).sqrt() as f32).collect();
     let totals: Vec<f32> = kernels.iter().map(|p| p.sum() as f32).collect();
     let q = vec![0.0f32; grid.tile_count() * tv_dual_len(grid.kernel_size)];
-    JointProblem { k: grid.kernel_size, blurred: open.data.clone(), mask, lambda, totals, pred: vec![0.0; open.width * open.height], q, op, pairs: vec![], last_data: 0.0 }
+    JointProblem { k: grid.kernel_size, blurred: open.data.clone(), mask, lambda, totals, pred: vec![0.0; open.width * open.height], q, op, pairs: vec![], last_data: 0.0, frames: vec![] }
 }
 
 /// The largest local field variation rate relative to the mean rate `g` from the centre to the
@@ -414,12 +452,14 @@ pub fn refine_channel(
     let sigma_joint = (2.0 * f1 / count as f64).sqrt();
     rescale_noise(&mut p.lambda, fits, sigma_joint);
     p.scale_field_prior(sigma_joint / sigma0.max(1e-12));
+    p.set_polar_frames(&x);
     let l_f = l_data + p.field_lipschitz();
     let (_, selecting) = if select && st1.iterations > 0 {
         match selection_problem(&p, open, sharp, valid, grid, kernels, fits) {
             Some(mut sub) => {
                 rescale_noise(&mut sub.lambda, fits, sigma_joint);
                 sub.pairs = p.pairs.clone();
+                sub.frames = p.frames.clone();
                 let l_sub = sub.lipschitz(2, &mut power.clone()) + sub.field_lipschitz();
                 // the rungs fit half the data: the main fit goes on from its own iterate
                 let (m, n) = select_lambda(&mut sub, &mut x.clone(), l_sub, progress);

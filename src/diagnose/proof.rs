@@ -328,7 +328,11 @@ fn conceal(effect: Option<&str>, rng: &mut Rng, spec: &CaseSpec, lens: &LensMode
             json!({"offset": off})
         }
         Some("veiling_glare") => {
-            let (f, sigma) = (rng.range(0.04, 0.10), rng.range(18.0, 36.0));
+            // A veiling glare's halo is a fraction of the frame (the candidate searches it as a
+            // fraction of the diagonal, `candidates::glare_sigma`): 18–36 px on the 256 × 192
+            // proof frame (diagonal 320 px), the same fraction of the diagonal at any size.
+            let frame = ((spec.width * spec.width + spec.height * spec.height) as f64).sqrt() / 320.0;
+            let (f, sigma) = (rng.range(0.04, 0.10), rng.range(18.0, 36.0) * frame);
             s.open_shot.veiling_glare = Some(Glare { fraction: f, sigma_px: sigma });
             json!({"fraction": f, "sigma_px": sigma})
         }

@@ -29,7 +29,7 @@ use anyhow::{Context, Result};
 use clap::Args;
 use lensrig::diagnose::simulate::predict;
 use lensrig::estimate::bootstrap::{bootstrap_estimate, predicted_error, BootstrapOptions, KernelUncertainty};
-use lensrig::estimate::testbed::{errors_against_truth, quantile, CrossValidation};
+use lensrig::estimate::testbed::{errors_against_truth, lens_selected, quantile, simulator_short_name, CrossValidation};
 use lensrig::estimate::{estimate, kernel_errors, median_max, process_cpu_seconds, EstimateOptions};
 use lensrig::image::{Image, Plane};
 use lensrig::optics::capture::{render, Blur, Rendered, Sensor, Shot};
@@ -51,7 +51,9 @@ pub struct BenchArgs {
     /// default settings unless estimation flags change them.
     #[arg(long, value_name = "DIR")]
     pub testbed: Option<PathBuf>,
-    /// With `--testbed`: only the lenses whose name contains this text.
+    /// With `--testbed`: only the lenses whose name contains this text, or whose short name
+    /// does (`sim1`, `sim2`: the simulator's singlet at chromatic strength ×1, ×2;
+    /// `sim1-4000x3000` with `--large`).
     #[arg(long, requires = "testbed")]
     pub only: Option<String>,
     /// With `--testbed`: also bootstrap the uncertainty with this many replicates and print the
@@ -165,6 +167,8 @@ const TRUTH_LENSES: [(&str, Split); 3] = [("achromat-f4", Split::Tuning), ("sf11
 /// One lens of the test bed: its name, split, and true PSF grid with the sensor size.
 struct TestLens {
     name: String,
+    /// The short name `--only` also matches (`sim1`, `sim2`; a truth lens's file name).
+    short: String,
     split: Split,
     width: usize,
     height: usize,
@@ -180,24 +184,27 @@ fn simulator_lens(strength: f64, width: usize, height: usize) -> TestLens {
     lens.glass = Some(lensrig::optics::lens::Glass { n_d: 1.5168, abbe: 64.17 / strength });
     let k = lens.suggested_kernel_size(4.0);
     let truth = lens.psf_grid(4.0, 9, 7, k);
-    TestLens { name: format!("simulator singlet, chromatic ×{strength}{}", if width > 1024 { format!(", {width}x{height}") } else { String::new() }), split: Split::Tuning, width, height, truth }
+    let large = (width > 1024).then_some((width, height));
+    let name = format!("simulator singlet, chromatic ×{strength}{}", large.map_or(String::new(), |(w, h)| format!(", {w}x{h}")));
+    TestLens { name, short: simulator_short_name(strength, large), split: Split::Tuning, width, height, truth }
 }
 
 /// The test bed's lenses: the truth profiles found under `dir`, then the simulator's singlet at
-/// two chromatic strengths; `only` keeps the lenses whose name contains it.
+/// two chromatic strengths; `only` keeps the lenses whose name or short name (`sim1`, `sim2`)
+/// contains it ([`lens_selected`]).
 fn testbed_lenses(dir: &Path, only: Option<&str>, large: bool) -> Result<Vec<TestLens>> {
-    let keep = |n: &str| only.map_or(true, |o| n.contains(o));
+    let keep = |n: &str, short: &str| lens_selected(n, short, only);
     let mut out = Vec::new();
     for (name, split) in TRUTH_LENSES {
-        if !keep(name) {
+        if !keep(name, name) {
             continue;
         }
         let p = Profile::load(&dir.join(name)).with_context(|| format!("test-bed lens {name} in {}", dir.display()))?;
-        out.push(TestLens { name: name.to_string(), split, width: p.meta.source.width, height: p.meta.source.height, truth: p.grid });
+        out.push(TestLens { name: name.to_string(), short: name.to_string(), split, width: p.meta.source.width, height: p.meta.source.height, truth: p.grid });
     }
     for strength in [1.0, 2.0] {
         let l = simulator_lens(strength, 1024, 768);
-        if keep(&l.name) {
+        if keep(&l.name, &l.short) {
             out.push(l);
         }
     }

@@ -55,6 +55,22 @@ pub fn errors_against_truth(est: &PsfGrid, truth: &PsfGrid) -> Vec<Vec<f64>> {
         .collect()
 }
 
+/// The short name of the simulator's singlet in the test bed (`lensrig bench --testbed
+/// --only`): `sim1`, `sim2` for the chromatic strengths ×1, ×2 at 1024×768, `sim1-4000x3000`
+/// at another size (`strength` rounded to a whole number).
+pub fn simulator_short_name(strength: f64, size: Option<(usize, usize)>) -> String {
+    let base = format!("sim{}", strength.round());
+    size.map_or(base.clone(), |(w, h)| format!("{base}-{w}x{h}"))
+}
+
+/// Whether a test-bed lens is selected by `lensrig bench --testbed --only TEXT`: every lens
+/// without `only`, else a lens whose full name (`simulator singlet, chromatic ×2`) or short
+/// name (`sim2`, [`simulator_short_name`]; a truth lens's short name is its file name)
+/// contains the text.
+pub fn lens_selected(name: &str, short: &str, only: Option<&str>) -> bool {
+    only.map_or(true, |o| name.contains(o) || short.contains(o))
+}
+
 /// The cross-validation of a profile on an independent test-bed pair, as sums over the
 /// channels of interior means (pixels at least `margin` from every edge; full scale²):
 ///
@@ -130,6 +146,18 @@ pub fn quantile(v: &[f64], p: f64) -> Option<f64> {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn only_accepts_full_and_short_names() {
+        let sim2 = ("simulator singlet, chromatic ×2", simulator_short_name(2.0, None));
+        let big = ("simulator singlet, chromatic ×1, 4000x3000", simulator_short_name(1.0, Some((4000, 3000))));
+        assert_eq!((sim2.1.as_str(), big.1.as_str()), ("sim2", "sim1-4000x3000"));
+        for (only, want) in [(None, true), (Some("sim2"), true), (Some("×2"), true), (Some("sim"), true), (Some("sim1"), false), (Some("achromat"), false)] {
+            assert_eq!(lens_selected(sim2.0, &sim2.1, only), want, "{only:?}");
+        }
+        assert!(lens_selected(big.0, &big.1, Some("sim1")) && lens_selected(big.0, &big.1, Some("4000x3000")));
+        assert!(lens_selected("achromat-f4", "achromat-f4", Some("achromat")) && !lens_selected("achromat-f4", "achromat-f4", Some("sim2")));
+    }
+
     use super::*;
 
     fn gauss(k: usize, cx: f32, cy: f32, s: f32) -> Plane {

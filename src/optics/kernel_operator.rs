@@ -31,7 +31,7 @@
 //! On large images the operator may keep only every n-th block ([`KernelOperator::new`]'s
 //! `max_pixels`); `A b` is then zero on the dropped blocks and `Aᵀ` ignores them.
 //! [`KernelOperator::subsampled`] takes such a subset from a built operator, sharing the
-//! sharp image's block spectra (the joint fit's λ choice on half the blocks).
+//! sharp image's block spectra (the joint fit's λ choice on a quarter of the blocks).
 //!
 //! # Conventions
 //! Kernels are `k × k` (odd), row-major, centre = zero displacement, concatenated in the grid's

@@ -25,17 +25,13 @@
 //!
 //! # Estimates (per kernel, per pixel `i`, `R` replicates)
 //! - variance of the regularised fit: `v_i = Σ_r (b*_{r,i} − b̄_i)² / (R − 1)`;
-//! - bias of the prior: the unregularised fit is unbiased except where its positivity clips
-//!   (a floor in the tails of a large support), and that clipping bias `γ` is nearly the same
-//!   for data drawn from `b` and from `b̂`; so the difference of the unregularised fits of the
-//!   replicates and of the data, `β = b̄*₀ − b̂₀` (`b̄*₀` the mean of `b*_{0,r}`), has
-//!   `E[β] = b̂ − b + γ(b̂) − γ(b) ≈ b̂ − b` and estimates the bias with `γ` cancelled. (The
-//!   plain bootstrap bias `b̄ − b̂` measures the prior's shrinkage of `b̂`, which is already
-//!   flattened: on a window with a strong TV prior it is a quarter of the true bias, see the
-//!   tests; `b̂ − b̂₀`, used until e15u, counts `γ` as bias.) `‖β‖²` carries the noise of both
-//!   fits; its expectation is `‖bias‖² + (1 + 1/R) Σ_i d_i` with `d_i = Var_r(b*_{0,r,i})`,
-//!   so the bias energy is `B² = max(0, ‖β‖² − (1 + 1/R) Σ_i d_i)` and the bias map is
-//!   `β̃_i = |β_i| · √(B² / ‖β‖²)`;
+//! - bias of the prior: the unregularised fit is (nearly) unbiased, so
+//!   `E[b̂ − b̂₀] = E[b̂] − b` and `β = b̂ − b̂₀` estimates the bias. (The plain bootstrap bias
+//!   `b̄ − b̂` measures the prior's shrinkage of `b̂`, which is already flattened: on a window
+//!   with a strong TV prior it is a quarter of the true bias, see the tests.) `‖β‖²` carries the
+//!   noise of the difference; its expectation is `‖bias‖² + Σ_i d_i` with
+//!   `d_i = Var_r(b*_{r,i} − b*_{0,r,i})`, so the bias energy is
+//!   `B² = max(0, ‖β‖² − Σ_i d_i)` and the bias map is `β̃_i = |β_i| · √(B² / ‖β‖²)`;
 //! - stored uncertainty `u_i = √(β̃_i² + v_i)`, the root mean square error of pixel `i`; the
 //!   predicted relative L2 error of the kernel is `‖u‖₂ / ‖b̂‖₂` ([`predicted_error`]), an
 //!   estimate of `√E‖b̂ − b‖² / ‖b‖`.
@@ -123,48 +119,41 @@ impl Moments {
     }
 }
 
-/// One kernel's bootstrap: the unregularised fit `b̂₀` of the data, and the running sums of the
-/// replicates' regularised fits `b*_r` and unregularised fits `b*_{0,r}`.
+/// One kernel's bootstrap: the fitted kernel `b̂`, the unregularised fit `b̂₀` of the same data,
+/// and the running sums of the replicates' regularised fits `b*_r` and differences
+/// `δ_r = b*_r − b*_{0,r}`.
 #[derive(Clone, Debug)]
 pub struct Replicates {
-    unregularised: Vec<f64>,
+    beta: Vec<f64>,
     fits: Moments,
-    fits0: Moments,
+    diffs: Moments,
     width: usize,
 }
 
 impl Replicates {
-    /// No replicates yet, for the unregularised fit `b̂₀` of the data.
-    pub fn new(unregularised: &Plane) -> Self {
-        let n = unregularised.data.len();
-        Self { unregularised: unregularised.data.iter().map(|&v| v as f64).collect(), fits: Moments::new(n), fits0: Moments::new(n), width: unregularised.width }
+    /// No replicates yet, for the fitted kernel `b̂` and its unregularised fit `b̂₀`.
+    pub fn new(fitted: &Plane, unregularised: &Plane) -> Self {
+        let n = fitted.data.len();
+        let beta = fitted.data.iter().zip(&unregularised.data).map(|(&a, &b)| (a - b) as f64).collect();
+        Self { beta, fits: Moments::new(n), diffs: Moments::new(n), width: fitted.width }
     }
 
     /// Adds replicate `r`: its regularised fit `b*_r` and unregularised fit `b*_{0,r}`.
     pub fn add(&mut self, fit: &Plane, unregularised: &Plane) {
         self.fits.add(fit.data.iter().map(|&v| v as f64));
-        self.fits0.add(unregularised.data.iter().map(|&v| v as f64));
-    }
-
-    /// The bias estimate `β = b̄*₀ − b̂₀` per pixel and its noise energy
-    /// `Σ_i (1 + 1/R)·Var_r(b*_{0,r,i})` (module docs).
-    fn bias_and_noise(&self) -> (Vec<f64>, f64) {
-        let r = self.fits0.count.max(1) as f64;
-        let beta = self.fits0.sum.iter().zip(&self.unregularised).map(|(&s, &b0)| s / r - b0).collect();
-        let noise = self.fits0.variance().iter().sum::<f64>() * (1.0 + 1.0 / r);
-        (beta, noise)
+        self.diffs.add(fit.data.iter().zip(&unregularised.data).map(|(&a, &b)| (a - b) as f64));
     }
 
     /// Standard deviation, bias and total per pixel (module docs); no spread with fewer than 2
     /// replicates. Every value is finite and ≥ 0.
     pub fn finish(&self) -> KernelUncertainty {
         let v = self.fits.variance();
-        let (beta, d) = self.bias_and_noise();
-        let b2: f64 = beta.iter().map(|b| b * b).sum();
+        let d: f64 = self.diffs.variance().iter().sum();
+        let b2: f64 = self.beta.iter().map(|b| b * b).sum();
         let scale = if b2 > 0.0 { ((b2 - d).max(0.0) / b2).sqrt() } else { 0.0 };
         let clean = |x: f64| if x.is_finite() { x as f32 } else { 0.0 };
-        let plane = |f: &dyn Fn(usize) -> f64| Plane { width: self.width, height: beta.len() / self.width.max(1), data: (0..beta.len()).map(|i| clean(f(i))).collect() };
-        let bias = |i: usize| beta[i].abs() * scale;
+        let plane = |f: &dyn Fn(usize) -> f64| Plane { width: self.width, height: self.beta.len() / self.width.max(1), data: (0..self.beta.len()).map(|i| clean(f(i))).collect() };
+        let bias = |i: usize| self.beta[i].abs() * scale;
         KernelUncertainty { std: plane(&|i| v[i].sqrt()), bias: plane(&bias), total: plane(&|i| (bias(i).powi(2) + v[i]).sqrt()) }
     }
 }
@@ -185,7 +174,7 @@ pub fn bootstrap_window(td: &TileData, fitted: &Plane, open_var: impl Fn(f32) ->
     CircularConvolution::new(fitted, td.pw, td.ph).apply(&td.sharp, &mut pred);
     let s = TileSettings { kernel_size: fitted.width, ..settings.clone() };
     let s0 = TileSettings { lambda: Some(0.0), ..s.clone() };
-    let mut acc = Replicates::new(&solve_tile(td, &s0, |_, _| true).kernel);
+    let mut acc = Replicates::new(fitted, &solve_tile(td, &s0, |_, _| true).kernel);
     for _ in 0..o.replicates.max(2) {
         let blurred = add_noise(&pred, &open_var, rng);
         let sharp = add_noise(&td.sharp, &sharp_var, rng);
@@ -304,7 +293,7 @@ pub fn bootstrap_estimate(est: &Estimate, opts: &EstimateOptions, o: &BootstrapO
     let black = &opts.black_level;
     let data = (encoded(est.open_linear.clone(), est, black), encoded(est.pinhole_registered.clone(), est, black));
     let unreg = estimate_like(&data.0, &data.1, &zero, g, 0)?;
-    let mut acc: Vec<Vec<Replicates>> = unreg.iter().map(|k0| k0.iter().map(Replicates::new).collect()).collect();
+    let mut acc: Vec<Vec<Replicates>> = g.kernels.iter().zip(&unreg).map(|(ks, k0)| ks.iter().zip(k0).map(|(k, k0)| Replicates::new(k, k0)).collect()).collect();
     let mut rng = Rng::new(o.seed);
     for r in 1..=o.replicates.max(2) {
         let (open, pin) = replicate_pair(est, &pred, &law, black, &mut rng);
@@ -424,18 +413,19 @@ mod tests {
         assert!((at(stored) - at(&law)).abs() < 1e-9, "stored {:?} against residual {:?}", stored, law);
     }
 
-    /// The running sums: two replicates `b̂ ± d` give std `|d|·√2`; the bias `β = b̄*₀ − b̂₀`
-    /// counts in full when the replicates' unregularised fits do not vary, and is removed when
-    /// its energy is below their noise (it is then indistinguishable from noise).
+    /// The running sums: two replicates `b̂ ± d` give std `|d|·√2`; a bias `β = b̂ − b̂₀` counts
+    /// in full when the replicates' differences do not vary, and is removed when its energy is
+    /// below their variance (it is then indistinguishable from noise).
     #[test]
     fn replicate_moments() {
-        let mut a = Replicates::new(&Plane::filled(2, 1, 0.3));
-        a.add(&Plane::filled(2, 1, 0.6), &Plane::filled(2, 1, 0.5));
-        a.add(&Plane::filled(2, 1, 0.4), &Plane::filled(2, 1, 0.5));
+        let (f, f0) = (Plane::filled(2, 1, 0.5), Plane::filled(2, 1, 0.3));
+        let mut a = Replicates::new(&f, &f0);
+        a.add(&Plane::filled(2, 1, 0.6), &Plane::filled(2, 1, 0.4));
+        a.add(&Plane::filled(2, 1, 0.4), &Plane::filled(2, 1, 0.2));
         let u = a.finish();
         assert!((u.std.data[0] - 0.1 * 2f32.sqrt()).abs() < 1e-6 && (u.bias.data[0] - 0.2).abs() < 1e-6, "{u:?}");
         assert!((u.total.data[0] - (0.04f32 + 0.02).sqrt()).abs() < 1e-6);
-        let mut b = Replicates::new(&Plane::filled(2, 1, 0.45));
+        let mut b = Replicates::new(&f, &Plane::filled(2, 1, 0.45));
         b.add(&Plane::filled(2, 1, 0.6), &Plane::filled(2, 1, 0.3));
         b.add(&Plane::filled(2, 1, 0.4), &Plane::filled(2, 1, 0.5));
         let u = b.finish();

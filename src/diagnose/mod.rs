@@ -479,14 +479,15 @@ fn rescore(data: &Data, f: &Fit) -> Fit {
 /// A fit consistent with noise: reduced χ² and the noise law's misfit within the options'
 /// bounds. The low-band test ([`low_band`]) is reported beside it, not part of it: on clean
 /// 1024×768 data the base model's lowest band is above its statistical bound
-/// (docs/diagnosis.md, "The low-band test").
+/// (docs/diagnosis.md, "Screening on the subset alone, and the low-band test").
 fn consistent(f: &Fit, opts: &DiagnoseOptions) -> bool {
     f.reduced_chi2() <= opts.consistent && f.noise_misfit <= opts.consistent_noise
 }
 
-/// The residual's lowest band against the noise floor there (docs/diagnosis.md, "The low-band
-/// test"): one χ² over millions of pixels averages away a smooth misfit (a halo hiding partly
-/// in the kernels) that holds several times the floor's power at the lowest frequencies.
+/// The residual's lowest band against the noise floor there (docs/diagnosis.md, "Screening on
+/// the subset alone, and the low-band test"): one χ² over millions of pixels averages away a
+/// smooth misfit (a halo hiding partly in the kernels) that holds several times the floor's
+/// power at the lowest frequencies.
 #[derive(Clone, Debug, Serialize)]
 pub struct LowBand {
     /// Upper edge of the band (cycles/px).

@@ -97,6 +97,67 @@ pub fn radial_spectrum(z: &Plane, mask: &[bool], bands: usize) -> Vec<(f64, f64)
     (0..bands).filter(|&b| cnt[b] > 0).map(|b| (band_centre(b, bands, 0.5), sum[0][b] / cnt[b] as f64 / n as f64)).collect()
 }
 
+/// Upper edge (cycles/px) of the residual spectrum's lowest band: the first of the 16 bands of
+/// [`Analysis::spectrum`] over (0, 0.5].
+pub const LOW_BAND_TOP: f64 = 0.5 / SPECTRUM_BANDS as f64;
+
+/// Bands of [`Analysis::spectrum`].
+const SPECTRUM_BANDS: usize = 16;
+
+/// The frequencies of a `w × h` image's lowest band ([`LOW_BAND_TOP`]) on the half plane the
+/// real FFT keeps (`kx ≥ 0`, every `ky`): `(fx, fy)` in cycles/px.
+pub fn low_band_bins(w: usize, h: usize) -> Vec<(f64, f64)> {
+    let (kxm, kym) = ((w as f64 * LOW_BAND_TOP) as i64, (h as f64 * LOW_BAND_TOP) as i64);
+    let mut out = Vec::new();
+    for kx in 0..=kxm.min(w as i64 / 2) {
+        for ky in -kym..=kym {
+            let (fx, fy) = (kx as f64 / w as f64, ky as f64 / h as f64);
+            let f = fx.hypot(fy);
+            if f > 0.0 && f <= LOW_BAND_TOP {
+                out.push((fx, fy));
+            }
+        }
+    }
+    out
+}
+
+/// Mean of `|K̂(f)|²` over `bins` (`K̂(f) = Σ K(x)·e^{−2πi f·x}`): the gain with which white
+/// noise of unit variance comes through the kernel `k` in that band (its mean over every
+/// frequency is `ΣK²`).
+pub fn band_gain(k: &Plane, bins: &[(f64, f64)]) -> f64 {
+    if bins.is_empty() {
+        return 0.0;
+    }
+    let tau = std::f64::consts::TAU;
+    // each row's transform at a given fx (bins share few fx), then its phase at fy
+    let mut rows: Vec<(f64, Vec<(f64, f64)>)> = Vec::new();
+    let mut total = 0.0f64;
+    for &(fx, fy) in bins {
+        let idx = match rows.iter().position(|r| r.0 == fx) {
+            Some(i) => i,
+            None => {
+                let ph: Vec<(f64, f64)> = (0..k.width).map(|x| (tau * fx * x as f64).sin_cos()).collect();
+                let r = (0..k.height)
+                    .map(|y| {
+                        let row = &k.data[y * k.width..(y + 1) * k.width];
+                        row.iter().zip(&ph).fold((0.0, 0.0), |(a, b), (&v, &(sn, cs))| (a + v as f64 * cs, b - v as f64 * sn))
+                    })
+                    .collect();
+                rows.push((fx, r));
+                rows.len() - 1
+            }
+        };
+        let (mut re, mut im) = (0.0f64, 0.0f64);
+        for (y, &(rr, ri)) in rows[idx].1.iter().enumerate() {
+            let (sn, cs) = (tau * fy * y as f64).sin_cos();
+            re += rr * cs + ri * sn;
+            im += ri * cs - rr * sn;
+        }
+        total += re * re + im * im;
+    }
+    total / bins.len() as f64
+}
+
 fn binned(name: &str, vals: &[(f32, f32)], bins: usize, quantile: bool) -> Curve {
     let mut v: Vec<(f32, f32)> = vals.to_vec();
     let (mut x, mut mean, mut msq) = (vec![], vec![], vec![]);
@@ -173,7 +234,7 @@ impl Histogram {
 /// averaged.
 fn mean_spectrum(fit: &Fit) -> Vec<(f64, f64)> {
     let nch = fit.normalized.len();
-    let per_channel: Vec<Vec<(f64, f64)>> = (0..nch).map(|c| radial_spectrum(&fit.normalized[c], &fit.eval[c], 16)).collect();
+    let per_channel: Vec<Vec<(f64, f64)>> = (0..nch).map(|c| radial_spectrum(&fit.normalized[c], &fit.eval[c], SPECTRUM_BANDS)).collect();
     match per_channel.first() {
         Some(first) => first.iter().enumerate().map(|(b, &(f, _))| (f, per_channel.iter().map(|s| s.get(b).map_or(0.0, |q| q.1)).sum::<f64>() / nch as f64)).collect(),
         None => Vec::new(),
@@ -316,5 +377,23 @@ mod tests {
         let smooth = crate::image::filter::gaussian_blur(&white, 2.0).map(|v| v * 5.0);
         let s = radial_spectrum(&smooth, &vec![true; w * h], 8);
         assert!(s[0].1 > 2.0 && s[7].1 < 0.01, "{s:?}");
+    }
+
+    /// A delta passes white noise with gain 1 in every band; a kernel summing to 1 passes
+    /// about 1 at the lowest frequencies, far above its `ΣK²` (its mean gain over all
+    /// frequencies); the low band holds the half-plane bins up to [`LOW_BAND_TOP`].
+    #[test]
+    fn band_gain_of_a_delta_and_a_box() {
+        let bins = low_band_bins(256, 192);
+        assert!(bins.iter().all(|&(fx, fy)| fx >= 0.0 && fx.hypot(fy) > 0.0 && fx.hypot(fy) <= LOW_BAND_TOP));
+        // about half the disc of radius 0.031 on a 256 × 192 grid: π·8·6/2 ≈ 75
+        assert!((60..=90).contains(&bins.len()), "{} bins", bins.len());
+        let mut delta = Plane::new(5, 5);
+        delta.data[12] = 1.0;
+        assert!((band_gain(&delta, &bins) - 1.0).abs() < 1e-9);
+        let boxk = Plane::from_fn(9, 9, |_, _| 1.0 / 81.0);
+        let g = band_gain(&boxk, &bins);
+        let k2 = 1.0 / 81.0;
+        assert!(g > 0.8 && g < 1.0 && g > 50.0 * k2, "box gain {g:.3} vs ΣK² {k2:.4}");
     }
 }

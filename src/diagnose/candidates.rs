@@ -156,43 +156,54 @@ fn channel_list(data: &Data) -> String {
 /// effects named in `excluded` (e.g. to show what the diagnosis says of an effect before the
 /// catalogue models it).
 pub fn propose(data: &Data, current: &Fit, a: &Analysis, excluded: &[String]) -> Vec<Candidate> {
-    let mut out = propose_all(data, current, a, &|name| !excluded.iter().any(|e| e == name));
-    out.retain(|c| !excluded.iter().any(|e| e == c.name));
-    out
+    propose_timed(data, current, a, excluded).0
 }
 
-fn propose_all(data: &Data, current: &Fit, a: &Analysis, wanted: &dyn Fn(&str) -> bool) -> Vec<Candidate> {
+/// [`propose`], with the wall and CPU seconds each effect's proposal took (its parameter
+/// search: glare width, similarity, keystone, Airy radius, the tone curve's re-estimate).
+pub fn propose_timed(data: &Data, current: &Fit, a: &Analysis, excluded: &[String]) -> (Vec<Candidate>, Vec<crate::estimate::StageTime>) {
+    let (mut out, times) = propose_all(data, current, a, &|name| !excluded.iter().any(|e| e == name));
+    out.retain(|c| !excluded.iter().any(|e| e == c.name));
+    (out, times)
+}
+
+fn propose_all(data: &Data, current: &Fit, a: &Analysis, wanted: &dyn Fn(&str) -> bool) -> (Vec<Candidate>, Vec<crate::estimate::StageTime>) {
     let c0 = &current.model.corrections;
     let mut out = Vec::new();
+    let (mut lap, mut times) = (crate::estimate::stage_clock(), Vec::new());
+    let mut add = |name: &'static str, c: Option<Candidate>, out: &mut Vec<Candidate>| {
+        out.extend(c);
+        times.push(lap(name));
+    };
     if c0.vignetting.is_none() {
-        out.push(vignetting_candidate(data, c0, a));
+        add("vignetting", Some(vignetting_candidate(data, c0, a)), &mut out);
     }
     if c0.illumination_gradient.is_none() {
-        out.push(gradient_candidate(data, c0, a));
+        add("illumination_gradient", Some(gradient_candidate(data, c0, a)), &mut out);
     }
     if c0.black_level.is_none() {
-        out.push(black_level_candidate(data, c0, a));
+        add("black_level", Some(black_level_candidate(data, c0, a)), &mut out);
     }
     if c0.tone_curve.is_none() && data.open.transfer == Transfer::Linear {
-        out.push(tone_candidate(data, current, a));
+        add("tone_curve", Some(tone_candidate(data, current, a)), &mut out);
     }
     if c0.veiling_glare.is_none() {
-        out.extend(glare_candidate(data, current, a));
+        add("veiling_glare", glare_candidate(data, current, a), &mut out);
     }
     if c0.misregistration.is_none() {
-        out.extend(misregistration_candidate(data, current, a));
+        add("misregistration", misregistration_candidate(data, current, a), &mut out);
     }
     if wanted("target_tilt") {
-        out.extend(super::tilt::tilt_candidate(data, current, a));
+        add("target_tilt", super::tilt::tilt_candidate(data, current, a), &mut out);
     }
     if c0.saturation.is_none() {
-        out.extend(saturation_candidate(data, current, a));
+        add("saturation", saturation_candidate(data, current, a), &mut out);
     }
     if c0.pinhole_diffraction.is_none() {
-        out.extend(diffraction_candidate(data, current, a));
+        add("pinhole_diffraction", diffraction_candidate(data, current, a), &mut out);
     }
-    out.extend(field_candidate(data, current, a));
-    out
+    add("psf_field_variation", field_candidate(data, current, a), &mut out);
+    (out, times)
 }
 
 /// A candidate's location text: `what`, the channels and where the residual is worst.

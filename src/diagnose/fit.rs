@@ -39,6 +39,10 @@ use crate::profile::RegistrationInfo;
 /// normalisation, [`Fit::highpass_absorbed`]) the proof suite passes with it.
 pub const KERNEL_STEP: KernelStep = KernelStep::Tangent;
 
+/// Margin (px) by which a screening fit's scored set keeps away from the dropped blocks under
+/// a reference map: the Lanczos-4 taps (4 px) and rounding.
+const SCORED_MARGIN: usize = 6;
+
 /// Stored values at or above this count as clipped.
 pub const CLIP: f32 = 0.995;
 
@@ -138,13 +142,31 @@ pub struct Fit {
     /// noise variance at that pixel: what [`super::noise::measure_residual`] must not count
     /// as the wide-open capture's noise.
     pub reference_highpass: Vec<Plane>,
+    /// The share of the evaluation set the figures cover: 1 when they cover every pixel; a
+    /// screening fit on a subset ([`fit_subset`], [`screen`]) scores only the subset's pixels
+    /// (`chi2_channel`, `n_channel`, `eval` are the subset's) and [`Fit::chi2`], [`Fit::n`]
+    /// scale them by `1/share` to the whole evaluation set's.
+    pub share: f64,
+    /// Per channel, the power the noise floor puts into the normalised residual's lowest band
+    /// ([`super::analysis::LOW_BAND_TOP`]), relative to white noise's (1): the reference's
+    /// noise comes through the kernels with `|K̂(f)|²`, which at low frequencies exceeds its
+    /// mean `ΣK²` over all frequencies (the share the variance counts). Mean over the scored
+    /// pixels of `1 + ρ(x)·(⟨|Û|²⟩_band − Σ U²)/ΣU²`, `ρ` the reference's share of the variance
+    /// ([`Setup::low_band_floor`]). Empty for screening fits.
+    pub low_band_floor: Vec<f64>,
 }
 
 impl Fit {
+    /// χ² over the evaluation set (estimated from the scored share when [`Fit::share`] < 1).
     pub fn chi2(&self) -> f64 {
-        self.chi2_channel.iter().sum()
+        self.chi2_channel.iter().sum::<f64>() / self.share
     }
+    /// Pixels of the evaluation set (all channels).
     pub fn n(&self) -> usize {
+        (self.n_scored() as f64 / self.share).round() as usize
+    }
+    /// Pixels the figures were computed on (all channels).
+    pub fn n_scored(&self) -> usize {
         self.n_channel.iter().sum()
     }
     /// The parameters the consistency test subtracts: the kernels' effective degrees of
@@ -159,8 +181,8 @@ impl Fit {
     }
     /// [`Fit::reduced_chi2`] per channel (each channel carries an equal share of `p_eff`).
     pub fn reduced_chi2_channel(&self) -> Vec<f64> {
-        let share = self.effective_params() / self.chi2_channel.len().max(1) as f64;
-        self.chi2_channel.iter().zip(&self.n_channel).map(|(c, n)| c / (*n as f64 - share).max(1.0)).collect()
+        let p = self.effective_params() / self.chi2_channel.len().max(1) as f64;
+        self.chi2_channel.iter().zip(&self.n_channel).map(|(c, n)| (c / self.share) / (*n as f64 / self.share - p).max(1.0)).collect()
     }
     /// Takes over `from`'s measured kernel degrees of freedom, scaled by the ratio of tile
     /// counts (a finer grid under `psf_field_variation` has proportionally more): a candidate
@@ -178,11 +200,11 @@ impl Fit {
     }
     /// RMS of the residual (stored axis).
     pub fn rms(&self) -> f64 {
-        (self.sq_channel.iter().sum::<f64>() / self.n().max(1) as f64).sqrt()
+        (self.sq_channel.iter().sum::<f64>() / self.n_scored().max(1) as f64).sqrt()
     }
     /// RMS of the predicted noise (stored axis): the noise floor.
     pub fn noise_rms(&self) -> f64 {
-        (self.var_channel.iter().sum::<f64>() / self.n().max(1) as f64).sqrt()
+        (self.var_channel.iter().sum::<f64>() / self.n_scored().max(1) as f64).sqrt()
     }
 }
 
@@ -469,7 +491,7 @@ fn score_channel(mlin: &Plane, vl: &Plane, transfer: Transfer, clip: Option<f32>
 /// Fits `corrections` (their parameter values are starting points) to `data`, starting from
 /// `init`'s kernels and exposure ratios.
 pub fn fit(data: &Data, corrections: &Corrections, init: &Model, settings: FitSettings) -> Fit {
-    fit_on(data, corrections, init, settings, &|_, _| true, usize::MAX)
+    fit_on(data, corrections, init, settings, &|_, _| true, usize::MAX, false)
 }
 
 /// [`fit`] with the data term restricted to pixels where `keep(x, y)` and, as in
@@ -480,25 +502,30 @@ pub fn fit(data: &Data, corrections: &Corrections, init: &Model, settings: FitSe
 /// operators), `Setup::initial_params`, `settings.rounds` × `Setup::round` (kernels, then
 /// Gauss–Newton on the scalars), `Setup::final_model` and `Setup::figures`.
 pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings: FitSettings, keep: &dyn Fn(usize, usize) -> bool, data_pixels: usize) -> Fit {
-    fit_on(data, corrections, init, settings, keep, data_pixels)
+    fit_on(data, corrections, init, settings, keep, data_pixels, false)
 }
 
 /// [`fit`] with the data term on a spread subset of about `data_pixels` pixels (every n-th
 /// block of the kernel operator in a staggered pattern, so every tile keeps data): the
-/// screening fit of the effect search. The figures (χ², residual maps) still cover the whole
-/// evaluation set, the pixels outside the subset predicted by the fitted model.
+/// screening fit of the effect search. The figures (χ², residual maps) cover only the subset's
+/// evaluation pixels (no whole-image operator is built); [`Fit::chi2`] and [`Fit::n`] scale
+/// them to the whole evaluation set ([`Fit::share`]). Fits with the same grid keep the same
+/// blocks, so a round's null refit and candidates are scored on the same pixels.
 pub fn fit_subset(data: &Data, corrections: &Corrections, init: &Model, settings: FitSettings, data_pixels: usize) -> Fit {
-    fit_on(data, corrections, init, settings, &|_, _| true, data_pixels)
+    fit_on(data, corrections, init, settings, &|_, _| true, data_pixels, true)
 }
 
 /// [`fit_subset`] on [`Data::screen_pixels`]: the quick fits with which a candidate's
 /// parameters are searched (glare width, similarity, keystone, Airy radius) and backward
 /// elimination's refits. Every pixel when the capture has no more than that per channel.
 pub fn screen(data: &Data, corrections: &Corrections, init: &Model, settings: FitSettings) -> Fit {
-    fit_on(data, corrections, init, settings, &|_, _| true, data.screen_pixels)
+    fit_on(data, corrections, init, settings, &|_, _| true, data.screen_pixels, true)
 }
 
-fn fit_on(data: &Data, corrections: &Corrections, init: &Model, settings: FitSettings, keep: &dyn Fn(usize, usize) -> bool, data_pixels: usize) -> Fit {
+/// `subset_figures`: score only the kernel operators' kept blocks ([`fit_subset`]) instead of
+/// every pixel.
+#[allow(clippy::too_many_arguments)]
+fn fit_on(data: &Data, corrections: &Corrections, init: &Model, settings: FitSettings, keep: &dyn Fn(usize, usize) -> bool, data_pixels: usize, subset_figures: bool) -> Fit {
     let mut corr = corrections.clone();
     let setup = Setup::new(data, &corr, init, keep, data_pixels);
     let mut p = setup.initial_params(&corr, init);
@@ -507,7 +534,7 @@ fn fit_on(data: &Data, corrections: &Corrections, init: &Model, settings: FitSet
         setup.round(&mut corr, &mut p, kset);
     }
     let (grid, exposure) = setup.final_model(&mut corr, &p);
-    let f = setup.figures(&corr, &mut p);
+    let f = setup.figures(&corr, &mut p, subset_figures);
     let (nch, k) = (setup.nch, setup.grid0.kernel_size);
     let laws: Vec<super::noise::PoissonGaussian> = data.curves.iter().map(|c| super::noise::PoissonGaussian::fit(c, setup.transfer)).collect();
     let kernel_params = nch * (grid.tile_count() * (k * k - 1) + 1);
@@ -531,6 +558,8 @@ fn fit_on(data: &Data, corrections: &Corrections, init: &Model, settings: FitSet
         noise_misfit: laws.iter().map(|l| l.misfit).fold(0.0, f64::max),
         reference: setup.reference,
         reference_highpass: f.reference_highpass,
+        share: f.share,
+        low_band_floor: f.low_band_floor,
     }
 }
 
@@ -702,6 +731,9 @@ struct Figures {
     sq_channel: Vec<f64>,
     var_channel: Vec<f64>,
     reference_highpass: Vec<Plane>,
+    /// The scored pixels over the evaluation set's ([`Fit::share`]).
+    share: f64,
+    low_band_floor: Vec<f64>,
 }
 
 impl<'a> Setup<'a> {
@@ -869,25 +901,78 @@ impl<'a> Setup<'a> {
         (PsfGrid { kernels, ..self.grid0.clone() }, exposure)
     }
 
-    /// Every channel's figures on the stored axis (see [`Setup::channel_figures`]), on every
-    /// pixel: when the kernel operators keep only some blocks, the blur parts are recomputed
-    /// with whole-image operators first.
-    fn figures(&self, corr: &Corrections, p: &mut Params) -> Figures {
-        if self.ops.iter().any(|o| o.covered().iter().any(|c| !c)) {
+    /// Channel `c`'s expected power of the normalised residual in the lowest band, relative to
+    /// white noise's ([`Fit::low_band_floor`]): per pixel `1 + (V_low − V_ref)/Var`, with
+    /// `V_ref = G²·(Σ_t w_t ΣU_t²)·Var_pinhole` the reference noise's variance (as in
+    /// [`Setup::update_variance`]) and `V_low` the same with each kernel's mean `|Û_t(f)|²` over
+    /// the band ([`super::analysis::band_gain`]; a restoration under `pinhole_diffraction` is
+    /// ≈ 1 there); averaged over `scored`.
+    fn low_band_floor(&self, c: usize, p: &Params, g: &Plane, scored: &[bool]) -> f64 {
+        let (w, h, data) = (self.w, self.h, self.data);
+        let u = &p.u[c];
+        let bins = super::analysis::low_band_bins(w, h);
+        let low: Vec<f32> = u.iter().map(|k| super::analysis::band_gain(k, &bins) as f32).collect();
+        let lowq = self.grid0.blend_scalars(&low, w, h);
+        let kq = self.kernel_energy(c, u);
+        let vl = self.update_variance(c, &p.a_parts[c], u, g, p.glare_amp[c], p.beta[c]);
+        let s = u.iter().map(|kk| kk.sum()).sum::<f64>() / u.len().max(1) as f64;
+        let (mut sum, mut n) = (0.0f64, 0usize);
+        for i in (0..w * h).filter(|&i| scored[i]) {
+            let level = (p.a_parts[c].data[i] as f64 / s.max(1e-12)) as f32;
+            let vp = (g.data[i] * g.data[i]) as f64 * data.pinhole_variance_scale * self.lin_var(&data.curves[c], level) as f64;
+            sum += 1.0 + vp * (lowq.data[i] as f64 - kq.data[i] as f64) / vl.data[i].max(1e-30) as f64;
+            n += 1;
+        }
+        if n == 0 { 1.0 } else { sum / n as f64 }
+    }
+
+    /// The evaluation pixels inside the kernel operators' kept blocks, on the wide-open
+    /// geometry: under a reference map (`misregistration`, `target_tilt`) the kept set less
+    /// [`SCORED_MARGIN`] px is carried through the map, and a pixel counts only where every
+    /// interpolation tap falls inside it.
+    fn scored_mask(&self, corr: &Corrections) -> Vec<bool> {
+        let covered = self.ops.first().map_or(&[][..], |o| o.covered());
+        let inside: Vec<bool> = match super::model::reference_map(corr) {
+            None => covered.to_vec(),
+            Some(m) => {
+                let outside: Vec<bool> = covered.iter().map(|&c| !c).collect();
+                let near = dilate(&outside, self.w, self.h, SCORED_MARGIN);
+                let safe = Plane { width: self.w, height: self.h, data: near.iter().map(|&n| if n { 0.0 } else { 1.0 }).collect() };
+                super::model::resample_map(&safe, &m).0.data.iter().map(|&v| v > 0.999).collect()
+            }
+        };
+        self.masks.interior.iter().zip(&inside).map(|(&a, &b)| a && b).collect()
+    }
+
+    /// Every channel's figures on the stored axis (see [`Setup::channel_figures`]). When the
+    /// kernel operators keep only some blocks: with `subset_figures`, on the kept blocks'
+    /// evaluation pixels ([`Setup::scored_mask`]); otherwise on every pixel, the blur parts
+    /// recomputed with whole-image operators first.
+    fn figures(&self, corr: &Corrections, p: &mut Params, subset_figures: bool) -> Figures {
+        let partial = self.ops.iter().any(|o| o.covered().iter().any(|c| !c));
+        if partial && !subset_figures {
             for c in 0..self.nch {
                 p.a_parts[c] = KernelOperator::new(&self.reference[c], &self.grid0, usize::MAX).apply_planes(&p.u[c]);
             }
         }
+        let scored = if partial && subset_figures { self.scored_mask(corr) } else { self.masks.interior.clone() };
+        let count = |m: &[bool]| m.iter().filter(|&&b| b).count();
         let g = gain_plane(corr, self.w, self.h);
-        let mut f = Figures::default();
+        let mut f = Figures { share: count(&scored) as f64 / count(&self.masks.interior).max(1) as f64, ..Default::default() };
+        if f.share <= 0.0 {
+            f.share = 1.0;
+        }
         for c in 0..self.nch {
-            let cf = self.channel_figures(c, corr, p, &g);
+            if !subset_figures {
+                f.low_band_floor.push(self.low_band_floor(c, p, &g, &scored));
+            }
+            let cf = self.channel_figures(c, corr, p, &g, &scored);
             let sc = cf.score;
             f.reference_highpass.push(cf.reference_highpass);
             f.predicted.push(sc.predicted);
             f.normalized.push(sc.normalized);
             f.variance.push(sc.variance);
-            f.eval.push(self.masks.interior.clone());
+            f.eval.push(scored.clone());
             f.chi2_channel.push(sc.chi2);
             f.n_channel.push(sc.n);
             f.sq_channel.push(sc.sq);
@@ -899,7 +984,7 @@ impl<'a> Setup<'a> {
     /// Channel `c`'s prediction, variance and χ² on the stored axis (back on the wide-open
     /// geometry under `misregistration`), and the reference noise's share of the residual's
     /// high-pass.
-    fn channel_figures(&self, c: usize, corr: &Corrections, p: &Params, g: &Plane) -> ChannelFigures {
+    fn channel_figures(&self, c: usize, corr: &Corrections, p: &Params, g: &Plane, scored: &[bool]) -> ChannelFigures {
         let (w, h) = (self.w, self.h);
         let data = self.data;
         let clip = corr.saturation.map(|s| s.clip_level);
@@ -938,7 +1023,7 @@ impl<'a> Setup<'a> {
         }
         let m = &self.masks;
         let sat = m.saturation.then_some((&m.clipped_open[c][..], &m.pin_clipped[c][..]));
-        let score = score_channel(&mlin, &vl, self.transfer, clip, &m.interior, &data.open.planes[c], sat);
+        let score = score_channel(&mlin, &vl, self.transfer, clip, scored, &data.open.planes[c], sat);
         ChannelFigures { score, reference_highpass: hp }
     }
 }

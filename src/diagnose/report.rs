@@ -51,6 +51,7 @@ pub fn report_json(d: &Diagnosis, src: &Sources) -> serde_json::Value {
         "effects": d.effects,
         "rounds": d.rounds,
         "cross_validation": { "held_out_reduced_chi2": d.cross_validation[0], "in_sample_reduced_chi2": d.cross_validation[1] },
+        "low_band": { "base": d.low_band[0], "final": d.low_band[1] },
         "analysis": { "base": d.base_analysis, "final": d.final_analysis },
         "files": {
             "predicted_base": "predicted_base.png", "predicted_final": "predicted_final.png",

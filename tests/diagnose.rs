@@ -347,6 +347,7 @@ fn report_profile_cli_and_browser() {
     assert!(report["final"]["reduced_chi2"].as_f64().unwrap() < report["base"]["reduced_chi2"].as_f64().unwrap());
     let html = std::fs::read_to_string(out.join("index.html")).unwrap();
     assert!(html.contains("residual power spectrum"), "index.html lacks the residual spectrum");
+    assert!(html.contains("Low-band test of the final model"), "index.html lacks the low-band test's line");
     let o = read_image(&open).unwrap();
     for f in ["predicted_base.png", "predicted_final.png"] {
         let p = read_image(&out.join(f)).unwrap();

@@ -185,6 +185,9 @@ fn html(d: &Diagnosis, src: &Sources) -> String {
     let mut h = String::from("<!doctype html><html lang=\"en\"><meta charset=\"utf-8\"><title>lensrig diagnosis</title><style>body{font-family:sans-serif;margin:2em;max-width:1400px}table{border-collapse:collapse;margin:.6em 0}td,th{border:1px solid #ccc;padding:3px 9px;text-align:left}img{image-rendering:pixelated;border:1px solid #ccc;max-width:48%}.plot{margin:4px}.effect{border-left:4px solid #2471a3;padding-left:1em;margin:1em 0}code{background:#eee;padding:1px 4px}</style><body>");
     let _ = write!(h, "<h1>lensrig diagnosis</h1><p>Wide-open <code>{}</code>, pinhole <code>{}</code>, profile <code>{}</code>.</p>", esc(&src.open), esc(&src.pinhole), esc(src.profile.as_deref().unwrap_or("estimated here")));
     let _ = write!(h, "<h2 id=\"verdict\">Verdict</h2><p><b>{}</b></p>", esc(&d.verdict));
+    if let Some(b) = &d.low_band[1] {
+        let _ = write!(h, "<p>Low-band test of the final model: {}.</p>", esc(&super::band_text(b)));
+    }
     h.push_str("<h2>Fit</h2><table><tr><th>model</th><th>reduced χ²</th><th>residual RMS</th><th>noise floor RMS</th><th>parameters (nominal)</th><th>BIC</th></tr>");
     h.push_str(&figures_row("base", &d.base_figures()));
     for e in &d.effects {

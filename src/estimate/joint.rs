@@ -35,6 +35,13 @@
 //! ring (noise) costs as before, a radial change (a defocus disc's Fresnel ripples, its edge, a
 //! ring) a quarter. The λ rule and its held-out choice are unchanged.
 //!
+//! # Core release
+//! From the same point the TV is off within `ρ_c = R_c/4` px of each kernel's centroid
+//! ([`core_radius`], [`CORE_RELEASE`]; `R_c` the channel's median main-lobe radius of the window
+//! fits): `TV_c(b) = Σ_{i : |p_i − c_b| > ρ_c} |M_i ∇b_i|`. There the kernel follows the data and
+//! the field prior only — a debias of the core, where the wide discs' bias sits (pixel-scale
+//! Fresnel structure the polar TV flattened; docs/estimation.md "Core release").
+//!
 //! # TV weight chosen on held-out pixels
 //! After the first quarter of the iterations (and the re-measured noise level), the weights of
 //! a channel get one multiplier `m_c ∈ {½, 1, 2}` ([`LAMBDA_LADDER`]) chosen by held-out
@@ -178,10 +185,26 @@ pub const POLAR_RADIAL_WEIGHT: f32 = 0.25;
 impl JointProblem {
     /// Switches the prior to the polar TV (docs/estimation.md "Polar TV"), with the frames of
     /// every kernel centred on the centroid of its current iterate in `x`.
-    fn set_polar_frames(&mut self, x: &[f32]) {
+    /// Pairs within `core` px of the centroid get no TV (the core release, [`core_radius`]).
+    fn set_polar_frames(&mut self, x: &[f32], core: f32) {
         let k = self.k;
-        self.frames = x.par_chunks(k * k).flat_map_iter(|b| polar_tv_frames(k, centroid(b, k), POLAR_RADIAL_WEIGHT)).collect();
+        self.frames = x.par_chunks(k * k).flat_map_iter(|b| polar_tv_frames(k, centroid(b, k), POLAR_RADIAL_WEIGHT, core)).collect();
     }
+}
+
+/// The core release's radius as a fraction of the channel's main-lobe radius ([`core_radius`],
+/// docs/estimation.md "Core release"): the core zone `r ≤ R/4` where the bias of the wide
+/// discs was measured to sit.
+pub const CORE_RELEASE: f64 = 0.25;
+
+/// The radius `ρ_c = CORE_RELEASE · R_c` (pixels) about each kernel's centroid within which the
+/// polar TV is off, `R_c` the median over the channel's window fits of the main-lobe radius
+/// ([`super::support_radius`] at [`super::SUPPORT_ENERGY`]; 0 when there are none). Inside it the
+/// kernel follows the data and the field prior only.
+pub fn core_radius(kernels: &[Plane]) -> f32 {
+    let mut r: Vec<f64> = kernels.iter().map(|b| super::support_radius(b, super::SUPPORT_ENERGY)).collect();
+    r.sort_by(f64::total_cmp);
+    (CORE_RELEASE * r.get(r.len() / 2).copied().unwrap_or(0.0)) as f32
 }
 
 /// The centroid `(x, y)` of a `k × k` kernel in pixels (the centre `(k−1)/2` when it is empty).
@@ -460,7 +483,7 @@ pub fn refine_channel(
     let sigma_joint = (2.0 * f1 / count as f64).sqrt();
     rescale_noise(&mut p.lambda, fits, sigma_joint);
     p.scale_field_prior(sigma_joint / sigma0.max(1e-12));
-    p.set_polar_frames(&x);
+    p.set_polar_frames(&x, core_radius(kernels));
     let l_f = l_data + p.field_lipschitz();
     let (_, selecting) = if select && st1.iterations > 0 {
         match selection_problem(&p, open, sharp, valid, grid, kernels, fits) {

@@ -77,15 +77,58 @@ pub enum BootstrapError {
     Grid { replicate: usize, got: String, want: String },
 }
 
-/// One kernel's uncertainty: the three per-pixel maps of the module docs.
+/// One kernel's uncertainty: the four per-pixel maps of the module docs.
 #[derive(Clone, Debug, PartialEq)]
 pub struct KernelUncertainty {
     /// `√v`, the replicate standard deviation of the regularised fit.
     pub std: Plane,
-    /// `|β̃|`, the bias map scaled to the debiased bias energy.
+    /// `|β̃|`, the bias map scaled to the debiased bias energy (zero outside the bias support).
     pub bias: Plane,
-    /// `u = √(β̃² + v)`, what `psf-unc-<C>.tiff` stores.
+    /// `|c|`, the convergence term: the predicted distance to the fit's optimum
+    /// ([`convergence_map`]); zero when it was not measured.
+    pub convergence: Plane,
+    /// `u = √(β̃² + v + c²)`, what `psf-unc-<C>.tiff` stores.
     pub total: Plane,
+}
+
+/// The bias support's threshold `Z` ([`Replicates::finish`]): the bias `β = b̂ − b̂₀` counts on
+/// the pixels where `b̂ > Z·σ₀`, `σ₀` the standard deviation of the unregularised fit. There
+/// `b̂₀`'s positivity constraint is active with probability `Φ(−Z) = 2.3 %` and its clipping
+/// bias `σ₀(φ(Z) − Z·Φ(−Z))` is below `0.01 σ₀`; outside, `b̂₀ = max(0, noise)` leaves a
+/// positive floor of `σ₀/√(2π)` per pixel that is not the prior's bias.
+pub const BIAS_SUPPORT_Z: f64 = 2.0;
+
+/// Half-side of the box over which the unregularised fit's per-pixel variance is averaged for
+/// the bias support (a 5 × 5 box: 25 × (R − 1) degrees of freedom instead of R − 1; the noise
+/// level of a kernel's pixels changes slowly across the kernel).
+pub const SUPPORT_VARIANCE_RADIUS: usize = 2;
+
+/// The convergence term of one kernel (docs/estimation.md "Uncertainty", *Convergence term*):
+/// `snaps` are the kernel's iterates at the ends of the chunks of the continued fit
+/// (`snaps[0] = b̂`, then one per chunk of `chunk` iterations), `iterations` the fit's own
+/// iterations before them. With the chunk steps `D_j = s_{j+1} − s_j` and their contraction
+/// `ρ = median_j ‖D_{j+1}‖ / ‖D_j‖`, capped at `1 − 1/H` (`H = (iterations + chunks·chunk) /
+/// chunk`, the whole fit's length in chunks: the extrapolation never adds more than the fit
+/// has run so far, at its last pace), the optimum is extrapolated geometrically,
+///
+/// `b_∞ ≈ s_C + D_{C−1} · ρ/(1 − ρ)`,
+///
+/// and the map is `|b_∞ − b̂|` per pixel (its L2 norm: the distance). Zero with fewer than two
+/// chunks; every value finite and ≥ 0.
+pub fn convergence_map(snaps: &[&[f32]], k: usize, chunk: usize, iterations: usize) -> Plane {
+    if snaps.len() < 3 || snaps.iter().any(|s| s.len() != k * k) {
+        return Plane::new(k, k);
+    }
+    let steps: Vec<Vec<f64>> = snaps.windows(2).map(|w| w[1].iter().zip(w[0]).map(|(&a, &b)| (a - b) as f64).collect()).collect();
+    let norm = |v: &[f64]| v.iter().map(|x| x * x).sum::<f64>().sqrt();
+    let mut ratios: Vec<f64> = steps.windows(2).map(|w| if norm(&w[0]) > 0.0 { norm(&w[1]) / norm(&w[0]) } else { 0.0 }).collect();
+    ratios.sort_by(f64::total_cmp);
+    let horizon = (iterations + steps.len() * chunk) as f64 / chunk.max(1) as f64;
+    let rho = ratios[ratios.len() / 2].clamp(0.0, 1.0 - 1.0 / horizon.max(2.0));
+    let f = rho / (1.0 - rho);
+    let (first, last, step) = (snaps[0], snaps[snaps.len() - 1], &steps[steps.len() - 1]);
+    let data = (0..k * k).map(|i| ((last[i] - first[i]) as f64 + step[i] * f).abs()).map(|c| if c.is_finite() { c as f32 } else { 0.0 }).collect();
+    Plane { width: k, height: k, data }
 }
 
 /// Per-pixel running sums `Σx`, `Σx²` of a set of samples.
@@ -124,9 +167,12 @@ impl Moments {
 /// `δ_r = b*_r − b*_{0,r}`.
 #[derive(Clone, Debug)]
 pub struct Replicates {
+    fitted: Vec<f64>,
     beta: Vec<f64>,
     fits: Moments,
+    fits0: Moments,
     diffs: Moments,
+    convergence: Vec<f64>,
     width: usize,
 }
 
@@ -135,27 +181,64 @@ impl Replicates {
     pub fn new(fitted: &Plane, unregularised: &Plane) -> Self {
         let n = fitted.data.len();
         let beta = fitted.data.iter().zip(&unregularised.data).map(|(&a, &b)| (a - b) as f64).collect();
-        Self { beta, fits: Moments::new(n), diffs: Moments::new(n), width: fitted.width }
+        let fitted_f64 = fitted.data.iter().map(|&v| v as f64).collect();
+        Self { fitted: fitted_f64, beta, fits: Moments::new(n), fits0: Moments::new(n), diffs: Moments::new(n), convergence: vec![0.0; n], width: fitted.width }
+    }
+
+    /// Sets the convergence term `|c|` of the fitted kernel ([`convergence_map`]; same size).
+    pub fn with_convergence(mut self, map: &Plane) -> Self {
+        if map.data.len() == self.convergence.len() {
+            self.convergence = map.data.iter().map(|&v| v as f64).collect();
+        }
+        self
     }
 
     /// Adds replicate `r`: its regularised fit `b*_r` and unregularised fit `b*_{0,r}`.
     pub fn add(&mut self, fit: &Plane, unregularised: &Plane) {
         self.fits.add(fit.data.iter().map(|&v| v as f64));
+        self.fits0.add(unregularised.data.iter().map(|&v| v as f64));
         self.diffs.add(fit.data.iter().zip(&unregularised.data).map(|(&a, &b)| (a - b) as f64));
     }
 
-    /// Standard deviation, bias and total per pixel (module docs); no spread with fewer than 2
-    /// replicates. Every value is finite and ≥ 0.
+    /// The bias support: the pixels where `b̂ > Z·σ₀` ([`BIAS_SUPPORT_Z`]), `σ₀²` the replicates'
+    /// variance of the unregularised fit averaged over a box ([`SUPPORT_VARIANCE_RADIUS`]);
+    /// every pixel with fewer than 2 replicates.
+    fn bias_support(&self) -> Vec<bool> {
+        if self.fits0.count < 2 {
+            return vec![true; self.fitted.len()];
+        }
+        let v0 = box_mean(&self.fits0.variance(), self.width, SUPPORT_VARIANCE_RADIUS);
+        self.fitted.iter().zip(&v0).map(|(&b, &v)| b > BIAS_SUPPORT_Z * v.sqrt()).collect()
+    }
+
+    /// Standard deviation, bias, convergence and total per pixel (module docs); no spread with
+    /// fewer than 2 replicates. The bias energy and its noise are summed over the bias support
+    /// ([`Self::bias_support`]) only. Every value is finite and ≥ 0.
     pub fn finish(&self) -> KernelUncertainty {
         let v = self.fits.variance();
-        let d: f64 = self.diffs.variance().iter().sum();
-        let b2: f64 = self.beta.iter().map(|b| b * b).sum();
+        let support = self.bias_support();
+        let on = |i: &usize| support[*i];
+        let d: f64 = self.diffs.variance().iter().enumerate().filter(|(i, _)| on(i)).map(|(_, x)| x).sum();
+        let b2: f64 = (0..self.beta.len()).filter(on).map(|i| self.beta[i] * self.beta[i]).sum();
         let scale = if b2 > 0.0 { ((b2 - d).max(0.0) / b2).sqrt() } else { 0.0 };
         let clean = |x: f64| if x.is_finite() { x as f32 } else { 0.0 };
         let plane = |f: &dyn Fn(usize) -> f64| Plane { width: self.width, height: self.beta.len() / self.width.max(1), data: (0..self.beta.len()).map(|i| clean(f(i))).collect() };
-        let bias = |i: usize| self.beta[i].abs() * scale;
-        KernelUncertainty { std: plane(&|i| v[i].sqrt()), bias: plane(&bias), total: plane(&|i| (bias(i).powi(2) + v[i]).sqrt()) }
+        let bias = |i: usize| if support[i] { self.beta[i].abs() * scale } else { 0.0 };
+        let c = &self.convergence;
+        KernelUncertainty { std: plane(&|i| v[i].sqrt()), bias: plane(&bias), convergence: plane(&|i| c[i]), total: plane(&|i| (bias(i).powi(2) + v[i] + c[i] * c[i]).sqrt()) }
     }
+}
+
+/// The mean of `v` (a `width`-wide plane) over the `(2r + 1)²` box about each pixel, clipped to
+/// the plane.
+fn box_mean(v: &[f64], width: usize, r: usize) -> Vec<f64> {
+    let (w, h) = (width.max(1), v.len() / width.max(1));
+    let mean = |x: usize, y: usize| {
+        let (xs, ys) = (x.saturating_sub(r)..(x + r + 1).min(w), y.saturating_sub(r)..(y + r + 1).min(h));
+        let n = xs.len() * ys.len();
+        ys.flat_map(|yy| xs.clone().map(move |xx| yy * w + xx)).map(|i| v[i]).sum::<f64>() / n.max(1) as f64
+    };
+    (0..w * h).map(|i| mean(i % w, i / w)).collect()
 }
 
 /// Adds `√v(x) · n` to every sample of `x` (`n ~ N(0, 1)`).
@@ -288,12 +371,14 @@ pub fn bootstrap_estimate(est: &Estimate, opts: &EstimateOptions, o: &BootstrapO
     // on another grid
     let (w, h) = (est.open_linear[0].width, est.open_linear[0].height);
     let tile = super::tile_for_grid(w, h, g.columns, g.rows).or(opts.tile);
-    let ropts = EstimateOptions { kernel_size: Some(g.kernel_size), tile, progress: false, field_variation: Some(est.field_variation.clone()), ..opts.clone() };
+    let ropts = EstimateOptions { kernel_size: Some(g.kernel_size), tile, progress: false, field_variation: Some(est.field_variation.clone()), convergence_tail: false, ..opts.clone() };
     let zero = EstimateOptions { lambda_scale: 0.0, ..ropts.clone() };
     let black = &opts.black_level;
     let data = (encoded(est.open_linear.clone(), est, black), encoded(est.pinhole_registered.clone(), est, black));
     let unreg = estimate_like(&data.0, &data.1, &zero, g, 0)?;
-    let mut acc: Vec<Vec<Replicates>> = g.kernels.iter().zip(&unreg).map(|(ks, k0)| ks.iter().zip(k0).map(|(k, k0)| Replicates::new(k, k0)).collect()).collect();
+    let none = Plane::new(0, 0);
+    let conv = |c: usize, t: usize| est.convergence.get(c).and_then(|m| m.get(t)).unwrap_or(&none);
+    let mut acc: Vec<Vec<Replicates>> = g.kernels.iter().zip(&unreg).enumerate().map(|(c, (ks, k0))| ks.iter().zip(k0).enumerate().map(|(t, (k, k0))| Replicates::new(k, k0).with_convergence(conv(c, t))).collect()).collect();
     let mut rng = Rng::new(o.seed);
     for r in 1..=o.replicates.max(2) {
         let (open, pin) = replicate_pair(est, &pred, &law, black, &mut rng);
@@ -430,5 +515,54 @@ mod tests {
         b.add(&Plane::filled(2, 1, 0.4), &Plane::filled(2, 1, 0.5));
         let u = b.finish();
         assert!(u.bias.data.iter().all(|&v| v == 0.0), "{u:?}");
+    }
+
+    /// The convergence map recovers the limit of an exactly geometric sequence
+    /// `s_j = b_∞ − ρ^j e` (so `|b_∞ − s_0| = |e|`), and the cap `ρ ≤ 1 − 1/H` bounds a sequence
+    /// that does not contract.
+    #[test]
+    fn convergence_map_extrapolates_a_geometric_sequence() {
+        let (k, rho) = (3usize, 0.6f64);
+        let e: Vec<f64> = (0..k * k).map(|i| 0.01 * (i as f64 - 4.0)).collect();
+        let seq: Vec<Vec<f32>> = (0..5).map(|j| e.iter().map(|&v| (0.1 - rho.powi(j) * v) as f32).collect()).collect();
+        let snaps: Vec<&[f32]> = seq.iter().map(Vec::as_slice).collect();
+        let m = convergence_map(&snaps, k, 5, 40);
+        for (got, want) in m.data.iter().zip(&e) {
+            assert!((*got as f64 - want.abs()).abs() < 1e-5, "{got} vs {}", want.abs());
+        }
+        // steps of constant size: ρ = 1 is capped at 1 − 1/H, H = (40 + 4·5)/5 = 12 chunks, so
+        // the map is 4 steps done plus 11 more
+        let flat: Vec<Vec<f32>> = (0..5).map(|j| vec![0.001 * j as f32; k * k]).collect();
+        let m = convergence_map(&flat.iter().map(Vec::as_slice).collect::<Vec<_>>(), k, 5, 40);
+        assert!(m.data.iter().all(|&v| (v - 0.015).abs() < 1e-6), "{:?}", m.data);
+        assert!(convergence_map(&snaps[..2], k, 5, 40).data.iter().all(|&v| v == 0.0));
+    }
+
+    /// The bias support: a positive floor of the unregularised fits where the fitted kernel is
+    /// about zero (clipped noise, the same in every fit) is not counted as the prior's bias, a
+    /// bias where the kernel stands well above the unregularised fit's noise is; the
+    /// convergence term adds in quadrature.
+    #[test]
+    fn bias_support_leaves_out_the_positivity_floor() {
+        // a 1-D "kernel": a core of 4 pixels at 0.2, a tail of 60 pixels at 0
+        let n = 64usize;
+        let fitted = Plane::from_fn(n, 1, |x, _| if x < 4 { 0.2 } else { 0.0 });
+        let floor = |x: usize, r: u64| if x < 4 { 0.0 } else { 0.004 + 0.003 * (((x as u64 * 7 + r * 13) % 5) as f32 - 2.0) / 2.0 };
+        // b̂₀: the core 0.02 higher (the prior's bias), the tail a clipped-noise floor
+        let unreg = Plane::from_fn(n, 1, |x, _| if x < 4 { 0.22 } else { floor(x, 0) });
+        let mut a = Replicates::new(&fitted, &unreg);
+        for r in 1..=4u64 {
+            let jitter = if r % 2 == 0 { 0.001 } else { -0.001 };
+            a.add(&Plane::from_fn(n, 1, |x, _| if x < 4 { 0.2 + jitter } else { 0.0 }), &Plane::from_fn(n, 1, |x, _| if x < 4 { 0.22 + jitter } else { floor(x, r) }));
+        }
+        let u = a.finish();
+        assert!(u.bias.data[4..].iter().all(|&v| v == 0.0), "tail bias {:?}", &u.bias.data[4..]);
+        assert!(u.bias.data[..4].iter().all(|&v| (v - 0.02).abs() < 1e-4), "core bias {:?}", &u.bias.data[..4]);
+        let c = Plane::filled(n, 1, 0.01);
+        let u2 = a.clone().with_convergence(&c).finish();
+        for i in 0..n {
+            let want = (u.total.data[i].powi(2) + 1e-4).sqrt();
+            assert!((u2.total.data[i] - want).abs() < 1e-6 && u2.convergence.data[i] == 0.01);
+        }
     }
 }

@@ -32,7 +32,12 @@
 //!   noise of the difference; its expectation is `‖bias‖² + Σ_i d_i` with
 //!   `d_i = Var_r(b*_{r,i} − b*_{0,r,i})`, so the bias energy is
 //!   `B² = max(0, ‖β‖² − Σ_i d_i)` and the bias map is `β̃_i = |β_i| · √(B² / ‖β‖²)`;
-//! - stored uncertainty `u_i = √(β̃_i² + v_i)`, the root mean square error of pixel `i`; the
+//! - convergence: the profile's joint fit continued past its end on the data
+//!   (`EstimateOptions::convergence_tail`, `joint::continue_fit`) gives the chunk iterates
+//!   `s_0 = b̂, …, s_C`; with `D_j = s_{j+1} − s_j` and `ρ = median ‖D_{j+1}‖/‖D_j‖` (capped),
+//!   `c_i = |s_C + D_{C−1}·ρ/(1 − ρ) − b̂|_i` ([`convergence_map`]), the predicted distance to
+//!   the fit's optimum, which the replicates (same start rule, same stop) cannot show;
+//! - stored uncertainty `u_i = √(β̃_i² + v_i + c_i²)`, the root mean square error of pixel `i`; the
 //!   predicted relative L2 error of the kernel is `‖u‖₂ / ‖b̂‖₂` ([`predicted_error`]), an
 //!   estimate of `√E‖b̂ − b‖² / ‖b‖`.
 //!
@@ -41,7 +46,7 @@
 //! replicates are drawn from the fitted model, so they cannot show it.
 //!
 //! # Units
-//! `u`, `β`, `√v` are on the kernel's scale (a fraction of the point source's light per
+//! `u`, `β`, `√v`, `c` are on the kernel's scale (a fraction of the point source's light per
 //! pixel), `k × k`, the geometry of the kernel.
 
 use super::solver::{solve_tile, TileData, TileSettings};
@@ -82,7 +87,7 @@ pub enum BootstrapError {
 pub struct KernelUncertainty {
     /// `√v`, the replicate standard deviation of the regularised fit.
     pub std: Plane,
-    /// `|β̃|`, the bias map scaled to the debiased bias energy (zero outside the bias support).
+    /// `|β̃|`, the bias map scaled to the debiased bias energy.
     pub bias: Plane,
     /// `|c|`, the convergence term: the predicted distance to the fit's optimum
     /// ([`convergence_map`]); zero when it was not measured.
@@ -90,18 +95,6 @@ pub struct KernelUncertainty {
     /// `u = √(β̃² + v + c²)`, what `psf-unc-<C>.tiff` stores.
     pub total: Plane,
 }
-
-/// The bias support's threshold `Z` ([`Replicates::finish`]): the bias `β = b̂ − b̂₀` counts on
-/// the pixels where `b̂ > Z·σ₀`, `σ₀` the standard deviation of the unregularised fit. There
-/// `b̂₀`'s positivity constraint is active with probability `Φ(−Z) = 2.3 %` and its clipping
-/// bias `σ₀(φ(Z) − Z·Φ(−Z))` is below `0.01 σ₀`; outside, `b̂₀ = max(0, noise)` leaves a
-/// positive floor of `σ₀/√(2π)` per pixel that is not the prior's bias.
-pub const BIAS_SUPPORT_Z: f64 = 2.0;
-
-/// Half-side of the box over which the unregularised fit's per-pixel variance is averaged for
-/// the bias support (a 5 × 5 box: 25 × (R − 1) degrees of freedom instead of R − 1; the noise
-/// level of a kernel's pixels changes slowly across the kernel).
-pub const SUPPORT_VARIANCE_RADIUS: usize = 2;
 
 /// The convergence term of one kernel (docs/estimation.md "Uncertainty", *Convergence term*):
 /// `snaps` are the kernel's iterates at the ends of the chunks of the continued fit
@@ -167,10 +160,8 @@ impl Moments {
 /// `δ_r = b*_r − b*_{0,r}`.
 #[derive(Clone, Debug)]
 pub struct Replicates {
-    fitted: Vec<f64>,
     beta: Vec<f64>,
     fits: Moments,
-    fits0: Moments,
     diffs: Moments,
     convergence: Vec<f64>,
     width: usize,
@@ -181,8 +172,7 @@ impl Replicates {
     pub fn new(fitted: &Plane, unregularised: &Plane) -> Self {
         let n = fitted.data.len();
         let beta = fitted.data.iter().zip(&unregularised.data).map(|(&a, &b)| (a - b) as f64).collect();
-        let fitted_f64 = fitted.data.iter().map(|&v| v as f64).collect();
-        Self { fitted: fitted_f64, beta, fits: Moments::new(n), fits0: Moments::new(n), diffs: Moments::new(n), convergence: vec![0.0; n], width: fitted.width }
+        Self { beta, fits: Moments::new(n), diffs: Moments::new(n), convergence: vec![0.0; n], width: fitted.width }
     }
 
     /// Sets the convergence term `|c|` of the fitted kernel ([`convergence_map`]; same size).
@@ -196,49 +186,22 @@ impl Replicates {
     /// Adds replicate `r`: its regularised fit `b*_r` and unregularised fit `b*_{0,r}`.
     pub fn add(&mut self, fit: &Plane, unregularised: &Plane) {
         self.fits.add(fit.data.iter().map(|&v| v as f64));
-        self.fits0.add(unregularised.data.iter().map(|&v| v as f64));
         self.diffs.add(fit.data.iter().zip(&unregularised.data).map(|(&a, &b)| (a - b) as f64));
     }
 
-    /// The bias support: the pixels where `b̂ > Z·σ₀` ([`BIAS_SUPPORT_Z`]), `σ₀²` the replicates'
-    /// variance of the unregularised fit averaged over a box ([`SUPPORT_VARIANCE_RADIUS`]);
-    /// every pixel with fewer than 2 replicates.
-    fn bias_support(&self) -> Vec<bool> {
-        if self.fits0.count < 2 {
-            return vec![true; self.fitted.len()];
-        }
-        let v0 = box_mean(&self.fits0.variance(), self.width, SUPPORT_VARIANCE_RADIUS);
-        self.fitted.iter().zip(&v0).map(|(&b, &v)| b > BIAS_SUPPORT_Z * v.sqrt()).collect()
-    }
-
     /// Standard deviation, bias, convergence and total per pixel (module docs); no spread with
-    /// fewer than 2 replicates. The bias energy and its noise are summed over the bias support
-    /// ([`Self::bias_support`]) only. Every value is finite and ≥ 0.
+    /// fewer than 2 replicates. Every value is finite and ≥ 0.
     pub fn finish(&self) -> KernelUncertainty {
         let v = self.fits.variance();
-        let support = self.bias_support();
-        let on = |i: &usize| support[*i];
-        let d: f64 = self.diffs.variance().iter().enumerate().filter(|(i, _)| on(i)).map(|(_, x)| x).sum();
-        let b2: f64 = (0..self.beta.len()).filter(on).map(|i| self.beta[i] * self.beta[i]).sum();
+        let d: f64 = self.diffs.variance().iter().sum();
+        let b2: f64 = self.beta.iter().map(|b| b * b).sum();
         let scale = if b2 > 0.0 { ((b2 - d).max(0.0) / b2).sqrt() } else { 0.0 };
         let clean = |x: f64| if x.is_finite() { x as f32 } else { 0.0 };
         let plane = |f: &dyn Fn(usize) -> f64| Plane { width: self.width, height: self.beta.len() / self.width.max(1), data: (0..self.beta.len()).map(|i| clean(f(i))).collect() };
-        let bias = |i: usize| if support[i] { self.beta[i].abs() * scale } else { 0.0 };
+        let bias = |i: usize| self.beta[i].abs() * scale;
         let c = &self.convergence;
         KernelUncertainty { std: plane(&|i| v[i].sqrt()), bias: plane(&bias), convergence: plane(&|i| c[i]), total: plane(&|i| (bias(i).powi(2) + v[i] + c[i] * c[i]).sqrt()) }
     }
-}
-
-/// The mean of `v` (a `width`-wide plane) over the `(2r + 1)²` box about each pixel, clipped to
-/// the plane.
-fn box_mean(v: &[f64], width: usize, r: usize) -> Vec<f64> {
-    let (w, h) = (width.max(1), v.len() / width.max(1));
-    let mean = |x: usize, y: usize| {
-        let (xs, ys) = (x.saturating_sub(r)..(x + r + 1).min(w), y.saturating_sub(r)..(y + r + 1).min(h));
-        let n = xs.len() * ys.len();
-        ys.flat_map(|yy| xs.clone().map(move |xx| yy * w + xx)).map(|i| v[i]).sum::<f64>() / n.max(1) as f64
-    };
-    (0..w * h).map(|i| mean(i % w, i / w)).collect()
 }
 
 /// Adds `√v(x) · n` to every sample of `x` (`n ~ N(0, 1)`).
@@ -538,31 +501,18 @@ mod tests {
         assert!(convergence_map(&snaps[..2], k, 5, 40).data.iter().all(|&v| v == 0.0));
     }
 
-    /// The bias support: a positive floor of the unregularised fits where the fitted kernel is
-    /// about zero (clipped noise, the same in every fit) is not counted as the prior's bias, a
-    /// bias where the kernel stands well above the unregularised fit's noise is; the
-    /// convergence term adds in quadrature.
+    /// The convergence term adds to the stored total in quadrature and is kept as its own map.
     #[test]
-    fn bias_support_leaves_out_the_positivity_floor() {
-        // a 1-D "kernel": a core of 4 pixels at 0.2, a tail of 60 pixels at 0
-        let n = 64usize;
-        let fitted = Plane::from_fn(n, 1, |x, _| if x < 4 { 0.2 } else { 0.0 });
-        let floor = |x: usize, r: u64| if x < 4 { 0.0 } else { 0.004 + 0.003 * (((x as u64 * 7 + r * 13) % 5) as f32 - 2.0) / 2.0 };
-        // b̂₀: the core 0.02 higher (the prior's bias), the tail a clipped-noise floor
-        let unreg = Plane::from_fn(n, 1, |x, _| if x < 4 { 0.22 } else { floor(x, 0) });
-        let mut a = Replicates::new(&fitted, &unreg);
-        for r in 1..=4u64 {
-            let jitter = if r % 2 == 0 { 0.001 } else { -0.001 };
-            a.add(&Plane::from_fn(n, 1, |x, _| if x < 4 { 0.2 + jitter } else { 0.0 }), &Plane::from_fn(n, 1, |x, _| if x < 4 { 0.22 + jitter } else { floor(x, r) }));
+    fn convergence_adds_in_quadrature() {
+        let (f, f0) = (Plane::filled(2, 1, 0.5), Plane::filled(2, 1, 0.3));
+        let mut a = Replicates::new(&f, &f0);
+        a.add(&Plane::filled(2, 1, 0.6), &Plane::filled(2, 1, 0.4));
+        a.add(&Plane::filled(2, 1, 0.4), &Plane::filled(2, 1, 0.2));
+        let u = a.clone().finish();
+        let uc = a.with_convergence(&Plane::filled(2, 1, 0.1)).finish();
+        for i in 0..2 {
+            assert!((uc.total.data[i] - (u.total.data[i].powi(2) + 0.01).sqrt()).abs() < 1e-6 && uc.convergence.data[i] == 0.1, "{uc:?}");
         }
-        let u = a.finish();
-        assert!(u.bias.data[4..].iter().all(|&v| v == 0.0), "tail bias {:?}", &u.bias.data[4..]);
-        assert!(u.bias.data[..4].iter().all(|&v| (v - 0.02).abs() < 1e-4), "core bias {:?}", &u.bias.data[..4]);
-        let c = Plane::filled(n, 1, 0.01);
-        let u2 = a.clone().with_convergence(&c).finish();
-        for i in 0..n {
-            let want = (u.total.data[i].powi(2) + 1e-4).sqrt();
-            assert!((u2.total.data[i] - want).abs() < 1e-6 && u2.convergence.data[i] == 0.01);
-        }
+        assert!(u.convergence.data.iter().all(|&v| v == 0.0));
     }
 }

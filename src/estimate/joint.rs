@@ -851,14 +851,20 @@ mod tests {
         assert!(e1 < e0, "joint error {e1} vs {e0}");
     }
     /// The convergence term (docs/estimation.md "Uncertainty", *Convergence term*): a fit
-    /// stopped after 10 iterations predicts its distance to the answer of a 1500-iteration run
+    /// stopped after 10 iterations predicts its distance to the answer of a 600-iteration run
     /// of the same objective within a factor 2 (the median over the kernels of the ratio
     /// of predicted to actual distance).
     #[test]
     fn convergence_term_predicts_the_distance_to_a_long_run() {
         let (w, h, k, noise) = (192, 144, 11, 0.003f32);
         let g = truth(w, h, k);
-        let (open, sharp) = pair(&g, w, h, noise, 3);
+        // a target of 3-px cells: the kernels' fine detail is weakly determined, so the fit
+        // converges slowly and is still far from its answer after the tail
+        let mut r = Rng::new(3);
+        let cells: Vec<f32> = (0..(w / 3 + 1) * (h / 3 + 1)).map(|_| if r.uniform() < 0.5 { 0.2 } else { 0.8 }).collect();
+        let sharp = Plane::from_fn(w, h, |x, y| cells[(y / 3) * (w / 3 + 1) + x / 3]);
+        let clean = blur_channel(&sharp, &g, 0);
+        let open = Plane::from_fn(w, h, |x, y| clean.get(x, y) + noise * r.normal() as f32);
         let fits = vec![(2e-4f32, 48 * 48, noise as f64); g.tile_count()];
         let mut p = super::build_problem(&open, &sharp, &vec![true; w * h], &g, &g.kernels[0], &fits, usize::MAX);
         let l_f = p.lipschitz(5, &mut Vec::new());
@@ -868,14 +874,16 @@ mod tests {
         super::run_fista(&mut p, &mut x, &short, l_f, &bar);
         let maps = super::convergence_maps(&mut p, &x, l_f, 10);
         let mut long = x.clone();
-        let o = crate::solve::primal_dual::SplitOptions { max_iterations: 1500, min_iterations: usize::MAX, tolerance: 0.0 };
+        let o = crate::solve::primal_dual::SplitOptions { max_iterations: 600, min_iterations: usize::MAX, tolerance: 0.0 };
         super::run_fista(&mut p, &mut long, &o, l_f, &bar);
         let norm = |v: &mut dyn Iterator<Item = f64>| v.map(|a| a * a).sum::<f64>().sqrt();
         let mut ratios: Vec<f64> = (0..g.tile_count())
             .map(|t| {
                 let r = t * k * k..(t + 1) * k * k;
                 let actual = norm(&mut long[r.clone()].iter().zip(&x[r]).map(|(a, b)| (a - b) as f64));
-                norm(&mut maps[t].data.iter().map(|&v| v as f64)) / actual
+                let tail = norm(&mut maps[t].data.iter().map(|&v| v as f64));
+                eprintln!("kernel {t}: predicted {tail:.3e}, actual {actual:.3e}");
+                tail / actual
             })
             .collect();
         ratios.sort_by(f64::total_cmp);

@@ -97,6 +97,9 @@ pub fn run(a: &EstimateCommandArgs) -> Result<()> {
         _ => bail!("give --open and --pinhole, or --session"),
     };
     let invalid = if a.mask_invalid { InvalidPixels::Mask } else { InvalidPixels::Refuse };
+    // the bootstrap's uncertainty includes the joint fit's convergence term, measured by
+    // continuing the fit past its end (the kernels are not changed)
+    let opts = EstimateOptions { convergence_tail: a.bootstrap > 0, ..opts };
     let est = estimate_files(open, pinhole, &opts, a.transfer, invalid)?;
     est.profile.save(&a.out)?;
     if a.bootstrap > 0 {

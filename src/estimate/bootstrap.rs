@@ -32,7 +32,12 @@
 //!   noise of the difference; its expectation is `‖bias‖² + Σ_i d_i` with
 //!   `d_i = Var_r(b*_{r,i} − b*_{0,r,i})`, so the bias energy is
 //!   `B² = max(0, ‖β‖² − Σ_i d_i)` and the bias map is `β̃_i = |β_i| · √(B² / ‖β‖²)`;
-//! - stored uncertainty `u_i = √(β̃_i² + v_i)`, the root mean square error of pixel `i`; the
+//! - convergence: the profile's joint fit continued past its end on the data
+//!   (`EstimateOptions::convergence_tail`, `joint::continue_fit`) gives the chunk iterates
+//!   `s_0 = b̂, …, s_C`; with `D_j = s_{j+1} − s_j` and `ρ = median ‖D_{j+1}‖/‖D_j‖` (capped),
+//!   `c_i = |s_C + D_{C−1}·ρ/(1 − ρ) − b̂|_i` ([`convergence_map`]), the predicted distance to
+//!   the fit's optimum, which the replicates (same start rule, same stop) cannot show;
+//! - stored uncertainty `u_i = √(β̃_i² + v_i + c_i²)`, the root mean square error of pixel `i`; the
 //!   predicted relative L2 error of the kernel is `‖u‖₂ / ‖b̂‖₂` ([`predicted_error`]), an
 //!   estimate of `√E‖b̂ − b‖² / ‖b‖`.
 //!
@@ -41,7 +46,7 @@
 //! replicates are drawn from the fitted model, so they cannot show it.
 //!
 //! # Units
-//! `u`, `β`, `√v` are on the kernel's scale (a fraction of the point source's light per
+//! `u`, `β`, `√v`, `c` are on the kernel's scale (a fraction of the point source's light per
 //! pixel), `k × k`, the geometry of the kernel.
 
 use super::solver::{solve_tile, TileData, TileSettings};
@@ -77,15 +82,46 @@ pub enum BootstrapError {
     Grid { replicate: usize, got: String, want: String },
 }
 
-/// One kernel's uncertainty: the three per-pixel maps of the module docs.
+/// One kernel's uncertainty: the four per-pixel maps of the module docs.
 #[derive(Clone, Debug, PartialEq)]
 pub struct KernelUncertainty {
     /// `√v`, the replicate standard deviation of the regularised fit.
     pub std: Plane,
     /// `|β̃|`, the bias map scaled to the debiased bias energy.
     pub bias: Plane,
-    /// `u = √(β̃² + v)`, what `psf-unc-<C>.tiff` stores.
+    /// `|c|`, the convergence term: the predicted distance to the fit's optimum
+    /// ([`convergence_map`]); zero when it was not measured.
+    pub convergence: Plane,
+    /// `u = √(β̃² + v + c²)`, what `psf-unc-<C>.tiff` stores.
     pub total: Plane,
+}
+
+/// The convergence term of one kernel (docs/estimation.md "Uncertainty", *Convergence term*):
+/// `snaps` are the kernel's iterates at the ends of the chunks of the continued fit
+/// (`snaps[0] = b̂`, then one per chunk of `chunk` iterations), `iterations` the fit's own
+/// iterations before them. With the chunk steps `D_j = s_{j+1} − s_j` and their contraction
+/// `ρ = median_j ‖D_{j+1}‖ / ‖D_j‖`, capped at `1 − 1/H` (`H = (iterations + chunks·chunk) /
+/// chunk`, the whole fit's length in chunks: the extrapolation never adds more than the fit
+/// has run so far, at its last pace), the optimum is extrapolated geometrically,
+///
+/// `b_∞ ≈ s_C + D_{C−1} · ρ/(1 − ρ)`,
+///
+/// and the map is `|b_∞ − b̂|` per pixel (its L2 norm: the distance). Zero with fewer than two
+/// chunks; every value finite and ≥ 0.
+pub fn convergence_map(snaps: &[&[f32]], k: usize, chunk: usize, iterations: usize) -> Plane {
+    if snaps.len() < 3 || snaps.iter().any(|s| s.len() != k * k) {
+        return Plane::new(k, k);
+    }
+    let steps: Vec<Vec<f64>> = snaps.windows(2).map(|w| w[1].iter().zip(w[0]).map(|(&a, &b)| (a - b) as f64).collect()).collect();
+    let norm = |v: &[f64]| v.iter().map(|x| x * x).sum::<f64>().sqrt();
+    let mut ratios: Vec<f64> = steps.windows(2).map(|w| if norm(&w[0]) > 0.0 { norm(&w[1]) / norm(&w[0]) } else { 0.0 }).collect();
+    ratios.sort_by(f64::total_cmp);
+    let horizon = (iterations + steps.len() * chunk) as f64 / chunk.max(1) as f64;
+    let rho = ratios[ratios.len() / 2].clamp(0.0, 1.0 - 1.0 / horizon.max(2.0));
+    let f = rho / (1.0 - rho);
+    let (first, last, step) = (snaps[0], snaps[snaps.len() - 1], &steps[steps.len() - 1]);
+    let data = (0..k * k).map(|i| ((last[i] - first[i]) as f64 + step[i] * f).abs()).map(|c| if c.is_finite() { c as f32 } else { 0.0 }).collect();
+    Plane { width: k, height: k, data }
 }
 
 /// Per-pixel running sums `Σx`, `Σx²` of a set of samples.
@@ -127,6 +163,7 @@ pub struct Replicates {
     beta: Vec<f64>,
     fits: Moments,
     diffs: Moments,
+    convergence: Vec<f64>,
     width: usize,
 }
 
@@ -135,7 +172,15 @@ impl Replicates {
     pub fn new(fitted: &Plane, unregularised: &Plane) -> Self {
         let n = fitted.data.len();
         let beta = fitted.data.iter().zip(&unregularised.data).map(|(&a, &b)| (a - b) as f64).collect();
-        Self { beta, fits: Moments::new(n), diffs: Moments::new(n), width: fitted.width }
+        Self { beta, fits: Moments::new(n), diffs: Moments::new(n), convergence: vec![0.0; n], width: fitted.width }
+    }
+
+    /// Sets the convergence term `|c|` of the fitted kernel ([`convergence_map`]; same size).
+    pub fn with_convergence(mut self, map: &Plane) -> Self {
+        if map.data.len() == self.convergence.len() {
+            self.convergence = map.data.iter().map(|&v| v as f64).collect();
+        }
+        self
     }
 
     /// Adds replicate `r`: its regularised fit `b*_r` and unregularised fit `b*_{0,r}`.
@@ -144,8 +189,8 @@ impl Replicates {
         self.diffs.add(fit.data.iter().zip(&unregularised.data).map(|(&a, &b)| (a - b) as f64));
     }
 
-    /// Standard deviation, bias and total per pixel (module docs); no spread with fewer than 2
-    /// replicates. Every value is finite and ≥ 0.
+    /// Standard deviation, bias, convergence and total per pixel (module docs); no spread with
+    /// fewer than 2 replicates. Every value is finite and ≥ 0.
     pub fn finish(&self) -> KernelUncertainty {
         let v = self.fits.variance();
         let d: f64 = self.diffs.variance().iter().sum();
@@ -154,7 +199,8 @@ impl Replicates {
         let clean = |x: f64| if x.is_finite() { x as f32 } else { 0.0 };
         let plane = |f: &dyn Fn(usize) -> f64| Plane { width: self.width, height: self.beta.len() / self.width.max(1), data: (0..self.beta.len()).map(|i| clean(f(i))).collect() };
         let bias = |i: usize| self.beta[i].abs() * scale;
-        KernelUncertainty { std: plane(&|i| v[i].sqrt()), bias: plane(&bias), total: plane(&|i| (bias(i).powi(2) + v[i]).sqrt()) }
+        let c = &self.convergence;
+        KernelUncertainty { std: plane(&|i| v[i].sqrt()), bias: plane(&bias), convergence: plane(&|i| c[i]), total: plane(&|i| (bias(i).powi(2) + v[i] + c[i] * c[i]).sqrt()) }
     }
 }
 
@@ -288,12 +334,14 @@ pub fn bootstrap_estimate(est: &Estimate, opts: &EstimateOptions, o: &BootstrapO
     // on another grid
     let (w, h) = (est.open_linear[0].width, est.open_linear[0].height);
     let tile = super::tile_for_grid(w, h, g.columns, g.rows).or(opts.tile);
-    let ropts = EstimateOptions { kernel_size: Some(g.kernel_size), tile, progress: false, field_variation: Some(est.field_variation.clone()), ..opts.clone() };
+    let ropts = EstimateOptions { kernel_size: Some(g.kernel_size), tile, progress: false, field_variation: Some(est.field_variation.clone()), convergence_tail: false, ..opts.clone() };
     let zero = EstimateOptions { lambda_scale: 0.0, ..ropts.clone() };
     let black = &opts.black_level;
     let data = (encoded(est.open_linear.clone(), est, black), encoded(est.pinhole_registered.clone(), est, black));
     let unreg = estimate_like(&data.0, &data.1, &zero, g, 0)?;
-    let mut acc: Vec<Vec<Replicates>> = g.kernels.iter().zip(&unreg).map(|(ks, k0)| ks.iter().zip(k0).map(|(k, k0)| Replicates::new(k, k0)).collect()).collect();
+    let none = Plane::new(0, 0);
+    let conv = |c: usize, t: usize| est.convergence.get(c).and_then(|m| m.get(t)).unwrap_or(&none);
+    let mut acc: Vec<Vec<Replicates>> = g.kernels.iter().zip(&unreg).enumerate().map(|(c, (ks, k0))| ks.iter().zip(k0).enumerate().map(|(t, (k, k0))| Replicates::new(k, k0).with_convergence(conv(c, t))).collect()).collect();
     let mut rng = Rng::new(o.seed);
     for r in 1..=o.replicates.max(2) {
         let (open, pin) = replicate_pair(est, &pred, &law, black, &mut rng);
@@ -430,5 +478,41 @@ mod tests {
         b.add(&Plane::filled(2, 1, 0.4), &Plane::filled(2, 1, 0.5));
         let u = b.finish();
         assert!(u.bias.data.iter().all(|&v| v == 0.0), "{u:?}");
+    }
+
+    /// The convergence map recovers the limit of an exactly geometric sequence
+    /// `s_j = b_∞ − ρ^j e` (so `|b_∞ − s_0| = |e|`), and the cap `ρ ≤ 1 − 1/H` bounds a sequence
+    /// that does not contract.
+    #[test]
+    fn convergence_map_extrapolates_a_geometric_sequence() {
+        let (k, rho) = (3usize, 0.6f64);
+        let e: Vec<f64> = (0..k * k).map(|i| 0.01 * (i as f64 - 4.0)).collect();
+        let seq: Vec<Vec<f32>> = (0..5).map(|j| e.iter().map(|&v| (0.1 - rho.powi(j) * v) as f32).collect()).collect();
+        let snaps: Vec<&[f32]> = seq.iter().map(Vec::as_slice).collect();
+        let m = convergence_map(&snaps, k, 5, 40);
+        for (got, want) in m.data.iter().zip(&e) {
+            assert!((*got as f64 - want.abs()).abs() < 1e-5, "{got} vs {}", want.abs());
+        }
+        // steps of constant size: ρ = 1 is capped at 1 − 1/H, H = (40 + 4·5)/5 = 12 chunks, so
+        // the map is 4 steps done plus 11 more
+        let flat: Vec<Vec<f32>> = (0..5).map(|j| vec![0.001 * j as f32; k * k]).collect();
+        let m = convergence_map(&flat.iter().map(Vec::as_slice).collect::<Vec<_>>(), k, 5, 40);
+        assert!(m.data.iter().all(|&v| (v - 0.015).abs() < 1e-6), "{:?}", m.data);
+        assert!(convergence_map(&snaps[..2], k, 5, 40).data.iter().all(|&v| v == 0.0));
+    }
+
+    /// The convergence term adds to the stored total in quadrature and is kept as its own map.
+    #[test]
+    fn convergence_adds_in_quadrature() {
+        let (f, f0) = (Plane::filled(2, 1, 0.5), Plane::filled(2, 1, 0.3));
+        let mut a = Replicates::new(&f, &f0);
+        a.add(&Plane::filled(2, 1, 0.6), &Plane::filled(2, 1, 0.4));
+        a.add(&Plane::filled(2, 1, 0.4), &Plane::filled(2, 1, 0.2));
+        let u = a.clone().finish();
+        let uc = a.with_convergence(&Plane::filled(2, 1, 0.1)).finish();
+        for i in 0..2 {
+            assert!((uc.total.data[i] - (u.total.data[i].powi(2) + 0.01).sqrt()).abs() < 1e-6 && uc.convergence.data[i] == 0.1, "{uc:?}");
+        }
+        assert!(u.convergence.data.iter().all(|&v| v == 0.0));
     }
 }

@@ -96,6 +96,10 @@ pub struct EstimateOptions {
     /// `kernel_size` and `tile` are given (no probe then measures them; the bootstrap passes the
     /// profile's, [`Estimate::field_variation`]); `None`: from the probes, or no such prior.
     pub field_variation: Option<Vec<f64>>,
+    /// Continue the joint fit past its end to measure how far each kernel still is from the
+    /// fit's optimum ([`Estimate::convergence`], `joint::continue_fit`); the kernels are not
+    /// changed. The bootstrap's uncertainty adds it (`bootstrap::convergence_map`).
+    pub convergence_tail: bool,
 }
 
 impl Default for EstimateOptions {
@@ -115,6 +119,7 @@ impl Default for EstimateOptions {
             black_level: vec![],
             progress: false,
             field_variation: None,
+            convergence_tail: false,
         }
     }
 }
@@ -133,6 +138,10 @@ pub struct Estimate {
     pub stage_seconds: Vec<StageTime>,
     /// The field variation rate `g_c` per channel the field-smoothness prior used (empty: none).
     pub field_variation: Vec<f64>,
+    /// `[channel][tile]`: the convergence term of each kernel, the predicted per-pixel distance
+    /// `|b_∞ − b̂|` to the joint fit's optimum (`bootstrap::convergence_map`); empty unless
+    /// [`EstimateOptions::convergence_tail`] and the joint refinement ran.
+    pub convergence: Vec<Vec<Plane>>,
 }
 
 /// Robust noise standard deviation of a plane: MAD of a zero-mean 3×3 high-pass normalised to
@@ -276,10 +285,11 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
     let data = valid_data(open, &open_lin, &pin_reg, &pin_sat_reg, layout.kernel, opts)?;
     let (mut kernels, mut info, tile_fits) = fit_windows(&open_lin, &pin_reg, &data, &layout, opts);
     stages.push(lap("window fits"));
+    let mut convergence = Vec::new();
     if opts.joint_iterations > 0 {
         let factors = spread_factors(&kernels, SPREAD_EXPONENT);
         let scaled: TileFits = tile_fits.iter().zip(&factors).map(|(f, g)| f.iter().zip(g).map(|(&(l, n, s), &x)| (l * x as f32, n, s)).collect()).collect();
-        refine_jointly(&open_lin, &pin_reg, &data, &layout, &open.channels, &scaled, &mut kernels, &mut info, opts);
+        convergence = refine_jointly(&open_lin, &pin_reg, &data, &layout, &open.channels, &scaled, &mut kernels, &mut info, opts);
     }
     stages.push(lap("joint refinement"));
     // the noise level per channel: median over tiles of the least-squares residual level
@@ -298,7 +308,7 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
     // alone, then the lower of that and the residual's law per channel (profile_noise_law)
     profile.meta.noise = crate::profile::noise::NoiseLaw::fit_image(&open_lin, opts.saturation).ok();
     let field_variation = if opts.joint_iterations > 0 && opts.lambda_scale > 0.0 { layout.variation.clone() } else { vec![] };
-    let mut est = Estimate { profile, noise_sigma: noise, valid_masks: data.valid_masks, pinhole_registered: pin_reg, open_linear: open_lin, stage_seconds: stages, field_variation };
+    let mut est = Estimate { profile, noise_sigma: noise, valid_masks: data.valid_masks, pinhole_registered: pin_reg, open_linear: open_lin, stage_seconds: stages, field_variation, convergence };
     est.profile.meta.noise = profile_noise_law(&est);
     Ok(est)
 }
@@ -577,18 +587,20 @@ pub fn spread_factors(kernels: &[Vec<Plane>], p: f64) -> Vec<Vec<f64>> {
 }
 
 /// Refines all kernels of each channel jointly with the interpolated forward model
-/// ([`joint`]); the profile's per-tile figures then describe the refined kernels.
+/// ([`joint`]); the profile's per-tile figures then describe the refined kernels. Returns the
+/// convergence terms `[channel][tile]` with [`EstimateOptions::convergence_tail`], else nothing.
 #[allow(clippy::too_many_arguments)]
-fn refine_jointly(open_lin: &[Plane], pin_reg: &[Plane], data: &ValidData, layout: &Layout, channels: &[String], fits: &TileFits, kernels: &mut [Vec<Plane>], info: &mut EstimationInfo, opts: &EstimateOptions) {
+fn refine_jointly(open_lin: &[Plane], pin_reg: &[Plane], data: &ValidData, layout: &Layout, channels: &[String], fits: &TileFits, kernels: &mut [Vec<Plane>], info: &mut EstimationInfo, opts: &EstimateOptions) -> Vec<Vec<Plane>> {
     let shape = PsfGrid { kernel_size: layout.kernel, columns: layout.columns, rows: layout.rows, centers: layout.centers.clone(), channels: channels.to_vec(), kernels: vec![] };
     let o = crate::solve::primal_dual::SplitOptions { max_iterations: opts.joint_iterations, min_iterations: 5, tolerance: opts.tolerance * 0.1 };
     let mut power = Vec::new();
     let bar = progress_bar(opts.progress, (open_lin.len() * opts.joint_iterations) as u64, "joint refinement");
+    let mut convergence = vec![Vec::new(); if opts.convergence_tail { open_lin.len() } else { 0 }];
     for c in 0..open_lin.len() {
         let mut sharp = pin_reg[c].clone();
         sharp.scale(data.ratio[c] as f32);
         let field = if opts.lambda_scale > 0.0 { layout.variation.get(c).copied() } else { None };
-        let (st, rms) = joint::refine_channel(&open_lin[c], &sharp, &data.valid_masks[c], &shape, &mut kernels[c], &fits[c], &o, &mut power, &bar, joint::JOINT_DATA_PIXELS, opts.select_lambda && opts.lambda_scale > 0.0, field);
+        let (st, rms) = joint::refine_channel(&open_lin[c], &sharp, &data.valid_masks[c], &shape, &mut kernels[c], &fits[c], &o, &mut power, &bar, joint::JOINT_DATA_PIXELS, opts.select_lambda && opts.lambda_scale > 0.0, field, convergence.get_mut(c));
         bar.set_position(((c + 1) * opts.joint_iterations) as u64);
         for t in 0..layout.tiles() {
             info.iterations[c][t] += st.iterations;
@@ -596,6 +608,7 @@ fn refine_jointly(open_lin: &[Plane], pin_reg: &[Plane], data: &ValidData, layou
         }
     }
     bar.finish_and_clear();
+    convergence
 }
 
 /// The profile of an estimate: grid, source description and metadata.

@@ -485,6 +485,7 @@ fn main() -> anyhow::Result<()> {
             "iterations" => base.max_iterations = v.parse()?,
             "kappa7" => base.lambda_per_variance = v.parse()?,
             "sure" => base.coloured_sure = v == "on",
+            "lawdata" => base.law_data_weight = v == "on",
             _ => anyhow::bail!("--set: unknown key {k}"),
         }
     }

@@ -114,6 +114,10 @@
 //!    split `z_+ = x` whose prox is the projection `max(v, 0)`
 //!    ([`problem::ChannelProblem::lower_bound`]).
 //!
+//!    With [`DeconvOptions::law_data_weight`] (off by default: mixed on the issue-12 matrix,
+//!    docs/deconvolution.md "Issue-12, m16") the data term is weighted per pixel by the inverse
+//!    of the noise law, `Σ_k w_k (Bx − j)_k²`, `w_k = V_ref / V(G_1 * j)_k` ([`DataWeight`]).
+//!
 //! 8. No-harm rule ([`noharm`], on by default): flat regions where the result is noisier than
 //!    the input fall back towards the input; [`DeconvReport::no_harm`] says where.
 //!

@@ -11,7 +11,8 @@
 //! field position (outer fifth of the frame / inner part) and frequency band. Experiment
 //! overrides of lensrig's options: `--set key=value,…` with `denoise`, `kappa` (the solver's κ
 //! with the denoiser), `kappa7` (κ without it), `tile`, `no_harm` (on/off), `iterations`,
-//! `sure` (on/off: [`DeconvOptions::coloured_sure`]).
+//! `sure` (on/off: [`DeconvOptions::coloured_sure`]), `lawdata` (on/off: the variance-weighted
+//! data term, [`DeconvOptions::law_data_weight`]).
 //!
 //! Every cell is a 1024 × 768 sensor (one profile per lens, as a camera has): the photographs
 //! are mirror-tiled or cropped to that size ([`lensrig::image::Plane::window_reflect`]).
@@ -474,7 +475,7 @@ fn main() -> anyhow::Result<()> {
         _ => DeconvOptions::default().positivity,
     };
     let mut base = DeconvOptions { cross_weight, local_noise, coloured_windows, positivity, coloured_noise: coloured, ..DeconvOptions::default() };
-    // experiment overrides: `--set key=value,…` (denoise, kappa, tile, no_harm, iterations)
+    // experiment overrides: `--set key=value,…` (denoise, kappa, tile, no_harm, iterations, kappa7, sure, lawdata)
     for kv in list("--set", &[""])[0].split(',').filter(|kv| !kv.is_empty()) {
         let (k, v) = kv.split_once('=').ok_or_else(|| anyhow::anyhow!("--set {kv}: key=value"))?;
         match k {
@@ -485,6 +486,7 @@ fn main() -> anyhow::Result<()> {
             "iterations" => base.max_iterations = v.parse()?,
             "kappa7" => base.lambda_per_variance = v.parse()?,
             "sure" => base.coloured_sure = v == "on",
+            "lawdata" => base.law_data_weight = v == "on",
             _ => anyhow::bail!("--set: unknown key {k}"),
         }
     }

@@ -277,7 +277,7 @@ mod tests {
         let kernels = vec![delta; 3];
         let opts = super::super::DeconvOptions::default();
         let (lambda, order) = (vec![2.5 * 1e-4f32; 3], vec![1usize, 0, 2]);
-        let setup = TileSetup { width: side, height: side, lambda: &lambda, order: &order, opts: &opts, field: None };
+        let setup = TileSetup { width: side, height: side, lambda: &lambda, order: &order, opts: &opts, field: None, data_weight: None };
         let sigma2 = 1e-4f32;
         let mut rng = crate::rng::Rng::new(17);
         let mut noisy = |f: &dyn Fn(usize) -> f32| -> Vec<Vec<f32>> { (0..3).map(|_| (0..side * side).map(|p| f(p) + (sigma2.sqrt() as f64 * rng.normal()) as f32).collect()).collect() };

@@ -114,6 +114,10 @@
 //!    split `z_+ = x` whose prox is the projection `max(v, 0)`
 //!    ([`problem::ChannelProblem::lower_bound`]).
 //!
+//!    With [`DeconvOptions::law_data_weight`] (off by default: mixed on the issue-12 matrix,
+//!    docs/deconvolution.md "Issue-12, m16") the data term is weighted per pixel by the inverse
+//!    of the noise law, `Σ_k w_k (Bx − j)_k²`, `w_k = V_ref / V(G_1 * j)_k` ([`DataWeight`]).
+//!
 //! 8. No-harm rule ([`noharm`], on by default): flat regions where the result is noisier than
 //!    the input fall back towards the input; [`DeconvReport::no_harm`] says where.
 //!
@@ -284,6 +288,12 @@ pub struct DeconvOptions {
     /// noise law, each block's noise level follows the law at the input's local level instead of
     /// the image mean's. No effect without a law or with a white one.
     pub local_noise: bool,
+    /// Variance-weighted data term ([`DataWeight`], docs/deconvolution.md "Issue-12, m16"): with a
+    /// signal-dependent noise law, each data pixel is weighted by `V_ref / V(j̃_k)`, the inverse
+    /// of the law's variance at the (lightly smoothed) input, relative to the level `λ` was set
+    /// at; `Σ_k (B x − j)_k² / V(j̃_k)` is the Gaussian approximation of the Poisson–Gaussian
+    /// likelihood. No effect without a law or with a white one.
+    pub law_data_weight: bool,
     /// Where the noise level comes from ([`noise::NoiseSource`]). With a law, a tile's
     /// `λ_c = κ (g_c x̄ + r_c²)` uses the tile's mean linear value `x̄` of the channel, and the
     /// channel's `σ_c = √(g_c · mean(x) + r_c²)` replaces Donoho's estimate everywhere else.
@@ -331,6 +341,7 @@ impl Default for DeconvOptions {
             coloured_sure: false,
             positivity: true,
             local_noise: true,
+            law_data_weight: false,
             noise: noise::NoiseSource::Profile,
             no_harm: noharm::NoHarmOptions::default(),
         }
@@ -542,7 +553,12 @@ fn restore_tiles(
             Some(l) => (0..nch).map(|c| lambda_for(opts, c, noise::law_sigma(l, c, &windows[c]).powi(2))).collect(),
             None => noise.lambda.clone(),
         };
-        let setup = TileSetup { width: pw, height: ph, lambda: &tile_lambda, order, opts, field: Some(field) };
+        let tile_variance: Vec<f32> = match &noise.law {
+            Some(l) => (0..nch).map(|c| noise::law_sigma(l, c, &windows[c]).powi(2)).collect(),
+            None => Vec::new(),
+        };
+        let data_weight = DataWeight::new(opts, noise.law.as_ref(), &tile_variance);
+        let setup = TileSetup { width: pw, height: ph, lambda: &tile_lambda, order, opts, field: Some(field), data_weight };
         let (restored, st) = restore_tile(&windows, &kernels, &setup);
         blend_tile(&mut out.lock().unwrap_or_else(|e| e.into_inner()), &restored, sx, sy, pw);
         {
@@ -633,13 +649,15 @@ fn coloured_field(planes: &[Plane], lens: (&PsfGrid, &[usize]), noise: &NoiseSta
         None => noise.sigma[c] * noise.sigma[c],
     };
     let levels: Vec<f32> = planes.iter().map(|p| (p.mean() as f32).clamp(0.0, 1.0)).collect();
-    let lambda: Vec<f32> = (0..planes.len()).map(|c| lambda_for(opts, c, variance(c, levels[c]))).collect();
+    let reference: Vec<f32> = (0..planes.len()).map(|c| variance(c, levels[c])).collect();
+    let lambda: Vec<f32> = (0..planes.len()).map(|c| lambda_for(opts, c, reference[c])).collect();
     let nodes: Vec<(f32, f32)> = ys.iter().flat_map(|y| xs.iter().map(move |x| (*x, *y))).collect();
     let work = |&(cx, cy): &(f32, f32)| {
         let (x0, y0) = (cx.round() as isize - side as isize / 2, cy.round() as isize - side as isize / 2);
         let base: Vec<Vec<f32>> = planes.iter().map(|p| p.window_reflect(x0, y0, side, side).data).collect();
         let kernels: Vec<Plane> = (0..planes.len()).map(|c| grid.kernel_at(c, cx as f64, cy as f64)).collect();
-        let setup = TileSetup { width: side, height: side, lambda: &lambda, order, opts, field: None };
+        let data_weight = DataWeight::new(opts, noise.law.as_ref(), &reference);
+        let setup = TileSetup { width: side, height: side, lambda: &lambda, order, opts, field: None, data_weight };
         let prop = coloured::through_solver(&base, &variance, &kernels, &setup);
         let mut v = prop.variances.clone();
         if opts.coloured_sure {
@@ -715,6 +733,43 @@ pub struct TileSetup<'a> {
     /// Where the window sits in the image and the grid it was blurred with (for the exact
     /// operator); `None`: the tile kernel only.
     pub field: Option<FieldWindow<'a>>,
+    /// The variance-weighted data term ([`DeconvOptions::law_data_weight`]); `None`: unweighted.
+    pub data_weight: Option<DataWeight<'a>>,
+}
+
+/// Variance-weighted data term (docs/deconvolution.md "Issue-12, m16"): data pixel `k` of
+/// channel `c` gets the weight
+///
+///     w_k = min(V_ref,c / V_c(j̃_k), W_MAX),     j̃ = G_1 * j (a 1-px Gaussian, clamped to [0, 1])
+///
+/// `V_c(x) = g_c x + r_c²` the noise law (linear axis), `V_ref,c` the variance `λ_c = κ V_ref,c`
+/// was set at (the tile's mean level), so `Σ_k w_k (Bx − j)_k²` is `V_ref` times the
+/// Gaussian approximation `Σ_k (Bx − j)_k² / V(j̃_k)` of the Poisson–Gaussian log-likelihood
+/// and the prior keeps its scale. `W_MAX` = 10³ only keeps the weight finite where `r = 0`
+/// and the input is black. Multiplies the 0/1 boundary and saturation masks.
+#[derive(Clone, Copy)]
+pub struct DataWeight<'a> {
+    pub law: &'a crate::profile::noise::NoiseLaw,
+    /// `V_ref,c` per channel.
+    pub reference: &'a [f32],
+}
+
+impl<'a> DataWeight<'a> {
+    /// Largest weight (numerical guard, see [`DataWeight`]).
+    pub const W_MAX: f32 = 1e3;
+
+    /// The weight when `opts.law_data_weight` is set and `law` is signal-dependent.
+    pub fn new(opts: &DeconvOptions, law: Option<&'a crate::profile::noise::NoiseLaw>, reference: &'a [f32]) -> Option<Self> {
+        let law = law.filter(|l| opts.law_data_weight && l.gain.iter().any(|g| *g > 0.0))?;
+        (!reference.is_empty()).then_some(Self { law, reference })
+    }
+
+    /// The weights `w_k` of channel `c`'s `w × h` window `data` (periodic smoothing).
+    pub fn weights(&self, c: usize, data: &[f32], w: usize, h: usize) -> Vec<f32> {
+        let level = gaussian_blur_periodic(data, w, h, 1.0);
+        let reference = self.reference.get(c).copied().unwrap_or(0.0).max(0.0);
+        level.iter().map(|v| (reference / self.law.variance(c, v.clamp(0.0, 1.0)).max(1e-30)).min(Self::W_MAX)).collect()
+    }
 }
 
 /// A tile window's place in the image.
@@ -894,6 +949,20 @@ fn tile_pyramid(windows: &[Vec<f32>], kernels: &[Plane], setup: &TileSetup, stat
         masks0.into_iter().zip(kernels).map(|(m, k)| Some(mask_boundary(m, k, setup.width, setup.height))).collect()
     } else {
         masks0
+    };
+    let masks0: Vec<Option<Vec<f32>>> = match &setup.data_weight {
+        Some(dw) => masks0
+            .into_iter()
+            .enumerate()
+            .map(|(c, m)| {
+                let wt = dw.weights(c, &windows[c], setup.width, setup.height);
+                Some(match m {
+                    Some(m) => m.iter().zip(&wt).map(|(a, b)| a * b).collect(),
+                    None => wt,
+                })
+            })
+            .collect(),
+        None => masks0,
     };
     let mut js: Vec<Vec<Vec<f32>>> = vec![windows.to_vec()];
     let mut ms: Vec<Vec<Option<Vec<f32>>>> = vec![masks0];

@@ -97,4 +97,15 @@ mod tests {
         let Command::Demo(m) = parse(&["demo", "--out", "o", "--joint-iterations", "0"]) else { panic!("demo") };
         assert_eq!((m.estimation.options().joint_iterations, m.estimation.options().max_iterations), (0, 150));
     }
+
+    /// `deblur --law-weighted-data` switches the variance-weighted data term on; it is off by default.
+    #[test]
+    fn deblur_law_weighted_data_is_opt_in() {
+        let base = ["deblur", "--profile", "p", "--in", "a.png", "--out", "b.png"];
+        let Command::Deblur(d) = parse(&base) else { panic!("deblur") };
+        assert!(!d.options().law_data_weight);
+        let with: Vec<&str> = base.iter().copied().chain(["--law-weighted-data"]).collect();
+        let Command::Deblur(d) = parse(&with) else { panic!("deblur") };
+        assert!(d.options().law_data_weight);
+    }
 }

@@ -73,6 +73,12 @@ pub struct DeblurArgs {
     /// `flat` (a flat spectrum at a multiple of the input σ).
     #[arg(long, value_parser = ["flat", "coloured"], default_value = if DeconvOptions::default().coloured_noise { "coloured" } else { "flat" })]
     pub denoise_noise: String,
+    /// Weight each pixel of the data term by the inverse of the noise law, `V_ref / V(x)`
+    /// (Poisson–Gaussian likelihood, Gaussian approximation). Opt-in: it lifts low-light and
+    /// smooth shot-noise-limited photographs and loses on bright star fields
+    /// (docs/deconvolution.md, "Issue-12, m16"). No effect under a white noise law.
+    #[arg(long)]
+    pub law_weighted_data: bool,
     /// Largest tile core in pixels (default: from the kernel size and the PSF grid).
     #[arg(long)]
     pub tile: Option<usize>,
@@ -95,6 +101,7 @@ impl DeblurArgs {
             noise: self.noise.clone(),
             coloured_noise: self.denoise_noise == "coloured",
             no_harm: lensrig::deconv::noharm::NoHarmOptions { enabled: !self.no_harm_off, ..Default::default() },
+            law_data_weight: self.law_weighted_data,
             ..DeconvOptions::default()
         }
     }

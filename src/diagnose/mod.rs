@@ -299,7 +299,7 @@ fn base_model(open: &Image, pinhole: &Image, base_profile: &Profile, opts: &Diag
     let mut data = Data::new(open, pinhole, opts.pinhole_variance_scale);
     data.screen_pixels = opts.screen_pixels;
     let init = Model { corrections: model::Corrections::default(), grid: base_profile.grid.clone(), exposure: base_profile.meta.exposure_ratio.clone() };
-    let mut provisional = fit::fit(&data, &init.corrections, &init, opts.base_fit);
+    let mut provisional = provisional_fit(&data, &init, opts);
     progress_lap(opts, lap("provisional fit"));
     // the probe measures what the kernel fit absorbs (its dof, and its share of the noise's
     // high-pass, which the residual's curve is corrected for); the probe's response does not
@@ -315,6 +315,18 @@ fn base_model(open: &Image, pinhole: &Image, base_profile: &Profile, opts: &Diag
     base.inherit_dof(&provisional);
     progress_lap(opts, lap("base refit"));
     (data, base, repeat_noise.is_some())
+}
+
+/// The provisional base fit from the estimated profile: the base budget on every pixel; where
+/// the screening subset thins the data ([`screens`]) all but the last round run on the subset
+/// (warm from the profile) and the last on every pixel, so the residual the noise curve is
+/// measured from is in-sample everywhere (as in [`polish_winner`]).
+fn provisional_fit(data: &Data, init: &Model, opts: &DiagnoseOptions) -> Fit {
+    if !screens(data, opts) || opts.base_fit.rounds < 2 {
+        return fit::fit(data, &init.corrections, init, opts.base_fit);
+    }
+    let sub = fit::fit_subset(data, &init.corrections, init, FitSettings { rounds: opts.base_fit.rounds - 1, ..opts.base_fit }, opts.screen_pixels);
+    fit::fit(data, &sub.model.corrections, &sub.model, FitSettings { rounds: 1, ..opts.base_fit })
 }
 
 /// The low-band test ([`low_band`]) of a model on stderr, with progress on.

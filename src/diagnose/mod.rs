@@ -15,7 +15,9 @@
 //!    screening fits keep about [`DiagnoseOptions::screen_pixels`] pixels per channel in their
 //!    data term ([`fit::fit_subset`]); only the winner is refitted on every pixel. The effect
 //!    with the lowest BIC (`χ² + p·ln N`) wins if it beats the null refit's BIC and removes at
-//!    least [`DiagnoseOptions::min_gain`] of its χ².
+//!    least [`DiagnoseOptions::min_gain`] of its χ². A parameter search runs only from a start
+//!    that already lowers χ² ([`candidates::StartGate`]); the polished winner is adopted only if
+//!    it lowers the whole-pixel χ² by more than `3·√(2N)` (the stop rule of `adopt`).
 //! 4. The final model's kernels and corrections form a profile ([`model`]); [`report`] writes
 //!    `report.json`, the predictions, residual maps and `index.html`.
 //!
@@ -299,7 +301,7 @@ fn base_model(open: &Image, pinhole: &Image, base_profile: &Profile, opts: &Diag
     let mut data = Data::new(open, pinhole, opts.pinhole_variance_scale);
     data.screen_pixels = opts.screen_pixels;
     let init = Model { corrections: model::Corrections::default(), grid: base_profile.grid.clone(), exposure: base_profile.meta.exposure_ratio.clone() };
-    let mut provisional = provisional_fit(&data, &init, opts);
+    let mut provisional = fit::fit(&data, &init.corrections, &init, opts.base_fit);
     progress_lap(opts, lap("provisional fit"));
     // the probe measures what the kernel fit absorbs (its dof, and its share of the noise's
     // high-pass, which the residual's curve is corrected for); the probe's response does not
@@ -315,18 +317,6 @@ fn base_model(open: &Image, pinhole: &Image, base_profile: &Profile, opts: &Diag
     base.inherit_dof(&provisional);
     progress_lap(opts, lap("base refit"));
     (data, base, repeat_noise.is_some())
-}
-
-/// The provisional base fit from the estimated profile: the base budget on every pixel; where
-/// the screening subset thins the data ([`screens`]) all but the last round run on the subset
-/// (warm from the profile) and the last on every pixel, so the residual the noise curve is
-/// measured from is in-sample everywhere (as in [`polish_winner`]).
-fn provisional_fit(data: &Data, init: &Model, opts: &DiagnoseOptions) -> Fit {
-    if !screens(data, opts) || opts.base_fit.rounds < 2 {
-        return fit::fit(data, &init.corrections, init, opts.base_fit);
-    }
-    let sub = fit::fit_subset(data, &init.corrections, init, FitSettings { rounds: opts.base_fit.rounds - 1, ..opts.base_fit }, opts.screen_pixels);
-    fit::fit(data, &sub.model.corrections, &sub.model, FitSettings { rounds: 1, ..opts.base_fit })
 }
 
 /// The low-band test ([`low_band`]) of a model on stderr, with progress on.
@@ -395,7 +385,9 @@ fn add_effects(data: &mut Data, base: Fit, base_analysis: Analysis, repeat_noise
         if opts.progress {
             eprintln!("round {}: {} explains most (reduced χ² {:.3} → {:.3}, ΔBIC {:.0})", s.rounds.len(), cand.name, s.current.reduced_chi2(), f.reduced_chi2(), dbic);
         }
-        adopt(data, &mut s, cand, f, dbic, repeat_noise, opts);
+        if !adopt(data, &mut s, cand, f, dbic, repeat_noise, opts) {
+            break;
+        }
     }
     // backward elimination: drop effects a later one made redundant ([`prune`])
     while let Some((name, f)) = prune::weakest_redundant(data, &s.current, opts) {
@@ -436,17 +428,30 @@ fn screens(data: &Data, opts: &DiagnoseOptions) -> bool {
 /// next round's fits and the final polish start from it). Its degrees of freedom are measured
 /// again only when the effect changes the kernels' linear operator ([`changes_kernel_operator`]);
 /// a gain or an additive term keeps the current model's probe.
-fn adopt(data: &mut Data, s: &mut Search, cand: candidates::Candidate, f: Fit, dbic: f64, repeat_noise: bool, opts: &DiagnoseOptions) {
+///
+/// The stop rule: the polished winner must lower the whole-pixel χ² (both models on the new
+/// curve) by more than χ²'s own noise allows, [`STOP_SIGMAS`]` · √(2N)`; otherwise the curve
+/// is restored, the current model kept, and `false` returned (the search ends).
+fn adopt(data: &mut Data, s: &mut Search, cand: candidates::Candidate, f: Fit, dbic: f64, repeat_noise: bool, opts: &DiagnoseOptions) -> bool {
     let mut lap = crate::estimate::stage_clock();
     let previous = s.current.clone();
     let f = polish_winner(data, &s.current, f, opts);
     progress_lap(opts, lap("winner's polish"));
     let parameters = candidates::parameters_json(cand.name, &f.model.corrections);
+    let old_curves = data.curves.clone();
     if !repeat_noise {
         data.curves = residual_curves(&data.open, &f);
     }
-    let current = rescore(data, &f);
-    let (before, after) = (Figures::of(&rescore(data, &previous)), Figures::of(&current));
+    let (current, previous) = (rescore(data, &f), rescore(data, &previous));
+    let noise = STOP_SIGMAS * (2.0 * current.n() as f64).sqrt();
+    if previous.chi2() - current.chi2() <= noise {
+        if opts.progress {
+            eprintln!("{} polished on every pixel lowers χ² by {:.0}, within χ²'s noise ({STOP_SIGMAS}·√(2N) = {noise:.0}): not adopted", cand.name, previous.chi2() - current.chi2());
+        }
+        data.curves = old_curves;
+        return false;
+    }
+    let (before, after) = (Figures::of(&previous), Figures::of(&current));
     s.effects.push(FoundEffect { name: cand.name.to_string(), evidence: cand.evidence, location: cand.location, parameters, before, after, delta_bic: dbic });
     s.current = current;
     if changes_kernel_operator(cand.name) {
@@ -454,7 +459,12 @@ fn adopt(data: &mut Data, s: &mut Search, cand: candidates::Candidate, f: Fit, d
     }
     s.analysis = analyse(&s.current);
     progress_lap(opts, lap(if changes_kernel_operator(cand.name) { "rescore and dof probe" } else { "rescore (dof kept)" }));
+    true
 }
+
+/// Standard deviations of χ² (`√(2N)` for `N` pixels) a winner's whole-pixel gain must exceed
+/// to be adopted ([`adopt`]).
+const STOP_SIGMAS: f64 = 3.0;
 
 /// Whether effect `name` changes the kernel fit's linear operator (the reference it blurs, its
 /// geometry, the grid or the data mask), so that its effective degrees of freedom must be

@@ -223,8 +223,7 @@ fn propose_all(data: &Data, current: &Fit, a: &Analysis, wanted: &dyn Fn(&str) -
     }
     let gate = StartGate::new(data, current);
     if c0.tone_curve.is_none() && data.open.transfer == Transfer::Linear {
-        let (c, label) = tone_candidate(data, current, a, &gate);
-        add(label, Some(c), &mut out);
+        add("tone_curve", Some(tone_candidate(data, current, a)), &mut out);
     }
     if c0.veiling_glare.is_none() {
         add("veiling_glare", glare_candidate(data, current, a), &mut out);
@@ -283,17 +282,15 @@ fn black_level_candidate(data: &Data, c0: &Corrections, a: &Analysis) -> Candida
 }
 
 /// `tone_curve`, warm-started from a re-estimate on sRGB-decoded captures
-/// ([`linearised_estimate`]) when its start (sRGB decoding with the current kernels) passes
-/// the [`StartGate`]; otherwise screened from the current model without the re-estimate. The
-/// label says which.
-fn tone_candidate(data: &Data, current: &Fit, a: &Analysis, gate: &StartGate) -> (Candidate, &'static str) {
+/// ([`linearised_estimate`]). Not gated ([`StartGate`]): at 1024×768 with 45-px kernels the
+/// start (sRGB decoding with the linear fit's kernels) scores worse than the current model even
+/// on the tone-curve case, so only the re-estimate shows its gain.
+fn tone_candidate(data: &Data, current: &Fit, a: &Analysis) -> Candidate {
     let c0 = &current.model.corrections;
     let corrections = Corrections { tone_curve: Some(ToneCorrection { transfer: Transfer::Srgb }), ..c0.clone() };
-    let gain = gate.passes(&corrections, &current.model);
-    let (init, label) = if gain { (linearised_estimate(data, current, Transfer::Srgb), "tone_curve") } else { (None, "tone_curve (gated: no χ² gain at the start, no re-estimate)") };
     let lin: Vec<f64> = data.curves.iter().map(|c| super::noise::PoissonGaussian::fit(c, Transfer::Linear).misfit).collect();
     let srgb: Vec<f64> = data.curves.iter().map(|c| super::noise::PoissonGaussian::fit(c, Transfer::Srgb).misfit).collect();
-    let c = Candidate {
+    Candidate {
         name: "tone_curve",
         corrections,
         evidence: format!(
@@ -302,10 +299,9 @@ fn tone_candidate(data: &Data, current: &Fit, a: &Analysis, gate: &StartGate) ->
             100.0 * lin.iter().sum::<f64>() / lin.len().max(1) as f64,
             100.0 * srgb.iter().sum::<f64>() / srgb.len().max(1) as f64
         ),
-        init,
+        init: linearised_estimate(data, current, Transfer::Srgb),
         location: location(data, a, "all intensities, nonlinear"),
-    };
-    (c, label)
+    }
 }
 
 /// `veiling_glare` at the width [`glare_sigma`] finds.

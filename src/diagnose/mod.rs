@@ -424,10 +424,9 @@ fn screens(data: &Data, opts: &DiagnoseOptions) -> bool {
 /// Makes the round's winner `f` (a screening fit of `cand`) the current model: polished
 /// ([`polish_winner`]), the noise curve re-measured from its residual (a curve from repeated
 /// frames does not depend on the model), the effect's before and after stated on that same
-/// curve; the polished model rescored on that curve becomes the current one (no refit: the
-/// next round's fits and the final polish start from it). Its degrees of freedom are measured
-/// again only when the effect changes the kernels' linear operator ([`changes_kernel_operator`]);
-/// a gain or an additive term keeps the current model's probe.
+/// curve, then refitted once on every pixel with it. Its degrees of freedom are measured again
+/// only when the effect changes the kernels' linear operator ([`changes_kernel_operator`]); a
+/// gain or an additive term keeps the current model's probe.
 ///
 /// The stop rule: the polished winner must lower the whole-pixel χ² (both models on the new
 /// curve) by more than χ²'s own noise allows, [`STOP_SIGMAS`]` · √(2N)`; otherwise the curve
@@ -453,12 +452,13 @@ fn adopt(data: &mut Data, s: &mut Search, cand: candidates::Candidate, f: Fit, d
     }
     let (before, after) = (Figures::of(&previous), Figures::of(&current));
     s.effects.push(FoundEffect { name: cand.name.to_string(), evidence: cand.evidence, location: cand.location, parameters, before, after, delta_bic: dbic });
-    s.current = current;
+    s.current = fit::fit(data, &f.model.corrections, &f.model, FitSettings { rounds: 1, kernel_iterations: opts.candidate_fit.kernel_iterations });
+    s.current.inherit_dof(&current);
     if changes_kernel_operator(cand.name) {
         measure_dof(data, &mut s.current, opts, s.rounds.len() as u64);
     }
     s.analysis = analyse(&s.current);
-    progress_lap(opts, lap(if changes_kernel_operator(cand.name) { "rescore and dof probe" } else { "rescore (dof kept)" }));
+    progress_lap(opts, lap(if changes_kernel_operator(cand.name) { "rescore, refit and dof probe" } else { "rescore and refit (dof kept)" }));
     true
 }
 

@@ -90,18 +90,30 @@ fn refine(data: &Data, current: &Fit, k0: [f64; 2]) -> Model {
     m
 }
 
-/// The `target_tilt` candidate, when the current model has none and the kernels' centroids
-/// follow a keystone of at least [`MIN_CORNER_PX`] at the corners.
-pub fn tilt_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<super::candidates::Candidate> {
+/// The `target_tilt` candidate, when the current model has none, the kernels' centroids
+/// follow a keystone of at least [`MIN_CORNER_PX`] at the corners, and that keystone, before
+/// its fixed point, already lowers χ² ([`super::candidates::StartGate`]). The label says
+/// whether the gate stopped it.
+pub fn tilt_candidate(data: &Data, current: &Fit, a: &Analysis, gate: &super::candidates::StartGate) -> (Option<super::candidates::Candidate>, &'static str) {
     if current.model.corrections.target_tilt.is_some() {
-        return None;
+        return (None, "target_tilt");
     }
-    let k0 = centroid_keystone(current)?;
+    let Some(k0) = centroid_keystone(current) else { return (None, "target_tilt") };
     let (w, h) = (data.open.width(), data.open.height());
     let corner0 = corner_displacement(k0, w, h);
     if corner0 < MIN_CORNER_PX {
-        return None;
+        return (None, "target_tilt");
     }
+    let start = tilt_model(current, k0);
+    if !gate.passes(&start.corrections, &start) {
+        return (None, "target_tilt (gated: no χ² gain at the centroids' keystone)");
+    }
+    (keystone_candidate(data, current, a, k0, corner0), "target_tilt")
+}
+
+/// [`tilt_candidate`] after its gate: the keystone refined from `k0` ([`refine`]).
+fn keystone_candidate(data: &Data, current: &Fit, a: &Analysis, k0: [f64; 2], corner0: f64) -> Option<super::candidates::Candidate> {
+    let (w, h) = (data.open.width(), data.open.height());
     let init = refine(data, current, k0);
     let t = init.corrections.target_tilt?;
     let corner = corner_displacement([t.g, t.h], w, h);

@@ -740,7 +740,9 @@ pub struct TileSetup<'a> {
 /// Variance-weighted data term (docs/deconvolution.md "Issue-12, m16"): data pixel `k` of
 /// channel `c` gets the weight
 ///
-///     w_k = min(V_ref,c / V_c(j̃_k), W_MAX),     j̃ = G_1 * j (a 1-px Gaussian, clamped to [0, 1])
+/// ```text
+/// w_k = min(V_ref,c / V_c(j̃_k), W_MAX),     j̃ = G_1 * j (a 1-px Gaussian, clamped to [0, 1])
+/// ```
 ///
 /// `V_c(x) = g_c x + r_c²` the noise law (linear axis), `V_ref,c` the variance `λ_c = κ V_ref,c`
 /// was set at (the tile's mean level), so `Σ_k w_k (Bx − j)_k²` is `V_ref` times the

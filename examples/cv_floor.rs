@@ -11,25 +11,16 @@
 //! residual²/variance over an 8 × 6 partition of the field.
 
 use lensrig::diagnose::simulate::predict;
-use lensrig::image::{Image, Plane, Transfer};
-use lensrig::optics::capture::{render, Blur, Rendered, Sensor, Shot};
-use lensrig::optics::lens::LensModel;
+use lensrig::estimate::testbed::noise_target_pair;
+use lensrig::image::{Image, Transfer};
+use lensrig::optics::capture::{Rendered, Sensor};
 use lensrig::optics::psf_grid::PsfGrid;
 use lensrig::profile::Profile;
-use lensrig::rng::Rng;
-use lensrig::target::{render_noise_scene, TargetSpec};
 
 const SENSOR: Sensor = Sensor { full_well_e: 15_000.0, read_noise_e: 4.0, bits: 16, transfer: Transfer::Linear, noise: true };
 
 fn pair(truth: &PsfGrid, w: usize, h: usize, seed: u64) -> (Rendered, Rendered) {
-    let spec = TargetSpec::new("A4", 300, 4, seed).unwrap();
-    let scene = render_noise_scene(&spec, w, h, 1.6, 7.0, 5.0);
-    let mut lens = LensModel::demo(w, h);
-    lens.bands.retain(|b| truth.channels.contains(&b.name));
-    let scene: Vec<Plane> = vec![scene; lens.bands.len()];
-    let open = render(&scene, &lens, &Shot { blur: Blur::Grid(truth.clone()), ..Shot::ideal(0.75) }, &SENSOR, &mut Rng::new(seed * 2 + 1));
-    let pin = render(&scene, &lens, &Shot::ideal(0.75), &SENSOR, &mut Rng::new(seed * 2 + 2));
-    (open, pin)
+    noise_target_pair(truth, w, h, seed, &SENSOR, 0.75).unwrap()
 }
 
 /// Pooled residual² and variance per cell of a `cx × cy` partition, inside `margin`.

@@ -21,27 +21,17 @@
 //! the fit's centres, the crop's own share (‖T − crop_k T‖ / ‖T‖), and the noisy estimate's
 //! error. `steps` (e.g. `ABC`) picks the refits (default all).
 
-use lensrig::estimate::testbed::{embed_centered, errors_against_truth, quantile, relative_error_centered};
+use lensrig::estimate::testbed::{embed_centered, errors_against_truth, noise_target_pair, quantile, relative_error_centered};
 use lensrig::estimate::register::RegistrationModel;
 use lensrig::estimate::{estimate, tile_for_grid, Estimate, EstimateOptions};
-use lensrig::image::{Plane, Transfer};
-use lensrig::optics::capture::{render, Blur, Rendered, Sensor, Shot};
-use lensrig::optics::lens::LensModel;
+use lensrig::image::Transfer;
+use lensrig::optics::capture::{Rendered, Sensor};
 use lensrig::optics::psf_grid::PsfGrid;
 use lensrig::profile::Profile;
-use lensrig::rng::Rng;
-use lensrig::target::{render_noise_scene, TargetSpec};
 
 fn pair(truth: &PsfGrid, w: usize, h: usize, seed: u64, noise: bool) -> (Rendered, Rendered) {
     let sensor = Sensor { full_well_e: 15_000.0, read_noise_e: 4.0, bits: 16, transfer: Transfer::Linear, noise };
-    let spec = TargetSpec::new("A4", 300, 4, seed).unwrap();
-    let scene = render_noise_scene(&spec, w, h, 1.6, 7.0, 5.0);
-    let mut lens = LensModel::demo(w, h);
-    lens.bands.retain(|b| truth.channels.contains(&b.name));
-    let scene: Vec<Plane> = vec![scene; lens.bands.len()];
-    let open = render(&scene, &lens, &Shot { blur: Blur::Grid(truth.clone()), ..Shot::ideal(0.75) }, &sensor, &mut Rng::new(seed * 2 + 1));
-    let pin = render(&scene, &lens, &Shot::ideal(0.75), &sensor, &mut Rng::new(seed * 2 + 2));
-    (open, pin)
+    noise_target_pair(truth, w, h, seed, &sensor, 0.75).unwrap()
 }
 
 fn med(v: &[f64]) -> f64 {

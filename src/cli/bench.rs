@@ -29,7 +29,7 @@ use anyhow::{Context, Result};
 use clap::Args;
 use lensrig::diagnose::simulate::predict;
 use lensrig::estimate::bootstrap::{bootstrap_estimate, predicted_error, BootstrapOptions, KernelUncertainty};
-use lensrig::estimate::testbed::{errors_against_truth, lens_selected, quantile, simulator_short_name, CrossValidation};
+use lensrig::estimate::testbed::{errors_against_truth, lens_selected, noise_target_pair, quantile, simulator_short_name, CrossValidation};
 use lensrig::estimate::{estimate, kernel_errors, median_max, process_cpu_seconds, EstimateOptions};
 use lensrig::image::{Image, Plane};
 use lensrig::optics::capture::{render, Blur, Rendered, Sensor, Shot};
@@ -218,14 +218,7 @@ fn testbed_lenses(dir: &Path, only: Option<&str>, large: bool) -> Result<Vec<Tes
 /// the way `simulate` blends it; pinhole: the sharp target), both with the test bed's noise;
 /// `seed` picks the target pattern and the noise.
 fn testbed_pair(l: &TestLens, seed: u64) -> Result<(Rendered, Rendered)> {
-    let spec = TargetSpec::new("A4", 300, 4, seed)?;
-    let scene = render_noise_scene(&spec, l.width, l.height, 1.6, 7.0, 5.0);
-    let mut lens = LensModel::demo(l.width, l.height);
-    lens.bands.retain(|b| l.truth.channels.contains(&b.name));
-    let scene: Vec<Plane> = vec![scene; lens.bands.len()];
-    let open = render(&scene, &lens, &Shot { blur: Blur::Grid(l.truth.clone()), ..Shot::ideal(TESTBED_EXPOSURE) }, &TESTBED_SENSOR, &mut Rng::new(seed * 2 + 1));
-    let pin = render(&scene, &lens, &Shot::ideal(TESTBED_EXPOSURE), &TESTBED_SENSOR, &mut Rng::new(seed * 2 + 2));
-    Ok((open, pin))
+    Ok(noise_target_pair(&l.truth, l.width, l.height, seed, &TESTBED_SENSOR, TESTBED_EXPOSURE)?)
 }
 
 /// Cross-validation of `profile` on an independent pair (all channels pooled, `margin` px

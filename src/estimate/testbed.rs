@@ -18,10 +18,32 @@
 //! pixels (pixel centres at integers).
 
 use crate::image::Plane;
+use crate::optics::capture::{render, Blur, Rendered, Sensor, Shot};
+use crate::optics::lens::LensModel;
 use crate::optics::psf_grid::PsfGrid;
+use crate::rng::Rng;
+use crate::target::{render_noise_scene, TargetError, TargetSpec};
 
 /// `k` embedded about its centre in a `size × size` square (`size ≥ k`, both odd), zero
 /// outside; a larger `k` is cropped about its centre.
+/// A `w × h` calibration pair through `truth` as the test bed renders it: the A4 noise target
+/// of pattern `seed` (wide open: blurred by the truth grid the way `simulate` blends it;
+/// pinhole: the sharp target), both at `exposure` through `sensor`, with noise streams
+/// `2·seed + 1` and `2·seed + 2`.
+///
+/// # Errors
+/// The target specification ([`TargetSpec::new`]).
+pub fn noise_target_pair(truth: &PsfGrid, w: usize, h: usize, seed: u64, sensor: &Sensor, exposure: f64) -> Result<(Rendered, Rendered), TargetError> {
+    let spec = TargetSpec::new("A4", 300, 4, seed)?;
+    let scene = render_noise_scene(&spec, w, h, 1.6, 7.0, 5.0);
+    let mut lens = LensModel::demo(w, h);
+    lens.bands.retain(|b| truth.channels.contains(&b.name));
+    let scene: Vec<Plane> = vec![scene; lens.bands.len()];
+    let open = render(&scene, &lens, &Shot { blur: Blur::Grid(truth.clone()), ..Shot::ideal(exposure) }, sensor, &mut Rng::new(seed * 2 + 1));
+    let pin = render(&scene, &lens, &Shot::ideal(exposure), sensor, &mut Rng::new(seed * 2 + 2));
+    Ok((open, pin))
+}
+
 pub fn embed_centered(k: &Plane, size: usize) -> Plane {
     let off = size as isize / 2 - k.width as isize / 2;
     let mut out = Plane::new(size, size);

@@ -455,10 +455,11 @@ mod tests {
         let at = |l: &NoiseLaw| l.variance(0, 0.5) as f64 / truth.variance(0, 0.5) as f64;
         assert!((at(&law) - 1.0).abs() < 0.2, "residual law {:?} / {:?}: variance ratio at 0.5 {:.3}", law.gain, law.read, at(&law));
         assert!(at(&image) > 1.5, "the image law should count the texture: ratio {:.3}", at(&image));
-        // the profile stores the lower of the two fits per channel (estimate::profile_noise_law)
+        // the profile stores the lower of the two fits per channel (estimate::profile_noise_law),
+        // from the joint fit's prediction (the same model as `predictions`, to float rounding)
         let stored = est.profile.meta.noise.as_ref().expect("stored law");
         assert_eq!(stored.source, "residual", "{stored:?}");
-        assert!((at(stored) - at(&law)).abs() < 1e-9, "stored {:?} against residual {:?}", stored, law);
+        assert!((at(stored) - at(&law)).abs() < 1e-3, "stored {:?} against residual {:?}", stored, law);
     }
 
     /// The running sums: two replicates `b̂ ± d` give std `|d|·√2`; a bias `β = b̂ − b̂₀` counts

@@ -453,7 +453,11 @@ fn field_pairs(grid: &PsfGrid, kernels: &[Plane], g: f64, sigma: f64) -> Vec<(us
 /// scaled with `σ̂²` when `σ̂` is re-measured); `None` leaves it off. `tail`: when given, the fit
 /// is continued from its end on the same objective ([`continue_fit`], the returned kernels are
 /// not changed) and the convergence term of every kernel is written there
-/// ([`super::bootstrap::convergence_map`]).
+/// ([`super::bootstrap::convergence_map`]). `prediction`: when given, it receives the fitted
+/// model's prediction `A b = Σ_t w_t ⊙ (s·I ⊛ b_t)` of the whole image at the returned kernels
+/// (the forward model of [`crate::optics::forward::blur_channel`], from the operator's sharp-image
+/// spectra, which are already computed; when the fit kept only a subset of the blocks, from an
+/// operator on all blocks built for it).
 #[allow(clippy::too_many_arguments)]
 pub fn refine_channel(
     open: &Plane,
@@ -469,6 +473,7 @@ pub fn refine_channel(
     select: bool,
     field: Option<f64>,
     tail: Option<&mut Vec<Plane>>,
+    prediction: Option<&mut Vec<f32>>,
 ) -> (Stats, f64) {
     let mut p = build_problem(open, sharp, valid, grid, kernels, fits, max_pixels);
     let k = grid.kernel_size;
@@ -509,6 +514,16 @@ pub fn refine_channel(
     let rest = SplitOptions { max_iterations: opts.max_iterations.saturating_sub(st1.iterations), ..opts.clone() };
     let mut stats = run_fista(&mut p, &mut x, &rest, l_f, progress);
     let f = if stats.iterations > 0 { p.last_data } else { p.normal(&x, &mut g, true) };
+    if let Some(out) = prediction {
+        out.clear();
+        out.resize(p.op.output_len(), 0.0);
+        if p.op.covered().iter().all(|&c| c) {
+            p.op.apply(&x, out);
+        } else {
+            // the fit kept a subset of the blocks: the whole image needs every block's spectrum
+            KernelOperator::new(sharp, grid, usize::MAX).apply(&x, out);
+        }
+    }
     if let Some(out) = tail {
         *out = convergence_maps(&mut p, &x, l_f, st1.iterations + stats.iterations);
     }
@@ -686,6 +701,56 @@ mod tests {
     /// On a field whose PSF does not change, the field prior (at a small assumed variation rate)
     /// brings the kernels closer to the truth than the fit without it, from the same noisy
     /// starts (the window fits' role).
+    /// `refine_channel`'s prediction is the forward model of `optics::forward` at the refined
+    /// kernels (what the profile's noise law was computed from before), over the whole image
+    /// also when the fit subsamples its blocks.
+    #[test]
+    fn prediction_is_the_forward_model_at_the_refined_kernels() {
+        let (w, h, k, noise) = (192, 144, 11, 0.01f32);
+        let g = truth(w, h, k);
+        let (open, sharp) = pair(&g, w, h, noise, 8);
+        let fits = vec![(2e-4f32, 48 * 48, noise as f64); g.tile_count()];
+        let o = crate::solve::primal_dual::SplitOptions { max_iterations: 8, min_iterations: usize::MAX, tolerance: 0.0 };
+        let mut start = g.clone();
+        random_kernels(&mut start, 9);
+        let run = |cap: usize| {
+            let mut kernels = start.kernels[0].clone();
+            let mut pred = vec![1.0f32; 3];
+            super::refine_channel(&open, &sharp, &vec![true; w * h], &g, &mut kernels, &fits, &o, &mut Vec::new(), &indicatif::ProgressBar::hidden(), cap, false, None, None, Some(&mut pred));
+            (kernels, pred)
+        };
+        for cap in [usize::MAX, w * h / 3] {
+            let (kernels, pred) = run(cap);
+            let mut fitted = g.clone();
+            fitted.kernels[0] = kernels;
+            assert!(fitted.kernels[0].iter().zip(&start.kernels[0]).any(|(a, b)| a.data != b.data), "the fit moved the kernels");
+            let want = blur_channel(&sharp, &fitted, 0);
+            assert_eq!(pred.len(), want.data.len());
+            let scale = want.data.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+            let err = pred.iter().zip(&want.data).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+            assert!(err < 1e-5 * scale.max(1.0), "cap {cap}: largest difference {err} (scale {scale})");
+        }
+    }
+
+    /// The profile's noise law from the joint fit's prediction is the law computed from the
+    /// profile's kernels by `optics::forward` (the path it replaced), to float rounding.
+    #[test]
+    fn noise_law_from_the_joint_prediction_matches_the_forward_model() {
+        let (w, h, k) = (192, 144, 11);
+        let g = truth(w, h, k);
+        let (open, sharp) = pair(&g, w, h, 0.01, 10);
+        let img = |p: &Plane| Image::new(vec![p.clone()]);
+        let opts = EstimateOptions { kernel_size: Some(k), tile: Some(48), window: Some(48), joint_iterations: 12, ..Default::default() };
+        let mut est = estimate(&img(&open), &img(&sharp), &opts).expect("estimate");
+        let stored = est.profile.meta.noise.clone().expect("a noise law");
+        est.profile.meta.noise = crate::profile::noise::NoiseLaw::fit_image(&est.open_linear, opts.saturation).ok();
+        let forward = crate::estimate::profile_noise_law(&est, vec![]).expect("a noise law");
+        assert_eq!(stored.source, forward.source);
+        for (a, b) in [(stored.gain[0], forward.gain[0]), (stored.read[0], forward.read[0])] {
+            assert!((a - b).abs() <= 1e-3 * b.abs().max(1e-9), "{stored:?} against {forward:?}");
+        }
+    }
+
     #[test]
     fn field_prior_helps_a_constant_field() {
         let (w, h, k, noise) = (192, 144, 11, 0.02f32);
@@ -708,7 +773,7 @@ mod tests {
         let run = |field: Option<f64>| {
             let mut kernels = starts.clone();
             let o = crate::solve::primal_dual::SplitOptions { max_iterations: 40, min_iterations: usize::MAX, tolerance: 0.0 };
-            super::refine_channel(&open, &sharp, &vec![true; w * h], &g, &mut kernels, &fits, &o, &mut Vec::new(), &indicatif::ProgressBar::hidden(), usize::MAX, false, field, None);
+            super::refine_channel(&open, &sharp, &vec![true; w * h], &g, &mut kernels, &fits, &o, &mut Vec::new(), &indicatif::ProgressBar::hidden(), usize::MAX, false, field, None, None);
             kernels.iter().map(|b| relative_error(b, &centre)).sum::<f64>() / kernels.len() as f64
         };
         let (plain, coupled) = (run(None), run(Some(1e-3)));
@@ -737,7 +802,7 @@ mod tests {
         assert!(kept < w * h / 2 && kept > w * h / 6, "kept {kept} of {}", w * h);
         assert!(p.op.every_tile_has_data(), "a tile lost all its data");
         let o = crate::solve::primal_dual::SplitOptions { max_iterations: 200, min_iterations: 5, tolerance: 1e-5 };
-        super::refine_channel(&est.open_linear[0], &sharp_s, &est.valid_masks[0], &grid, &mut kernels, &fits, &o, &mut Vec::new(), &indicatif::ProgressBar::hidden(), cap, false, None, None);
+        super::refine_channel(&est.open_linear[0], &sharp_s, &est.valid_masks[0], &grid, &mut kernels, &fits, &o, &mut Vec::new(), &indicatif::ProgressBar::hidden(), cap, false, None, None, None);
         let mut refined = grid.clone();
         refined.kernels[0] = kernels;
         let cv = |gr: &PsfGrid| interior_rms(&blur_channel(&sharp2.map(|v| v * s), gr, 0), &open2, k / 2) / noise as f64;

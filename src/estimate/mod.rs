@@ -134,7 +134,8 @@ pub struct Estimate {
     /// The wide-open planes (linear, black removed).
     pub open_linear: Vec<Plane>,
     /// Time of each stage, in order: `registration`, `layout` (the probe fits that choose the
-    /// kernel size and grid), `window fits`, `joint refinement` (≈ 0 when skipped).
+    /// kernel size and grid), `window fits`, `joint refinement` (≈ 0 when skipped), `noise law`
+    /// (the profile's noise law: the wide-open capture's and the residual's fits).
     pub stage_seconds: Vec<StageTime>,
     /// The field variation rate `g_c` per channel the field-smoothness prior used (empty: none).
     pub field_variation: Vec<f64>,
@@ -285,11 +286,11 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
     let data = valid_data(open, &open_lin, &pin_reg, &pin_sat_reg, layout.kernel, opts)?;
     let (mut kernels, mut info, tile_fits) = fit_windows(&open_lin, &pin_reg, &data, &layout, opts);
     stages.push(lap("window fits"));
-    let mut convergence = Vec::new();
+    let (mut convergence, mut predictions) = (Vec::new(), Vec::new());
     if opts.joint_iterations > 0 {
         let factors = spread_factors(&kernels, SPREAD_EXPONENT);
         let scaled: TileFits = tile_fits.iter().zip(&factors).map(|(f, g)| f.iter().zip(g).map(|(&(l, n, s), &x)| (l * x as f32, n, s)).collect()).collect();
-        convergence = refine_jointly(&open_lin, &pin_reg, &data, &layout, &open.channels, &scaled, &mut kernels, &mut info, opts);
+        (convergence, predictions) = refine_jointly(&open_lin, &pin_reg, &data, &layout, &open.channels, &scaled, &mut kernels, &mut info, opts);
     }
     stages.push(lap("joint refinement"));
     // the noise level per channel: median over tiles of the least-squares residual level
@@ -309,7 +310,8 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
     profile.meta.noise = crate::profile::noise::NoiseLaw::fit_image(&open_lin, opts.saturation).ok();
     let field_variation = if opts.joint_iterations > 0 && opts.lambda_scale > 0.0 { layout.variation.clone() } else { vec![] };
     let mut est = Estimate { profile, noise_sigma: noise, valid_masks: data.valid_masks, pinhole_registered: pin_reg, open_linear: open_lin, stage_seconds: stages, field_variation, convergence };
-    est.profile.meta.noise = profile_noise_law(&est);
+    est.profile.meta.noise = profile_noise_law(&est, predictions);
+    est.stage_seconds.push(lap("noise law"));
     Ok(est)
 }
 
@@ -322,10 +324,14 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
 ///
 /// `law_c = argmin_{L ∈ {image, residual}} g_L·m_c + r_L²`.
 ///
-/// Either alone when the other cannot be fitted; `None` when neither can.
-fn profile_noise_law(est: &Estimate) -> Option<crate::profile::noise::NoiseLaw> {
+/// Either alone when the other cannot be fitted; `None` when neither can. `predictions`: the
+/// fitted model's prediction per channel when the joint fit computed it (the same forward
+/// model as [`bootstrap::predictions`], from the joint operator's spectra); otherwise (empty)
+/// it is computed here.
+fn profile_noise_law(est: &Estimate, predictions: Vec<Plane>) -> Option<crate::profile::noise::NoiseLaw> {
     let image = est.profile.meta.noise.clone();
-    let residual = bootstrap::residual_noise_law(est, &bootstrap::predictions(est));
+    let pred = if predictions.len() == est.open_linear.len() { predictions } else { bootstrap::predictions(est) };
+    let residual = bootstrap::residual_noise_law(est, &pred);
     let (image, residual) = match (image, residual) {
         (Some(i), Some(r)) if i.channels() == r.channels() => (i, r),
         (i, r) => return r.or(i),
@@ -588,19 +594,26 @@ pub fn spread_factors(kernels: &[Vec<Plane>], p: f64) -> Vec<Vec<f64>> {
 
 /// Refines all kernels of each channel jointly with the interpolated forward model
 /// ([`joint`]); the profile's per-tile figures then describe the refined kernels. Returns the
-/// convergence terms `[channel][tile]` with [`EstimateOptions::convergence_tail`], else nothing.
+/// convergence terms `[channel][tile]` with [`EstimateOptions::convergence_tail`], else nothing,
+/// and the fitted model's prediction of every channel ([`joint::refine_channel`]'s
+/// `prediction`).
 #[allow(clippy::too_many_arguments)]
-fn refine_jointly(open_lin: &[Plane], pin_reg: &[Plane], data: &ValidData, layout: &Layout, channels: &[String], fits: &TileFits, kernels: &mut [Vec<Plane>], info: &mut EstimationInfo, opts: &EstimateOptions) -> Vec<Vec<Plane>> {
+fn refine_jointly(open_lin: &[Plane], pin_reg: &[Plane], data: &ValidData, layout: &Layout, channels: &[String], fits: &TileFits, kernels: &mut [Vec<Plane>], info: &mut EstimationInfo, opts: &EstimateOptions) -> (Vec<Vec<Plane>>, Vec<Plane>) {
     let shape = PsfGrid { kernel_size: layout.kernel, columns: layout.columns, rows: layout.rows, centers: layout.centers.clone(), channels: channels.to_vec(), kernels: vec![] };
     let o = crate::solve::primal_dual::SplitOptions { max_iterations: opts.joint_iterations, min_iterations: 5, tolerance: opts.tolerance * 0.1 };
     let mut power = Vec::new();
     let bar = progress_bar(opts.progress, (open_lin.len() * opts.joint_iterations) as u64, "joint refinement");
     let mut convergence = vec![Vec::new(); if opts.convergence_tail { open_lin.len() } else { 0 }];
+    let mut predictions = Vec::with_capacity(open_lin.len());
     for c in 0..open_lin.len() {
         let mut sharp = pin_reg[c].clone();
         sharp.scale(data.ratio[c] as f32);
         let field = if opts.lambda_scale > 0.0 { layout.variation.get(c).copied() } else { None };
-        let (st, rms) = joint::refine_channel(&open_lin[c], &sharp, &data.valid_masks[c], &shape, &mut kernels[c], &fits[c], &o, &mut power, &bar, joint::JOINT_DATA_PIXELS, opts.select_lambda && opts.lambda_scale > 0.0, field, convergence.get_mut(c));
+        let mut pred = Vec::new();
+        let (st, rms) = joint::refine_channel(&open_lin[c], &sharp, &data.valid_masks[c], &shape, &mut kernels[c], &fits[c], &o, &mut power, &bar, joint::JOINT_DATA_PIXELS, opts.select_lambda && opts.lambda_scale > 0.0, field, convergence.get_mut(c), Some(&mut pred));
+        if !pred.is_empty() {
+            predictions.push(Plane { width: open_lin[c].width, height: open_lin[c].height, data: pred });
+        }
         bar.set_position(((c + 1) * opts.joint_iterations) as u64);
         for t in 0..layout.tiles() {
             info.iterations[c][t] += st.iterations;
@@ -608,7 +621,7 @@ fn refine_jointly(open_lin: &[Plane], pin_reg: &[Plane], data: &ValidData, layou
         }
     }
     bar.finish_and_clear();
-    convergence
+    (convergence, predictions)
 }
 
 /// The profile of an estimate: grid, source description and metadata.

@@ -27,6 +27,7 @@
 //!   gradient) against the block mean, with the robust bin variance.
 
 use crate::image::Plane;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 /// Fewer samples than this per bin give no bin.
@@ -145,18 +146,21 @@ impl NoiseLaw {
     /// # Errors
     /// [`NoiseLawError`] for mismatched lengths or too few samples.
     pub fn fit_residual(signal: &[Plane], residual: &[Plane], mask: Option<&[Vec<bool>]>) -> Result<NoiseLaw, NoiseLawError> {
-        let mut law = Self::new(Vec::new(), Vec::new(), "residual");
-        for (c, (s, r)) in signal.iter().zip(residual).enumerate() {
-            if s.len() != r.len() {
-                return Err(NoiseLawError::Invalid(format!("channel {c}: signal and residual differ in size")));
-            }
-            let m = mask.and_then(|m| m.get(c));
-            let samples: Vec<(f32, f32)> = (0..s.len()).filter(|&i| m.map_or(true, |m| m[i])).map(|i| (s.data[i], r.data[i])).collect();
-            let (g, r2) = fit_line(c, samples, BinStat::RobustSquare)?;
-            law.gain.push(g);
-            law.read.push(r2.sqrt());
-        }
-        Ok(law)
+        // channels in parallel (each fit is the same as alone; the first error in channel order)
+        let fits: Vec<Result<(f64, f64), NoiseLawError>> = signal
+            .par_iter()
+            .zip(residual.par_iter())
+            .enumerate()
+            .map(|(c, (s, r))| {
+                if s.len() != r.len() {
+                    return Err(NoiseLawError::Invalid(format!("channel {c}: signal and residual differ in size")));
+                }
+                let m = mask.and_then(|m| m.get(c));
+                let samples: Vec<(f32, f32)> = (0..s.len()).filter(|&i| m.map_or(true, |m| m[i])).map(|i| (s.data[i], r.data[i])).collect();
+                fit_line(c, samples, BinStat::RobustSquare)
+            })
+            .collect();
+        Self::from_fits("residual", fits)
     }
 
     /// Fits the law from one (blurred) capture per channel: 2×2 diagonal Haar details against
@@ -166,9 +170,15 @@ impl NoiseLaw {
     /// # Errors
     /// [`NoiseLawError::TooFewSamples`] for images with too few blocks.
     pub fn fit_image(planes: &[Plane], saturation: f32) -> Result<NoiseLaw, NoiseLawError> {
-        let mut law = Self::new(Vec::new(), Vec::new(), "image");
-        for (c, p) in planes.iter().enumerate() {
-            let (g, r2) = fit_line(c, haar_samples(p, saturation), BinStat::RobustSquare)?;
+        let fits: Vec<_> = planes.par_iter().enumerate().map(|(c, p)| fit_line(c, haar_samples(p, saturation), BinStat::RobustSquare)).collect();
+        Self::from_fits("image", fits)
+    }
+
+    /// The law of per-channel fits `(g, r²)` in channel order; the first channel's error if any.
+    fn from_fits(source: &str, fits: Vec<Result<(f64, f64), NoiseLawError>>) -> Result<NoiseLaw, NoiseLawError> {
+        let mut law = Self::new(Vec::new(), Vec::new(), source);
+        for fit in fits {
+            let (g, r2) = fit?;
             law.gain.push(g);
             law.read.push(r2.sqrt());
         }
@@ -301,6 +311,34 @@ mod tests {
         let law = NoiseLaw::fit_image(&[capture(&clean, fw, read_e, &mut rng)], 1.0).unwrap();
         assert!(close(law.gain[0], 1.0 / fw, 0.1), "{law:?}");
         assert!(close(law.read[0], read_e / fw, 0.1), "{law:?}");
+    }
+
+    /// The channels are fitted in parallel: a three-channel fit gives exactly the laws of the
+    /// channels fitted alone, in channel order, and a bad channel's error is the first in
+    /// channel order.
+    #[test]
+    fn channels_fitted_in_parallel_match_the_single_channel_fits() {
+        let clean = scene(256, 192);
+        let mut rng = Rng::new(5);
+        let sensors = [(15_000.0, 4.0), (3_000.0, 6.0), (30_000.0, 2.0)];
+        let noisy: Vec<Plane> = sensors.iter().map(|&(fw, re)| capture(&clean, fw, re, &mut rng)).collect();
+        let res: Vec<Plane> = noisy.iter().map(|n| Plane::from_fn(clean.width, clean.height, |x, y| n.get(x, y) - clean.get(x, y))).collect();
+        let signal = vec![clean.clone(); 3];
+        let mask: Vec<Vec<bool>> = (0..3).map(|c| (0..clean.len()).map(|i| (i + c) % 3 != 0).collect()).collect();
+        let all = NoiseLaw::fit_residual(&signal, &res, Some(&mask)).unwrap();
+        let img = NoiseLaw::fit_image(&noisy, 1.0).unwrap();
+        for c in 0..3 {
+            let one = NoiseLaw::fit_residual(&signal[c..=c], &res[c..=c], Some(&mask[c..=c])).unwrap();
+            assert_eq!((all.gain[c], all.read[c]), (one.gain[0], one.read[0]), "residual, channel {c}");
+            let one = NoiseLaw::fit_image(&noisy[c..=c], 1.0).unwrap();
+            assert_eq!((img.gain[c], img.read[c]), (one.gain[0], one.read[0]), "image, channel {c}");
+        }
+        assert_eq!((all.source.as_str(), img.source.as_str()), ("residual", "image"));
+        let tiny = Plane::new(4, 4);
+        match NoiseLaw::fit_image(&[noisy[0].clone(), tiny.clone(), tiny], 1.0) {
+            Err(NoiseLawError::TooFewSamples { channel, .. }) => assert_eq!(channel, 1),
+            other => panic!("expected channel 1 to fail: {other:?}"),
+        }
     }
 
     #[test]

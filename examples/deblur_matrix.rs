@@ -12,7 +12,9 @@
 //! overrides of lensrig's options: `--set key=value,…` with `denoise`, `kappa` (the solver's κ
 //! with the denoiser), `kappa7` (κ without it), `tile`, `no_harm` (on/off), `iterations`,
 //! `sure` (on/off: [`DeconvOptions::coloured_sure`]), `lawdata` (on/off: the variance-weighted
-//! data term, [`DeconvOptions::law_data_weight`]).
+//! data term, [`DeconvOptions::law_data_weight`]), `texture` (on/off: the texture return,
+//! [`DeconvOptions::texture_return`]), `rwp` / `rwe` (the reweighted-ℓ1 exponent and ε),
+//! `steps` (residual steps), `thr` (the denoiser's hard threshold).
 //!
 //! Every cell is a 1024 × 768 sensor (one profile per lens, as a camera has): the photographs
 //! are mirror-tiled or cropped to that size ([`lensrig::image::Plane::window_reflect`]).
@@ -475,7 +477,7 @@ fn main() -> anyhow::Result<()> {
         _ => DeconvOptions::default().positivity,
     };
     let mut base = DeconvOptions { cross_weight, local_noise, coloured_windows, positivity, coloured_noise: coloured, ..DeconvOptions::default() };
-    // experiment overrides: `--set key=value,…` (denoise, kappa, tile, no_harm, iterations, kappa7, sure, lawdata)
+    // experiment overrides: `--set key=value,…` (denoise, kappa, tile, no_harm, iterations, kappa7, sure, lawdata, texture, rwp, rwe, steps, thr)
     for kv in list("--set", &[""])[0].split(',').filter(|kv| !kv.is_empty()) {
         let (k, v) = kv.split_once('=').ok_or_else(|| anyhow::anyhow!("--set {kv}: key=value"))?;
         match k {
@@ -487,6 +489,11 @@ fn main() -> anyhow::Result<()> {
             "kappa7" => base.lambda_per_variance = v.parse()?,
             "sure" => base.coloured_sure = v == "on",
             "lawdata" => base.law_data_weight = v == "on",
+            "rwp" => base.reweight_power = v.parse()?,
+            "rwe" => base.reweight_eps = v.parse()?,
+            "steps" => base.residual_steps = v.parse()?,
+            "texture" => base.texture_return = v == "on",
+            "thr" => base.denoiser.threshold = v.parse()?,
             _ => anyhow::bail!("--set: unknown key {k}"),
         }
     }

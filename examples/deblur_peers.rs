@@ -159,6 +159,7 @@ fn experiment(out: &Path, scene: &Path) -> anyhow::Result<()> {
         unknown_boundary: env("LR_UB").map_or(d.unknown_boundary, |v| v > 0.0),
         data_split_rho: env("LR_VRHO").map_or(d.data_split_rho, |v| v as f32),
         denoise: env("LR_DN").map_or(d.denoise, |v| v as f32),
+        texture_return: env("LR_TEXTURE").map_or(d.texture_return, |v| v > 0.0),
         denoise_lambda_per_variance: env("LR_DNKAPPA").map_or(d.denoise_lambda_per_variance, |v| v as f32),
         denoiser: {
             let n = &d.denoiser;

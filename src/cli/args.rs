@@ -108,4 +108,15 @@ mod tests {
         let Command::Deblur(d) = parse(&with) else { panic!("deblur") };
         assert!(d.options().law_data_weight);
     }
+
+    /// `deblur --texture-return` switches the texture-return step on; it is off by default.
+    #[test]
+    fn deblur_texture_return_is_opt_in() {
+        let base = ["deblur", "--profile", "p", "--in", "a.png", "--out", "b.png"];
+        let Command::Deblur(d) = parse(&base) else { panic!("deblur") };
+        assert!(!d.options().texture_return);
+        let with: Vec<&str> = base.iter().copied().chain(["--texture-return"]).collect();
+        let Command::Deblur(d) = parse(&with) else { panic!("deblur") };
+        assert!(d.options().texture_return);
+    }
 }

@@ -118,6 +118,11 @@
 //!    docs/deconvolution.md "Issue-12, m16") the data term is weighted per pixel by the inverse
 //!    of the noise law, `Σ_k w_k (Bx − j)_k²`, `w_k = V_ref / V(G_1 * j)_k` ([`DataWeight`]).
 //!
+//!    With [`DeconvOptions::texture_return`] (off by default: +0.0 to +0.16 dB on the low-light
+//!    cells, no held-out cell crossed +1.5 dB, docs/deconvolution.md "Issue-12, m17") the part of
+//!    each tile's residual `j − B x̂` whose power exceeds the law's noise floor is Wiener-deconvolved
+//!    and added back after the denoiser ([`texture`]).
+//!
 //! 8. No-harm rule ([`noharm`], on by default): flat regions where the result is noisier than
 //!    the input fall back towards the input; [`DeconvReport::no_harm`] says where.
 //!
@@ -144,6 +149,7 @@ pub mod pyramid;
 pub mod quality;
 pub mod spectrum;
 pub mod synth;
+pub mod texture;
 pub mod tiles;
 
 use crate::image::Plane;
@@ -294,6 +300,10 @@ pub struct DeconvOptions {
     /// at; `Σ_k (B x − j)_k² / V(j̃_k)` is the Gaussian approximation of the Poisson–Gaussian
     /// likelihood. No effect without a law or with a white one.
     pub law_data_weight: bool,
+    /// Texture return ([`texture`], docs/deconvolution.md "Issue-12, m17"): after the denoising
+    /// stage, the part of each tile's data residual `j − B x̂` whose power exceeds the noise
+    /// law's floor is deconvolved by a Wiener filter and added back.
+    pub texture_return: bool,
     /// Where the noise level comes from ([`noise::NoiseSource`]). With a law, a tile's
     /// `λ_c = κ (g_c x̄ + r_c²)` uses the tile's mean linear value `x̄` of the channel, and the
     /// channel's `σ_c = √(g_c · mean(x) + r_c²)` replaces Donoho's estimate everywhere else.
@@ -342,6 +352,7 @@ impl Default for DeconvOptions {
             positivity: true,
             local_noise: true,
             law_data_weight: false,
+            texture_return: false,
             noise: noise::NoiseSource::Profile,
             no_harm: noharm::NoHarmOptions::default(),
         }
@@ -592,6 +603,9 @@ fn finish(planes: &[Plane], mut out: Vec<Plane>, noise: &NoiseStage, opts: &Deco
         };
         out = denoise::denoise(&out, &d);
     }
+    if opts.texture_return {
+        out = return_texture(planes, out, lens.0, noise, opts);
+    }
     let no_harm = if opts.no_harm.enabled {
         let variance = |c: usize, x: f32| match &noise.law {
             Some(l) => l.variance(c, x),
@@ -603,6 +617,53 @@ fn finish(planes: &[Plane], mut out: Vec<Plane>, noise: &NoiseStage, opts: &Deco
     };
     (out, no_harm)
 }
+/// Texture-return stage of [`deblur`] ([`texture`]): on the tiles of [`tile_layout`], each
+/// channel's lost signal `Δ̂` (Wiener estimate from the residual `M (j − B x̂)` against the law's
+/// floor) is blended with the tiles' partition of unity and added to `out`.
+fn return_texture(planes: &[Plane], mut out: Vec<Plane>, grid: &PsfGrid, noise: &NoiseStage, opts: &DeconvOptions) -> Vec<Plane> {
+    let nch = planes.len();
+    let (w, h) = (planes[0].width, planes[0].height);
+    let layout = tile_layout(w, h, grid, opts);
+    let TileLayout { xs, ys, pw, ph } = &layout;
+    let (pw, ph) = (*pw, *ph);
+    let tile_list: Vec<(usize, usize)> = (0..ys.len()).flat_map(|j| (0..xs.len()).map(move |i| (i, j))).collect();
+    let added = Mutex::new(vec![Plane::new(w, h); nch]);
+    let fft = Fft2::plan(pw, ph);
+    let run = |&(i, j): &(usize, usize)| {
+        let (sx, sy) = (&xs[i], &ys[j]);
+        let (cx, cy) = ((sx.core0 + sx.core1) as f64 / 2.0 - 0.5, (sy.core0 + sy.core1) as f64 / 2.0 - 0.5);
+        let delta: Vec<Vec<f32>> = (0..nch)
+            .map(|c| {
+                let data = planes[c].window_reflect(sx.window0, sy.window0, pw, ph).data;
+                let est = out[c].window_reflect(sx.window0, sy.window0, pw, ph).data;
+                let k = grid.kernel_at(c, cx, cy);
+                let kernel = fft.forward(&kernel_to_origin(&k, pw, ph));
+                let sat = opts.saturation.map(|t| data.iter().map(|v| if *v >= t { 0.0 } else { 1.0 }).collect());
+                let mask = mask_boundary(sat, &k, pw, ph);
+                let level = gaussian_blur_periodic(&data, pw, ph, 1.0);
+                let variance: Vec<f32> = match &noise.law {
+                    Some(l) => level.iter().map(|v| l.variance(c, v.clamp(0.0, 1.0))).collect(),
+                    None => vec![noise.sigma[c] * noise.sigma[c]; pw * ph],
+                };
+                texture::lost_signal(&fft, &data, &est, &kernel, &mask, &variance)
+            })
+            .collect();
+        blend_tile(&mut added.lock().unwrap_or_else(|e| e.into_inner()), &delta, sx, sy, pw);
+    };
+    if opts.parallel {
+        tile_list.par_iter().for_each(run);
+    } else {
+        tile_list.iter().for_each(run);
+    }
+    let added = added.into_inner().unwrap_or_else(|e| e.into_inner());
+    // with positivity the returned image stays non-negative, as the solver's was
+    let floor = if opts.positivity { 0.0 } else { f32::NEG_INFINITY };
+    for (o, a) in out.iter_mut().zip(&added) {
+        o.data.iter_mut().zip(&a.data).for_each(|(o, a)| *o = if *o >= floor { (*o + a).max(floor) } else { *o + a });
+    }
+    out
+}
+
 /// Local noise level of the denoising stage (docs/deconvolution.md "Local noise level"): with a
 /// Poisson–Gaussian law, the noise of the deconvolved channel `c` near `x` has the variance
 /// `V_c(x) = g_c (G_{s_c} * j_c)(x) + r_c²`, the law at the input's level averaged over the

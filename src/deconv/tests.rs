@@ -570,3 +570,51 @@ fn law_weighted_data_term_trusts_the_dark_half_more() {
     let (pd, pb, wd, wb) = (dark(&plain[1]), bright(&plain[1]), dark(&weighted[1]), bright(&weighted[1]));
     assert!(wd > 1.2 * pd && wb < pb / 1.2, "dark {pd:.2e} → {wd:.2e}, bright {pb:.2e} → {wb:.2e}");
 }
+
+/// Texture return ([`texture`]): an estimate that lost the scene's fine texture (the sharp
+/// textured channel smoothed by a 1.5-px Gaussian, as a strong gradient prior flattens it) gets
+/// part of it back from the residual of the blurred, noisy data (uniform 15-px kernel,
+/// σ = 0.002): the error falls by more than 3 % (measured 7.16e-3 → 6.81e-3 RMS). A step that
+/// returned nothing, or only noise, would not lower it.
+#[test]
+fn texture_return_recovers_texture_the_estimate_lost() {
+    let (w, h) = (128, 128);
+    let sharp = textured_scene(w, h, 5);
+    let k = SyntheticLens::new(15, 1).grid(w, h, 1, 1, 1).kernel_at(0, 64.0, 64.0);
+    let fft = Fft2::plan(w, h);
+    let kernel = fft.forward(&kernel_to_origin(&k, w, h));
+    let mut s = fft.forward(&sharp[0].data);
+    s.iter_mut().zip(&kernel).for_each(|(a, b)| *a *= b);
+    let sigma = 0.002f32;
+    let mut data = Plane { width: w, height: h, data: fft.inverse(s) };
+    GaussianNoise::new(4).add_to(&mut data, sigma);
+    let lost = gaussian_blur_periodic(&sharp[0].data, w, h, 1.5);
+    let mask = mask_boundary(None, &k, w, h);
+    let delta = texture::lost_signal(&fft, &data.data, &lost, &kernel, &mask, &vec![sigma * sigma; w * h]);
+    let rms = |v: &mut dyn Iterator<Item = f32>| (v.map(|d| (d as f64).powi(2)).sum::<f64>() / (w * h) as f64).sqrt();
+    let before = rms(&mut lost.iter().zip(&sharp[0].data).map(|(a, b)| a - b));
+    let after = rms(&mut lost.iter().zip(&delta).zip(&sharp[0].data).map(|((a, d), b)| a + d - b));
+    eprintln!("texture return on a smoothed estimate: error rms {before:.3e} -> {after:.3e}");
+    assert!(after < 0.97 * before, "error rms {before:.3e} -> {after:.3e}");
+}
+
+/// Where nothing was lost (`x̂ = x`), the residual is the noise alone and the step must add
+/// (almost) nothing: the floor test keeps `Δ̂` far below the noise.
+#[test]
+fn texture_return_adds_no_noise_where_nothing_was_lost() {
+    let (w, h) = (128, 128);
+    let sharp = textured_scene(w, h, 5);
+    let k = SyntheticLens::new(15, 1).grid(w, h, 1, 1, 1).kernel_at(0, 64.0, 64.0);
+    let fft = Fft2::plan(w, h);
+    let kernel = fft.forward(&kernel_to_origin(&k, w, h));
+    let mut s = fft.forward(&sharp[0].data);
+    s.iter_mut().zip(&kernel).for_each(|(a, b)| *a *= b);
+    let sigma = 0.01f32;
+    let mut data = Plane { width: w, height: h, data: fft.inverse(s) };
+    GaussianNoise::new(3).add_to(&mut data, sigma);
+    let mask = mask_boundary(None, &k, w, h);
+    let delta = texture::lost_signal(&fft, &data.data, &sharp[0].data, &kernel, &mask, &vec![sigma * sigma; w * h]);
+    let rms = (delta.iter().map(|d| (*d as f64).powi(2)).sum::<f64>() / (w * h) as f64).sqrt();
+    eprintln!("texture return on an exact estimate: rms {rms:.2e} (noise {sigma:.0e})");
+    assert!(rms < 0.1 * sigma as f64, "rms {rms:.2e}");
+}

@@ -82,7 +82,9 @@ pub struct DeblurArgs {
     /// Return texture after the denoising stage: the part of the data residual whose power
     /// exceeds the noise law's floor, Wiener-deconvolved and added back. Opt-in: +0.0 to +0.16 dB
     /// on the low-light and textured matrix cells, no tuning-subset loss, and no held-out cell
-    /// crossed +1.5 dB over the best peer (docs/deconvolution.md, "Issue-12, m17").
+    /// crossed +1.5 dB over the best peer (docs/deconvolution.md, "Issue-12, m17"). The residual
+    /// is taken against each tile's centre kernel: on a PSF grid much finer than 50 px it can
+    /// return model mismatch as texture (−0.04 to −0.74 dB on a 32-px grid).
     #[arg(long)]
     pub texture_return: bool,
     /// Largest tile core in pixels (default: from the kernel size and the PSF grid).

@@ -325,8 +325,12 @@ fn replicate_pair(est: &Estimate, pred: &[Plane], law: &NoiseLaw, black: &[f32],
     (encoded(open, est, black), encoded(pin, est, black))
 }
 
-/// Estimates a pair with `opts` and checks it gives the grid `g`.
-fn estimate_like(open: &Image, pin: &Image, opts: &EstimateOptions, g: &crate::optics::psf_grid::PsfGrid, replicate: usize) -> Result<(Vec<Vec<Plane>>, Vec<Vec<Plane>>), BootstrapError> {
+/// Per-kernel planes `[channel][tile]`.
+type Maps = Vec<Vec<Plane>>;
+
+/// Estimates a pair with `opts` and checks it gives the grid `g`; returns its kernels and its
+/// convergence terms (empty without [`EstimateOptions::convergence_tail`]).
+fn estimate_like(open: &Image, pin: &Image, opts: &EstimateOptions, g: &crate::optics::psf_grid::PsfGrid, replicate: usize) -> Result<(Maps, Maps), BootstrapError> {
     let e = estimate(open, pin, opts).map_err(|source| BootstrapError::Estimate { replicate, source })?;
     let rg = e.profile.grid;
     if (rg.columns, rg.rows, rg.kernel_size) != (g.columns, g.rows, g.kernel_size) {

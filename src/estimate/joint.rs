@@ -520,7 +520,7 @@ pub fn refine_channel(
 }
 
 /// Chunks of the convergence tail ([`continue_fit`]). 16 (80 iterations, about twice the fit's
-/// own): with 4 the extrapolation found a third to a half of the distance to a 400-iteration
+/// own): with 4 the extrapolation found half to two thirds of the distance to a 400-iteration
 /// continuation on lac9 (docs/estimation.md "lac9 green (issue 16, branch e17u)").
 pub const TAIL_CHUNKS: usize = 16;
 

@@ -35,9 +35,13 @@
 //! - convergence: the profile's joint fit continued past its end on the data
 //!   (`EstimateOptions::convergence_tail`, `joint::continue_fit`) gives the chunk iterates
 //!   `s_0 = b̂, …, s_C`; with `D_j = s_{j+1} − s_j` and `ρ = median ‖D_{j+1}‖/‖D_j‖` (capped),
-//!   `c_i = |s_C + D_{C−1}·ρ/(1 − ρ) − b̂|_i` ([`convergence_map`]), the predicted distance to
-//!   the fit's optimum, which the replicates (same start rule, same stop) cannot show;
-//! - stored uncertainty `u_i = √(β̃_i² + v_i + c_i²)`, the root mean square error of pixel `i`; the
+//!   `c = s_C + D_{C−1}·ρ/(1 − ρ) − b̂` ([`convergence_map`]), the predicted step to the fit's
+//!   optimum, which the replicates (same start rule, same stop) cannot show. Part of that step
+//!   is noise (the optimum fits more of it than the stopped fit), not error of `b̂`: the
+//!   replicates' fits are continued the same way, and their steps' variance
+//!   `n_i = Var_r(c_{r,i})` is that noise, so the convergence energy is
+//!   `C² = max(0, ‖c‖² − Σ_i n_i)` and the map `c̃_i = |c_i| · √(C² / ‖c‖²)` (as the bias);
+//! - stored uncertainty `u_i = √(β̃_i² + v_i + c̃_i²)`, the root mean square error of pixel `i`; the
 //!   predicted relative L2 error of the kernel is `‖u‖₂ / ‖b̂‖₂` ([`predicted_error`]), an
 //!   estimate of `√E‖b̂ − b‖² / ‖b‖`.
 //!
@@ -89,8 +93,8 @@ pub struct KernelUncertainty {
     pub std: Plane,
     /// `|β̃|`, the bias map scaled to the debiased bias energy.
     pub bias: Plane,
-    /// `|c|`, the convergence term: the predicted distance to the fit's optimum
-    /// ([`convergence_map`]); zero when it was not measured.
+    /// `|c̃|`, the convergence term: the predicted step to the fit's optimum
+    /// ([`convergence_map`]) less its noise (module docs); zero when it was not measured.
     pub convergence: Plane,
     /// `u = √(β̃² + v + c²)`, what `psf-unc-<C>.tiff` stores.
     pub total: Plane,
@@ -106,7 +110,7 @@ pub struct KernelUncertainty {
 ///
 /// `b_∞ ≈ s_C + D_{C−1} · ρ/(1 − ρ)`,
 ///
-/// and the map is `|b_∞ − b̂|` per pixel (its L2 norm: the distance). Zero with fewer than two
+/// and the map is `b_∞ − b̂` per pixel (signed; its L2 norm is the distance). Zero with fewer than two
 /// chunks; every value finite and ≥ 0.
 pub fn convergence_map(snaps: &[&[f32]], k: usize, chunk: usize, iterations: usize) -> Plane {
     if snaps.len() < 3 || snaps.iter().any(|s| s.len() != k * k) {
@@ -120,7 +124,7 @@ pub fn convergence_map(snaps: &[&[f32]], k: usize, chunk: usize, iterations: usi
     let rho = ratios[ratios.len() / 2].clamp(0.0, 1.0 - 1.0 / horizon.max(2.0));
     let f = rho / (1.0 - rho);
     let (first, last, step) = (snaps[0], snaps[snaps.len() - 1], &steps[steps.len() - 1]);
-    let data = (0..k * k).map(|i| ((last[i] - first[i]) as f64 + step[i] * f).abs()).map(|c| if c.is_finite() { c as f32 } else { 0.0 }).collect();
+    let data = (0..k * k).map(|i| (last[i] - first[i]) as f64 + step[i] * f).map(|c| if c.is_finite() { c as f32 } else { 0.0 }).collect();
     Plane { width: k, height: k, data }
 }
 
@@ -164,6 +168,8 @@ pub struct Replicates {
     fits: Moments,
     diffs: Moments,
     convergence: Vec<f64>,
+    /// The running sums of the replicates' own (signed) convergence terms `c_r`.
+    tails: Moments,
     width: usize,
 }
 
@@ -172,15 +178,24 @@ impl Replicates {
     pub fn new(fitted: &Plane, unregularised: &Plane) -> Self {
         let n = fitted.data.len();
         let beta = fitted.data.iter().zip(&unregularised.data).map(|(&a, &b)| (a - b) as f64).collect();
-        Self { beta, fits: Moments::new(n), diffs: Moments::new(n), convergence: vec![0.0; n], width: fitted.width }
+        Self { beta, fits: Moments::new(n), diffs: Moments::new(n), convergence: vec![0.0; n], tails: Moments::new(n), width: fitted.width }
     }
 
-    /// Sets the convergence term `|c|` of the fitted kernel ([`convergence_map`]; same size).
+    /// Sets the convergence term `c` of the fitted kernel ([`convergence_map`]; same size).
     pub fn with_convergence(mut self, map: &Plane) -> Self {
         if map.data.len() == self.convergence.len() {
             self.convergence = map.data.iter().map(|&v| v as f64).collect();
         }
         self
+    }
+
+    /// Adds the convergence term `c_r` of replicate `r`'s regularised fit (its fit continued
+    /// the same way as the profile's, [`convergence_map`]); with two or more, their variance is
+    /// taken out of the convergence energy (module docs).
+    pub fn add_tail(&mut self, map: &Plane) {
+        if map.data.len() == self.convergence.len() {
+            self.tails.add(map.data.iter().map(|&v| v as f64));
+        }
     }
 
     /// Adds replicate `r`: its regularised fit `b*_r` and unregularised fit `b*_{0,r}`.
@@ -199,8 +214,11 @@ impl Replicates {
         let clean = |x: f64| if x.is_finite() { x as f32 } else { 0.0 };
         let plane = |f: &dyn Fn(usize) -> f64| Plane { width: self.width, height: self.beta.len() / self.width.max(1), data: (0..self.beta.len()).map(|i| clean(f(i))).collect() };
         let bias = |i: usize| self.beta[i].abs() * scale;
-        let c = &self.convergence;
-        KernelUncertainty { std: plane(&|i| v[i].sqrt()), bias: plane(&bias), convergence: plane(&|i| c[i]), total: plane(&|i| (bias(i).powi(2) + v[i] + c[i] * c[i]).sqrt()) }
+        let c2: f64 = self.convergence.iter().map(|c| c * c).sum();
+        let n2: f64 = self.tails.variance().iter().sum();
+        let cscale = if self.tails.count < 2 { 1.0 } else if c2 > 0.0 { ((c2 - n2).max(0.0) / c2).sqrt() } else { 0.0 };
+        let c: Vec<f64> = self.convergence.iter().map(|v| v * cscale).collect();
+        KernelUncertainty { std: plane(&|i| v[i].sqrt()), bias: plane(&bias), convergence: plane(&|i| c[i].abs()), total: plane(&|i| (bias(i).powi(2) + v[i] + c[i] * c[i]).sqrt()) }
     }
 }
 
@@ -307,15 +325,19 @@ fn replicate_pair(est: &Estimate, pred: &[Plane], law: &NoiseLaw, black: &[f32],
     (encoded(open, est, black), encoded(pin, est, black))
 }
 
-/// Estimates a pair with `opts` and checks it gives the grid `g`.
-fn estimate_like(open: &Image, pin: &Image, opts: &EstimateOptions, g: &crate::optics::psf_grid::PsfGrid, replicate: usize) -> Result<Vec<Vec<Plane>>, BootstrapError> {
+/// Per-kernel planes `[channel][tile]`.
+type Maps = Vec<Vec<Plane>>;
+
+/// Estimates a pair with `opts` and checks it gives the grid `g`; returns its kernels and its
+/// convergence terms (empty without [`EstimateOptions::convergence_tail`]).
+fn estimate_like(open: &Image, pin: &Image, opts: &EstimateOptions, g: &crate::optics::psf_grid::PsfGrid, replicate: usize) -> Result<(Maps, Maps), BootstrapError> {
     let e = estimate(open, pin, opts).map_err(|source| BootstrapError::Estimate { replicate, source })?;
     let rg = e.profile.grid;
     if (rg.columns, rg.rows, rg.kernel_size) != (g.columns, g.rows, g.kernel_size) {
         let shape = |c: usize, r: usize, k: usize| format!("{c}×{r} ({k} px)");
         return Err(BootstrapError::Grid { replicate, got: shape(rg.columns, rg.rows, rg.kernel_size), want: shape(g.columns, g.rows, g.kernel_size) });
     }
-    Ok(rg.kernels)
+    Ok((rg.kernels, e.convergence))
 }
 
 /// The uncertainty of every kernel of `est` (`[channel][tile]`; module docs): the
@@ -334,20 +356,25 @@ pub fn bootstrap_estimate(est: &Estimate, opts: &EstimateOptions, o: &BootstrapO
     // on another grid
     let (w, h) = (est.open_linear[0].width, est.open_linear[0].height);
     let tile = super::tile_for_grid(w, h, g.columns, g.rows).or(opts.tile);
-    let ropts = EstimateOptions { kernel_size: Some(g.kernel_size), tile, progress: false, field_variation: Some(est.field_variation.clone()), convergence_tail: false, ..opts.clone() };
-    let zero = EstimateOptions { lambda_scale: 0.0, ..ropts.clone() };
+    // the replicates' fits are continued as the profile's was, for the noise of its convergence term
+    let tail = !est.convergence.is_empty();
+    let ropts = EstimateOptions { kernel_size: Some(g.kernel_size), tile, progress: false, field_variation: Some(est.field_variation.clone()), convergence_tail: tail, ..opts.clone() };
+    let zero = EstimateOptions { lambda_scale: 0.0, convergence_tail: false, ..ropts.clone() };
     let black = &opts.black_level;
     let data = (encoded(est.open_linear.clone(), est, black), encoded(est.pinhole_registered.clone(), est, black));
-    let unreg = estimate_like(&data.0, &data.1, &zero, g, 0)?;
+    let unreg = estimate_like(&data.0, &data.1, &zero, g, 0)?.0;
     let none = Plane::new(0, 0);
     let conv = |c: usize, t: usize| est.convergence.get(c).and_then(|m| m.get(t)).unwrap_or(&none);
     let mut acc: Vec<Vec<Replicates>> = g.kernels.iter().zip(&unreg).enumerate().map(|(c, (ks, k0))| ks.iter().zip(k0).enumerate().map(|(t, (k, k0))| Replicates::new(k, k0).with_convergence(conv(c, t))).collect()).collect();
     let mut rng = Rng::new(o.seed);
     for r in 1..=o.replicates.max(2) {
         let (open, pin) = replicate_pair(est, &pred, &law, black, &mut rng);
-        let (fit, fit0) = (estimate_like(&open, &pin, &ropts, g, r)?, estimate_like(&open, &pin, &zero, g, r)?);
+        let ((fit, tails), (fit0, _)) = (estimate_like(&open, &pin, &ropts, g, r)?, estimate_like(&open, &pin, &zero, g, r)?);
         for ((a, ks), k0s) in acc.iter_mut().zip(&fit).zip(&fit0) {
             a.iter_mut().zip(ks.iter().zip(k0s)).for_each(|(a, (k, k0))| a.add(k, k0));
+        }
+        for (a, cs) in acc.iter_mut().zip(&tails) {
+            a.iter_mut().zip(cs).for_each(|(a, c)| a.add_tail(c));
         }
     }
     Ok(acc.iter().map(|a| a.iter().map(Replicates::finish).collect()).collect())
@@ -482,7 +509,7 @@ mod tests {
     }
 
     /// The convergence map recovers the limit of an exactly geometric sequence
-    /// `s_j = b_∞ − ρ^j e` (so `|b_∞ − s_0| = |e|`), and the cap `ρ ≤ 1 − 1/H` bounds a sequence
+    /// `s_j = b_∞ − ρ^j e` (so `b_∞ − s_0 = e`), and the cap `ρ ≤ 1 − 1/H` bounds a sequence
     /// that does not contract.
     #[test]
     fn convergence_map_extrapolates_a_geometric_sequence() {
@@ -492,7 +519,7 @@ mod tests {
         let snaps: Vec<&[f32]> = seq.iter().map(Vec::as_slice).collect();
         let m = convergence_map(&snaps, k, 5, 40);
         for (got, want) in m.data.iter().zip(&e) {
-            assert!((*got as f64 - want.abs()).abs() < 1e-5, "{got} vs {}", want.abs());
+            assert!((*got as f64 - want).abs() < 1e-5, "{got} vs {want}");
         }
         // steps of constant size: ρ = 1 is capped at 1 − 1/H, H = (40 + 4·5)/5 = 12 chunks, so
         // the map is 4 steps done plus 11 more
@@ -500,6 +527,30 @@ mod tests {
         let m = convergence_map(&flat.iter().map(Vec::as_slice).collect::<Vec<_>>(), k, 5, 40);
         assert!(m.data.iter().all(|&v| (v - 0.015).abs() < 1e-6), "{:?}", m.data);
         assert!(convergence_map(&snaps[..2], k, 5, 40).data.iter().all(|&v| v == 0.0));
+    }
+
+    /// The replicates' convergence terms (issue 16, branch e17u): their variance is the noise of
+    /// the profile's step `c` and is taken out of its energy (`‖c‖² = 0.02`, replicate steps
+    /// `c ± 0.05`, variance sum `0.01`: half the energy stays, `c̃ = 0.1/√2`); replicates that
+    /// all take the same step (deterministic convergence) leave it whole; fewer than two
+    /// replicate steps leave it whole too.
+    #[test]
+    fn convergence_noise_is_the_replicates_variance() {
+        let (f, f0) = (Plane::filled(2, 1, 0.5), Plane::filled(2, 1, 0.3));
+        let c = Plane::filled(2, 1, 0.1);
+        let with_tails = |tails: &[f32]| {
+            let mut a = Replicates::new(&f, &f0).with_convergence(&c);
+            for &t in tails {
+                a.add(&Plane::filled(2, 1, 0.6), &Plane::filled(2, 1, 0.4));
+                a.add_tail(&Plane::filled(2, 1, t));
+            }
+            a.finish().convergence
+        };
+        let noisy = with_tails(&[0.05, 0.15]);
+        assert!(noisy.data.iter().all(|&v| (v - 0.1 / 2f32.sqrt()).abs() < 1e-6), "{noisy:?}");
+        assert!(with_tails(&[0.1, 0.1]).data.iter().all(|&v| (v - 0.1).abs() < 1e-7));
+        assert!(with_tails(&[0.0, 0.2, 0.1, -0.1]).data.iter().all(|&v| v == 0.0));
+        assert!(with_tails(&[0.3]).data.iter().all(|&v| (v - 0.1).abs() < 1e-7));
     }
 
     /// The convergence term adds to the stored total in quadrature and is kept as its own map.

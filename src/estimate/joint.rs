@@ -534,8 +534,10 @@ pub fn refine_channel(
     (stats, (2.0 * f / count as f64).sqrt())
 }
 
-/// Chunks of the convergence tail ([`continue_fit`]).
-pub const TAIL_CHUNKS: usize = 4;
+/// Chunks of the convergence tail ([`continue_fit`]). 16 (80 iterations, about twice the fit's
+/// own): with 4 the extrapolation found half to two thirds of the distance to a 400-iteration
+/// continuation on lac9 (docs/estimation.md "lac9 green (issue 16, branch e17u)").
+pub const TAIL_CHUNKS: usize = 16;
 
 /// FISTA iterations per chunk of the convergence tail (momentum restarted at each chunk).
 pub const TAIL_CHUNK_ITERATIONS: usize = 5;
@@ -917,8 +919,8 @@ mod tests {
     }
     /// The convergence term (docs/estimation.md "Uncertainty", *Convergence term*): a fit
     /// stopped after 10 iterations predicts its distance to the answer of a 600-iteration run
-    /// of the same objective within a factor 2 (the median over the kernels of the ratio
-    /// of predicted to actual distance).
+    /// of the same objective within a factor 1.5 (the median over the kernels of the ratio
+    /// of predicted to actual distance; with the 4-chunk tail before e17u it was 0.60).
     #[test]
     fn convergence_term_predicts_the_distance_to_a_long_run() {
         let (w, h, k, noise) = (192, 144, 11, 0.003f32);
@@ -954,6 +956,6 @@ mod tests {
         ratios.sort_by(f64::total_cmp);
         let median = ratios[ratios.len() / 2];
         eprintln!("predicted / actual distance per kernel: {ratios:.3?}");
-        assert!(median > 0.5 && median < 2.0, "median ratio {median:.3}: {ratios:.3?}");
+        assert!(median > 1.0 / 1.5 && median < 1.5, "median ratio {median:.3}: {ratios:.3?}");
     }
 }

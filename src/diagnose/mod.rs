@@ -15,7 +15,11 @@
 //!    screening fits keep about [`DiagnoseOptions::screen_pixels`] pixels per channel in their
 //!    data term ([`fit::fit_subset`]); only the winner is refitted on every pixel. The effect
 //!    with the lowest BIC (`χ² + p·ln N`) wins if it beats the null refit's BIC and removes at
-//!    least [`DiagnoseOptions::min_gain`] of its χ². A parameter search runs only from a start
+//!    least [`DiagnoseOptions::min_gain`] of its χ²; a candidate that beats the BIC and removes
+//!    between [`NEAR_MISS`]` · min_gain` and `min_gain` on the subset (a *near miss*: the
+//!    subset's gain samples the whole image's with an error of its own) is refitted with the
+//!    null refit on every pixel and judged by the same rule there (`screened`,
+//!    `rescore_near_misses`). A parameter search runs only from a start
 //!    that already lowers χ² ([`candidates::StartGate`]); the polished winner is adopted only if
 //!    it lowers the whole-pixel χ² by more than `3·√(2N)` (the stop rule of `adopt`).
 //! 4. The final model's kernels and corrections form a profile ([`model`]); [`report`] writes
@@ -79,7 +83,9 @@ pub struct DiagnoseOptions {
     /// the true floor in RMS (reduced χ² 1.07–1.08 against a noise curve that no longer counts
     /// the reference's propagated noise as the wide-open capture's).
     pub consistent: f64,
-    /// An effect must remove at least this fraction of the null refit's χ².
+    /// An effect must remove at least this fraction of the null refit's χ² on every pixel (a
+    /// near miss on the screening subset, down to [`NEAR_MISS`] of it, is scored again on
+    /// every pixel).
     pub min_gain: f64,
     /// The noise curve is consistent with a Poisson–Gaussian law when its RMS relative misfit
     /// is at most this.
@@ -585,7 +591,8 @@ pub fn low_band_of(power: f64, floor: f64, [w, h, nch]: [usize; 3], evaluated: f
 
 /// One round: the null refit, then every proposed effect refitted from the current model;
 /// returns every score (the null refit first) and the best effect that beats the null refit's
-/// BIC and removes at least `min_gain` of its χ².
+/// BIC and removes at least `min_gain` of its χ² (the acceptance rule, [`screened`]): on the
+/// screening subset, or, for a near miss there, on every pixel ([`rescore_near_misses`]).
 fn search_round(data: &Data, current: &Fit, analysis: &Analysis, opts: &DiagnoseOptions) -> (Vec<CandidateScore>, Option<(candidates::Candidate, Fit, f64)>) {
     let (proposed, times) = candidates::propose_timed(data, current, analysis, &opts.excluded);
     for t in times {
@@ -605,20 +612,108 @@ fn search_round(data: &Data, current: &Fit, analysis: &Analysis, opts: &Diagnose
         f
     };
     let null = screen("the null refit", &current.model.corrections, &current.model);
+    let subset = null.share < 1.0;
     let mut scores = vec![CandidateScore { name: "(null refit)".into(), reduced_chi2: null.reduced_chi2(), parameters: serde_json::Value::Null, delta_bic: 0.0, note: "the current model refitted with the candidates' budget".into() }];
     let mut best: Option<(candidates::Candidate, Fit, f64)> = None;
-    let total = |f: &Fit| f.chi2() + f.noise_chi2;
+    let mut near: Vec<(candidates::Candidate, f64)> = Vec::new();
     for cand in proposed {
         let f = screen(cand.name, &cand.corrections, cand.init.as_ref().unwrap_or(&current.model));
         let dbic = f.bic() - null.bic();
-        let gain = (total(&null) - total(&f)) / total(&null).max(1e-300);
-        scores.push(CandidateScore { name: cand.name.to_string(), parameters: candidates::parameters_json(cand.name, &f.model.corrections), reduced_chi2: f.reduced_chi2(), delta_bic: dbic, note: format!("removes {:.1}% of χ²", 100.0 * gain) });
-        if dbic < 0.0 && gain >= opts.min_gain && best.as_ref().map_or(true, |b| dbic < b.2) {
-            best = Some((cand, f, dbic));
+        let gain = chi2_gain(&null, &f);
+        let on = if subset { " on the screening subset" } else { "" };
+        scores.push(CandidateScore { name: cand.name.to_string(), parameters: candidates::parameters_json(cand.name, &f.model.corrections), reduced_chi2: f.reduced_chi2(), delta_bic: dbic, note: format!("removes {:.1}% of χ²{on}", 100.0 * gain) });
+        match screened(dbic, gain, opts.min_gain, subset) {
+            Screened::Winner if best.as_ref().map_or(true, |b| dbic < b.2) => best = Some((cand, f, dbic)),
+            Screened::NearMiss => near.push((cand, dbic)),
+            _ => {}
         }
     }
     bar.finish_and_clear();
+    if best.is_none() && !near.is_empty() {
+        let mut lap = crate::estimate::stage_clock();
+        best = rescore_near_misses(data, current, near, &mut scores, opts);
+        progress_lap(opts, lap("near misses rescored on every pixel"));
+    }
     (scores, best)
+}
+
+/// The share of the null refit's χ² (the noise law's term included) that `f` removes.
+fn chi2_gain(null: &Fit, f: &Fit) -> f64 {
+    let total = |f: &Fit| f.chi2() + f.noise_chi2;
+    (total(null) - total(f)) / total(null).max(1e-300)
+}
+
+/// A screened candidate against the acceptance rule ([`screened`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Screened {
+    /// Beats the null refit's BIC and removes at least `min_gain` of its χ².
+    Winner,
+    /// Beats the null refit's BIC and removes at least [`NEAR_MISS`]` · min_gain` of its χ² on
+    /// a screening subset, but less than `min_gain`: scored again on every pixel.
+    NearMiss,
+    Rejected,
+}
+
+/// Subset gains down to this fraction of [`DiagnoseOptions::min_gain`] are scored again on every
+/// pixel. The subset's gain of an effect whose χ² gain sits in a few regions depends on which
+/// blocks the subset holds: `black_level` in the tone-curve case's second round (1024×768,
+/// seed 41) removes 1.20 % of χ² on every pixel, and 0.62 %, 1.19 % and 2.05 % on three
+/// block subsets (shares 0.17, 0.33, 0.09 of the pixels; docs/diagnosis.md, "Session 17").
+pub const NEAR_MISS: f64 = 1.0 / 3.0;
+
+/// The acceptance rule of a screened candidate, with `ΔBIC = BIC(candidate) − BIC(null refit)`
+/// and `gain = (χ²_null − χ²_cand) / χ²_null` (both fits with the candidates' budget, χ² with
+/// the noise law's term):
+///
+/// ```text
+/// winner     ⇔  ΔBIC < 0  and  gain ≥ g_min
+/// near miss  ⇔  ΔBIC < 0  and  g_min / 3 ≤ gain < g_min  and  the fits screened a subset
+/// ```
+///
+/// `g_min` is [`DiagnoseOptions::min_gain`]. `min_gain` is a fraction of the whole image's χ²;
+/// a subset estimates it with a sampling error of its own, so a near miss is decided by the
+/// same rule on every pixel ([`rescore_near_misses`]). Without a subset (`subset` false) the
+/// gain is the whole image's and a near miss is rejected.
+fn screened(dbic: f64, gain: f64, min_gain: f64, subset: bool) -> Screened {
+    if dbic >= 0.0 {
+        Screened::Rejected
+    } else if gain >= min_gain {
+        Screened::Winner
+    } else if subset && gain >= NEAR_MISS * min_gain {
+        Screened::NearMiss
+    } else {
+        Screened::Rejected
+    }
+}
+
+/// The near misses of a round ([`Screened::NearMiss`]) refitted on every pixel with the
+/// candidates' budget, against the null refit on every pixel (fitted once): the one with the
+/// lowest ΔBIC among those that pass [`screened`] on every pixel wins (its whole-pixel fit is
+/// the winner, polished as any other). Each near miss's note in `scores` gets its whole-pixel
+/// gain.
+fn rescore_near_misses(data: &Data, current: &Fit, near: Vec<(candidates::Candidate, f64)>, scores: &mut [CandidateScore], opts: &DiagnoseOptions) -> Option<(candidates::Candidate, Fit, f64)> {
+    let whole = |corr: &model::Corrections, init: &Model| {
+        let mut f = fit::fit(data, corr, init, opts.candidate_fit);
+        f.inherit_dof(current);
+        f
+    };
+    let null = whole(&current.model.corrections, &current.model);
+    let mut best: Option<(candidates::Candidate, Fit, f64)> = None;
+    for (cand, _) in near {
+        let f = whole(&cand.corrections, cand.init.as_ref().unwrap_or(&current.model));
+        let (dbic, gain) = (f.bic() - null.bic(), chi2_gain(&null, &f));
+        let pass = screened(dbic, gain, opts.min_gain, false) == Screened::Winner;
+        if let Some(s) = scores.iter_mut().find(|s| s.name == cand.name) {
+            s.note += &format!("; a near miss: {:.1}% on every pixel (ΔBIC {dbic:.0}){}", 100.0 * gain, if pass { "" } else { ", rejected" });
+        }
+        if opts.progress {
+            eprintln!("near miss {} on every pixel: removes {:.2}% of χ² (ΔBIC {dbic:.0}){}", cand.name, 100.0 * gain, if pass { "" } else { ": rejected" });
+        }
+        if pass && best.as_ref().map_or(true, |b| dbic < b.2) {
+            best = Some((cand, f, dbic));
+        }
+    }
+    best
 }
 
 /// "no mismatch", "explained: …" or "unexplained: …". The low-band test ([`low_band`]) is not
@@ -768,6 +863,24 @@ mod tests {
         assert!(law.contains("noise floor") && law.contains("18%") && !law.contains("remains"), "{law}");
         let chi = what_remains(1.319, 0.05, &o);
         assert!(chi.starts_with("reduced χ² 1.319 remains"), "{chi}");
+    }
+
+    /// The acceptance rule: the tone-curve case's second round at 1024×768 (seed 41), where
+    /// `black_level` removed 0.62 % of χ² on the screening subset and 1.20 % on every pixel.
+    /// The old rule (`ΔBIC < 0` and gain ≥ `min_gain` on the subset alone) rejected it; the
+    /// near miss is now scored on every pixel, where it wins. Below a third of `min_gain`, or
+    /// without a subset, it is rejected; a ΔBIC ≥ 0 is never accepted.
+    #[test]
+    fn a_near_miss_on_the_subset_is_judged_on_every_pixel() {
+        let g = DiagnoseOptions::default().min_gain;
+        assert_eq!(screened(-11_269.0, 0.00616, g, true), Screened::NearMiss);
+        assert_eq!(screened(-27_363.0, 0.01195, g, false), Screened::Winner);
+        assert_eq!(screened(-250_443.0, 0.057, g, true), Screened::Winner);
+        assert_eq!(screened(-11_269.0, 0.00616, g, false), Screened::Rejected);
+        assert_eq!(screened(-94.0, 0.00007, g, true), Screened::Rejected);
+        assert_eq!(screened(-500.0, 0.3 * g, g, true), Screened::Rejected);
+        assert_eq!(screened(34_493.0, 0.02, g, true), Screened::Rejected);
+        assert_eq!(screened(-1.0, NEAR_MISS * g, g, true), Screened::NearMiss);
     }
 
     /// A Gaussian kernel of standard deviation `sigma` (px), `±3σ`, summing to 1.

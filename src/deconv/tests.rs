@@ -571,6 +571,28 @@ fn law_weighted_data_term_trusts_the_dark_half_more() {
     assert!(wd > 1.2 * pd && wb < pb / 1.2, "dark {pd:.2e} → {wd:.2e}, bright {pb:.2e} → {wb:.2e}");
 }
 
+/// The texture-return tests' data: a textured scene blurred by a uniform 15-px kernel
+/// (circularly) with white noise `sigma` (seed `seed`).
+struct TextureCase {
+    sharp: Vec<Plane>,
+    k: Plane,
+    fft: std::sync::Arc<Fft2>,
+    kernel: Vec<rustfft::num_complex::Complex32>,
+    data: Plane,
+}
+
+fn texture_case(w: usize, h: usize, sigma: f32, seed: u64) -> TextureCase {
+    let sharp = textured_scene(w, h, 5);
+    let k = SyntheticLens::new(15, 1).grid(w, h, 1, 1, 1).kernel_at(0, 64.0, 64.0);
+    let fft = Fft2::plan(w, h);
+    let kernel = fft.forward(&kernel_to_origin(&k, w, h));
+    let mut s = fft.forward(&sharp[0].data);
+    s.iter_mut().zip(&kernel).for_each(|(a, b)| *a *= b);
+    let mut data = Plane { width: w, height: h, data: fft.inverse(s) };
+    GaussianNoise::new(seed).add_to(&mut data, sigma);
+    TextureCase { sharp, k, fft, kernel, data }
+}
+
 /// Texture return ([`texture`]): an estimate that lost the scene's fine texture (the sharp
 /// textured channel smoothed by a 1.5-px Gaussian, as a strong gradient prior flattens it) gets
 /// part of it back from the residual of the blurred, noisy data (uniform 15-px kernel,
@@ -578,16 +600,8 @@ fn law_weighted_data_term_trusts_the_dark_half_more() {
 /// returned nothing, or only noise, would not lower it.
 #[test]
 fn texture_return_recovers_texture_the_estimate_lost() {
-    let (w, h) = (128, 128);
-    let sharp = textured_scene(w, h, 5);
-    let k = SyntheticLens::new(15, 1).grid(w, h, 1, 1, 1).kernel_at(0, 64.0, 64.0);
-    let fft = Fft2::plan(w, h);
-    let kernel = fft.forward(&kernel_to_origin(&k, w, h));
-    let mut s = fft.forward(&sharp[0].data);
-    s.iter_mut().zip(&kernel).for_each(|(a, b)| *a *= b);
-    let sigma = 0.002f32;
-    let mut data = Plane { width: w, height: h, data: fft.inverse(s) };
-    GaussianNoise::new(4).add_to(&mut data, sigma);
+    let (w, h, sigma) = (128, 128, 0.002f32);
+    let TextureCase { sharp, k, fft, kernel, data } = texture_case(w, h, sigma, 4);
     let lost = gaussian_blur_periodic(&sharp[0].data, w, h, 1.5);
     let mask = mask_boundary(None, &k, w, h);
     let delta = texture::lost_signal(&fft, &data.data, &lost, &kernel, &mask, &vec![sigma * sigma; w * h]);
@@ -602,16 +616,8 @@ fn texture_return_recovers_texture_the_estimate_lost() {
 /// (almost) nothing: the floor test keeps `Δ̂` far below the noise.
 #[test]
 fn texture_return_adds_no_noise_where_nothing_was_lost() {
-    let (w, h) = (128, 128);
-    let sharp = textured_scene(w, h, 5);
-    let k = SyntheticLens::new(15, 1).grid(w, h, 1, 1, 1).kernel_at(0, 64.0, 64.0);
-    let fft = Fft2::plan(w, h);
-    let kernel = fft.forward(&kernel_to_origin(&k, w, h));
-    let mut s = fft.forward(&sharp[0].data);
-    s.iter_mut().zip(&kernel).for_each(|(a, b)| *a *= b);
-    let sigma = 0.01f32;
-    let mut data = Plane { width: w, height: h, data: fft.inverse(s) };
-    GaussianNoise::new(3).add_to(&mut data, sigma);
+    let (w, h, sigma) = (128, 128, 0.01f32);
+    let TextureCase { sharp, k, fft, kernel, data } = texture_case(w, h, sigma, 3);
     let mask = mask_boundary(None, &k, w, h);
     let delta = texture::lost_signal(&fft, &data.data, &sharp[0].data, &kernel, &mask, &vec![sigma * sigma; w * h]);
     let rms = (delta.iter().map(|d| (*d as f64).powi(2)).sum::<f64>() / (w * h) as f64).sqrt();

@@ -74,6 +74,11 @@ pub struct TileSettings {
     pub tolerance: f64,
 }
 
+/// Power iterations for a window's step size ([`KernelProblem::lipschitz`], safety factor
+/// 1.3). 4 (8 until branch e18): the window fits and the test bed's figures of all five lenses
+/// are those of 8 to the table's precision (docs/estimation.md "Session 18: speed (e18)").
+pub const WINDOW_POWER_ITERATIONS: usize = 4;
+
 /// Iterations of phase 1 (the provisional `λ`).
 pub const PHASE1_ITERATIONS: usize = 15;
 
@@ -116,6 +121,25 @@ impl KernelProblem {
     /// `out = Pᵀ Iᵀ M (I ⊛ P b − j)` (or without `j` when `with_data` is false); returns
     /// `½‖M (I ⊛ P b − j)‖²`.
     fn normal(&mut self, b: &[f32], out: &mut [f32], with_data: bool) -> f64 {
+        #[cfg(target_arch = "x86_64")]
+        if crate::solve::fft::has_avx2() {
+            // SAFETY: the CPU supports AVX2 (checked at run time just above).
+            return unsafe { self.normal_avx2(b, out, with_data) };
+        }
+        self.normal_body(b, out, with_data)
+    }
+
+    /// [`KernelProblem::normal_body`] compiled for AVX2 (the same bits: same operations, same
+    /// order, no fused multiply–add; [`crate::solve::fft::has_avx2`]).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    fn normal_avx2(&mut self, b: &[f32], out: &mut [f32], with_data: bool) -> f64 {
+        self.normal_body(b, out, with_data)
+    }
+
+    /// The body of [`KernelProblem::normal`].
+    #[inline(always)]
+    fn normal_body(&mut self, b: &[f32], out: &mut [f32], with_data: bool) -> f64 {
         let (pw, ph) = (self.fft.width, self.fft.height);
         for (&i, &v) in self.index.iter().zip(b) {
             self.kbuf[i] = v;
@@ -254,7 +278,7 @@ pub fn solve_tile(data: &TileData, s: &TileSettings, mut on_check: impl FnMut(us
     let (total, mean_j) = p.target_sum(s.mu_relative);
     p.total = total;
     let mut x = p.warm_start(mean_j);
-    let l_f = p.lipschitz(8);
+    let l_f = p.lipschitz(WINDOW_POWER_ITERATIONS);
     let l_k = 8f32.sqrt();
     let sd = std_dev(&data.sharp);
     let dof = (data_pixels as f64 - (k * k) as f64).max(data_pixels as f64 * 0.25);
@@ -358,6 +382,53 @@ mod tests {
     }
 
     /// A window whose PSF is uniform: the solver recovers it closely (noise 0.5% of the mean).
+    /// The AVX2 build of the window fit's normal operator returns the same bits as the
+    /// baseline build (value and gradient).
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx2_build_returns_the_same_bits() {
+        if !std::is_x86_feature_detected!("avx2") {
+            eprintln!("this CPU has no AVX2: nothing to compare");
+            return;
+        }
+        let (pw, ph, k) = (60usize, 54usize, 9usize);
+        let mut rng = Rng::new(15);
+        let sharp: Vec<f32> = (0..pw * ph).map(|_| rng.uniform() as f32).collect();
+        let blurred: Vec<f32> = (0..pw * ph).map(|_| rng.uniform() as f32).collect();
+        let mask: Vec<bool> = (0..pw * ph).map(|i| (i / pw) > 4 && (i / pw) < ph - 4 && rng.uniform() < 0.9).collect();
+        let mut p = KernelProblem::new(&TileData { pw, ph, sharp, blurred, mask }, k);
+        let b: Vec<f32> = (0..k * k).map(|_| rng.uniform() as f32).collect();
+        for with_data in [true, false] {
+            let (mut g0, mut g1) = (vec![0.0f32; k * k], vec![0.0f32; k * k]);
+            let f0 = p.normal_body(&b, &mut g0, with_data);
+            // SAFETY: AVX2 was detected above.
+            let f1 = unsafe { p.normal_avx2(&b, &mut g1, with_data) };
+            assert!(f0 > 0.0 && g0.iter().any(|&v| v != 0.0));
+            assert_eq!(f0.to_bits(), f1.to_bits(), "with data {with_data}");
+            assert_eq!(g0.iter().map(|v| v.to_bits()).collect::<Vec<_>>(), g1.iter().map(|v| v.to_bits()).collect::<Vec<_>>(), "with data {with_data}");
+        }
+    }
+
+    /// The window's step size from [`WINDOW_POWER_ITERATIONS`] power iterations (with the safety
+    /// factor 1.3) bounds the data term's largest eigenvalue on zero-sum kernels (from 300
+    /// iterations) from above, and by less than the factor, on a window of noise and one of
+    /// 3-px cells.
+    #[test]
+    fn window_step_bounds_the_largest_eigenvalue() {
+        let (n, k) = (96usize, 15usize);
+        let mut r = Rng::new(17);
+        let cells: Vec<f32> = (0..(n / 3 + 1) * (n / 3 + 1)).map(|_| if r.uniform() < 0.5 { 0.2 } else { 0.8 }).collect();
+        let targets = [Plane::from_fn(n, n, |_, _| r.uniform() as f32), Plane::from_fn(n, n, |x, y| cells[(y / 3) * (n / 3 + 1) + x / 3])];
+        for (i, sharp) in targets.iter().enumerate() {
+            let valid = vec![true; n * n];
+            let data = crate::estimate::tile_data(sharp, sharp, &valid, 1.0, (10, n - 10, 10, n - 10), k);
+            let mut p = KernelProblem::new(&data, k);
+            let quick = p.lipschitz(WINDOW_POWER_ITERATIONS) as f64;
+            let top = p.lipschitz(300) as f64 / 1.3;
+            assert!(quick >= top && quick <= 1.3 * top * 1.0001, "target {i}: step bound {quick:.4e}, eigenvalue {top:.4e}");
+        }
+    }
+
     #[test]
     fn recovers_a_uniform_psf() {
         let (w, h, k) = (96usize, 96usize, 11usize);

@@ -86,19 +86,28 @@ impl Plane {
         self.data[yi * self.width + xi]
     }
 
-    /// The `w × h` window whose top-left pixel is `(x0, y0)`; pixels outside are mirrored.
+    /// The `w × h` window whose top-left pixel is `(x0, y0)`; pixels outside are mirrored
+    /// (as [`Plane::get_reflect`]). Per row the columns inside the image are one slice copy and
+    /// only the mirrored columns are looked up (their indices computed once per call).
     pub fn window_reflect(&self, x0: isize, y0: isize, w: usize, h: usize) -> Plane {
         let mut out = Plane::new(w, h);
-        for y in 0..h {
-            let yy = y0 + y as isize;
-            let row = &mut out.data[y * w..(y + 1) * w];
-            if yy >= 0 && (yy as usize) < self.height && x0 >= 0 && x0 as usize + w <= self.width {
-                let s = yy as usize * self.width + x0 as usize;
-                row.copy_from_slice(&self.data[s..s + w]);
-            } else {
-                for (x, v) in row.iter_mut().enumerate() {
-                    *v = self.get_reflect(x0 + x as isize, yy);
-                }
+        if self.width == 0 || self.height == 0 {
+            return out;
+        }
+        let width = self.width as isize;
+        // window columns [a, b) lie inside the image (image columns x0 + a .. x0 + b)
+        let a = (-x0).clamp(0, w as isize) as usize;
+        let b = (width - x0).clamp(a as isize, w as isize) as usize;
+        let mirrored: Vec<(usize, usize)> = (0..a).chain(b..w).map(|x| (x, reflect_index(x0 + x as isize, self.width))).collect();
+        for (y, row) in out.data.chunks_exact_mut(w.max(1)).take(h).enumerate() {
+            let yy = reflect_index(y0 + y as isize, self.height);
+            let src = &self.data[yy * self.width..(yy + 1) * self.width];
+            if b > a {
+                let s = (x0 + a as isize) as usize;
+                row[a..b].copy_from_slice(&src[s..s + (b - a)]);
+            }
+            for &(x, i) in &mirrored {
+                row[x] = src[i];
             }
         }
         out
@@ -366,6 +375,22 @@ pub fn default_channel_names(n: usize) -> Vec<String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The window equals the per-pixel mirrored lookup for windows inside, across every
+    /// edge, wider than the image and wholly outside it.
+    #[test]
+    fn window_reflect_matches_the_mirrored_lookup() {
+        let p = Plane::from_fn(13, 9, |x, y| (y * 13 + x) as f32);
+        for &(x0, y0, w, h) in &[(2isize, 1isize, 5usize, 4usize), (-3, -2, 8, 6), (9, 6, 7, 5), (-4, -3, 22, 16), (15, 11, 4, 3), (-20, 4, 6, 2), (0, 0, 13, 9), (5, 3, 0, 2)] {
+            let got = p.window_reflect(x0, y0, w, h);
+            assert_eq!((got.width, got.height), (w, h));
+            for y in 0..h {
+                for x in 0..w {
+                    assert_eq!(got.get(x, y), p.get_reflect(x0 + x as isize, y0 + y as isize), "window ({x0}, {y0}, {w}, {h}) at ({x}, {y})");
+                }
+            }
+        }
+    }
 
     #[test]
     fn reflect_index_is_half_sample_symmetric() {

@@ -33,6 +33,12 @@
 //! [`KernelOperator::subsampled`] takes such a subset from a built operator, sharing the
 //! sharp image's block spectra (the joint fit's λ choice on a quarter of the blocks).
 //!
+//! # AVX2 build
+//! The complex multiply–accumulate loops of `A b` and `Aᵀ r` (per block and tile, around the
+//! FFT passes) also have a build for AVX2, chosen at run time on x86-64 CPUs that have it
+//! ([`crate::solve::fft::has_avx2`]); it does the same operations in the same order (no fused
+//! multiply–add), so `A b` and `Aᵀ r` are the same bits either way.
+//!
 //! # Conventions
 //! Kernels are `k × k` (odd), row-major, centre = zero displacement, concatenated in the grid's
 //! tile order (`tiles · k²` values); images are row-major `width × height`, linear values.
@@ -407,6 +413,7 @@ impl KernelOperator {
     /// `c`: `Σ_c cx_c(x) · R⁻¹_x[Σ_{t ∈ c} cy_t(y) · C⁻¹_y(Î_B · b̂_t)]` (`C⁻¹_y` the inverse
     /// column pass, `R⁻¹_x` the inverse row pass, on the block's `sh` rows only): one column
     /// pass per active tile, one row pass per active grid column.
+    #[inline(always)]
     fn predict_block(&self, blk: &Block, b_hat: &[Vec<Complex32>], wk: &mut Work, local: &mut Vec<f32>) {
         let r = self.k / 2;
         let (fw, fh, hw) = (self.fft.width, self.fft.height, self.fft.half_width);
@@ -460,6 +467,7 @@ impl KernelOperator {
     /// The spectra of grid column `c`'s share of `Aᵀ resid`: for every tile `t` of `accs` (tiles
     /// of column `c`, as `(t, spectrum)`), `Σ_B conj(Î_B) · C_y(cy_t ⊙ R_x(cx_c ⊙ r_B))`, one row pass per
     /// block shared by the column's tiles (kept in cache: the column is one task).
+    #[inline(always)]
     fn adjoint_column(&self, c: usize, resid: &[f32], accs: &mut [(usize, &mut Vec<Complex32>)], wk: &mut Work) {
         let r = self.k / 2;
         let (fh, hw) = (self.fft.height, self.fft.half_width);
@@ -505,6 +513,41 @@ impl KernelOperator {
         }
     }
 
+    /// [`KernelOperator::predict_block`] compiled for AVX2 when the CPU has it
+    /// ([`crate::solve::fft::has_avx2`]), else for the baseline target: the same operations in the same order
+    /// (no fused multiply–add), so the same bits, on twice the lanes.
+    fn predict_block_fast(&self, blk: &Block, b_hat: &[Vec<Complex32>], wk: &mut Work, local: &mut Vec<f32>) {
+        #[cfg(target_arch = "x86_64")]
+        if crate::solve::fft::has_avx2() {
+            // SAFETY: the CPU supports AVX2 (checked at run time just above).
+            return unsafe { self.predict_block_avx2(blk, b_hat, wk, local) };
+        }
+        self.predict_block(blk, b_hat, wk, local)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    fn predict_block_avx2(&self, blk: &Block, b_hat: &[Vec<Complex32>], wk: &mut Work, local: &mut Vec<f32>) {
+        self.predict_block(blk, b_hat, wk, local)
+    }
+
+    /// [`KernelOperator::adjoint_column`] for AVX2 when the CPU has it (as
+    /// [`KernelOperator::predict_block_fast`]: the same bits).
+    fn adjoint_column_fast(&self, c: usize, resid: &[f32], accs: &mut [(usize, &mut Vec<Complex32>)], wk: &mut Work) {
+        #[cfg(target_arch = "x86_64")]
+        if crate::solve::fft::has_avx2() {
+            // SAFETY: the CPU supports AVX2 (checked at run time just above).
+            return unsafe { self.adjoint_column_avx2(c, resid, accs, wk) };
+        }
+        self.adjoint_column(c, resid, accs, wk)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    fn adjoint_column_avx2(&self, c: usize, resid: &[f32], accs: &mut [(usize, &mut Vec<Complex32>)], wk: &mut Work) {
+        self.adjoint_column(c, resid, accs, wk)
+    }
+
     /// `A b` as a plane (kernels given as planes, in tile order).
     pub fn apply_planes(&self, kernels: &[Plane]) -> Plane {
         let b: Vec<f32> = kernels.iter().flat_map(|p| p.data.iter().copied()).collect();
@@ -526,7 +569,7 @@ impl LinearOperator for KernelOperator {
         let Buffers { b_hat, preds, .. } = &mut *guard;
         self.kernel_spectra(b, b_hat);
         preds.resize_with(self.blocks.len(), Vec::new);
-        self.blocks.par_iter().zip(preds.par_iter_mut()).for_each(|(blk, local)| with_work(&self.fft, |wk| self.predict_block(blk, b_hat, wk, local)));
+        self.blocks.par_iter().zip(preds.par_iter_mut()).for_each(|(blk, local)| with_work(&self.fft, |wk| self.predict_block_fast(blk, b_hat, wk, local)));
         out.fill(0.0);
         for (blk, local) in self.blocks.iter().zip(preds.iter()) {
             for y in 0..blk.sh {
@@ -550,7 +593,7 @@ impl LinearOperator for KernelOperator {
         for (t, a) in acc.iter_mut().enumerate() {
             tasks[(t % self.columns) * parts + (t / self.columns) / chunk].1.push((t, a));
         }
-        tasks.par_iter_mut().for_each(|(c, accs)| with_work(&self.fft, |wk| self.adjoint_column(*c, resid, accs, wk)));
+        tasks.par_iter_mut().for_each(|(c, accs)| with_work(&self.fft, |wk| self.adjoint_column_fast(*c, resid, accs, wk)));
         drop(tasks);
         let acc = &*acc;
         out.par_chunks_mut(k2).zip(acc.par_iter()).for_each(|(ot, a)| with_work(&self.fft, |wk| self.adjoint_tile(a, wk, ot)));
@@ -636,6 +679,53 @@ pub(crate) mod tests {
             assert_eq!(a, b);
         }
         assert!(KernelOperator::new(&sharp, &g, w * h / 2).subsampled(w * h / 3).is_none(), "one in 3 is not a subset of one in 2");
+    }
+
+    /// The AVX2 build of the operator's loops returns the same bits as the baseline build, for
+    /// `A b` block by block and `Aᵀ r` grid column by grid column (several blocks and columns).
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx2_build_returns_the_same_bits() {
+        if !std::is_x86_feature_detected!("avx2") {
+            eprintln!("this CPU has no AVX2: nothing to compare");
+            return;
+        }
+        let (w, h, k) = (157, 113, 9);
+        let mut rng = Rng::new(21);
+        let sharp = Plane::from_fn(w, h, |_, _| rng.uniform() as f32);
+        let resid: Vec<f32> = (0..w * h).map(|_| rng.normal() as f32).collect();
+        let g = grid(w, h, k, 4, 3, 22);
+        let op = KernelOperator::new(&sharp, &g, usize::MAX);
+        assert!(op.block_count() > 1 && op.columns > 1, "several blocks and columns");
+        let b: Vec<f32> = g.kernels[0].iter().flat_map(|p| p.data.iter().copied()).collect();
+        let mut b_hat = Vec::new();
+        op.kernel_spectra(&b, &mut b_hat);
+        let mut wk = Work::new(&op.fft);
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<u32>>();
+        for blk in &op.blocks {
+            let (mut base, mut fast) = (Vec::new(), Vec::new());
+            op.predict_block(blk, &b_hat, &mut wk, &mut base);
+            // SAFETY: AVX2 was detected above.
+            unsafe { op.predict_block_avx2(blk, &b_hat, &mut wk, &mut fast) };
+            assert!(base.iter().any(|&v| v != 0.0), "a block predicts nothing");
+            assert_eq!(bits(&base), bits(&fast), "block {}", blk.index);
+        }
+        for c in 0..op.columns {
+            let tiles: Vec<usize> = (0..op.tiles()).filter(|t| t % op.columns == c).collect();
+            let mut spectra = vec![vec![Vec::new(); tiles.len()]; 2];
+            for (avx, accs) in spectra.iter_mut().enumerate() {
+                let mut task: Vec<(usize, &mut Vec<Complex32>)> = tiles.iter().copied().zip(accs.iter_mut()).collect();
+                if avx == 1 {
+                    // SAFETY: AVX2 was detected above.
+                    unsafe { op.adjoint_column_avx2(c, &resid, &mut task, &mut wk) };
+                } else {
+                    op.adjoint_column(c, &resid, &mut task, &mut wk);
+                }
+            }
+            let flat = |a: &[Vec<Complex32>]| a.iter().flatten().flat_map(|z| [z.re.to_bits(), z.im.to_bits()]).collect::<Vec<u32>>();
+            assert!(spectra[0].iter().flatten().any(|z| z.norm_sqr() > 0.0), "column {c}: an empty adjoint");
+            assert_eq!(flat(&spectra[0]), flat(&spectra[1]), "column {c}");
+        }
     }
 
     /// The factored adjoint equals the direct sum

@@ -282,6 +282,18 @@ pub fn good_size(n: usize) -> usize {
     best
 }
 
+/// Whether the hot complex multiply–accumulate loops around the FFTs (the blocked kernel
+/// operator, [`crate::optics::kernel_operator`]; the window fit's normal operator,
+/// [`crate::estimate::solver`]) run in their AVX2 build: on x86-64 CPUs with AVX2, detected
+/// once. Those builds do the same operations in the same order (no fused multiply–add), so
+/// they return the same bits as the baseline build. `LENSRIG_NO_AVX2` set in the environment
+/// forces the baseline build (timing comparisons).
+#[cfg(target_arch = "x86_64")]
+pub fn has_avx2() -> bool {
+    static AVX2: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *AVX2.get_or_init(|| std::env::var_os("LENSRIG_NO_AVX2").is_none() && std::is_x86_feature_detected!("avx2"))
+}
+
 /// Runs `f` on a value taken from a thread-local cache (the first that `fits`, else `make()`)
 /// and puts it back afterwards, keeping at most `keep` values (oldest dropped first): per-thread
 /// work buffers for FFT plans of a few sizes, without allocation after the first call.

@@ -434,9 +434,9 @@ mod tests {
     }
 
     /// The momentum carried between solves ([`KernelWarm`]): three rounds of 20 iterations
-    /// handing the momentum on reach a lower χ² than three rounds each started afresh (what the
-    /// fit did before, and what a fresh `KernelWarm` per round still does), on the 31-px
-    /// low-pass problem of the test below.
+    /// handing the momentum on end closer to a long solve's χ² than three rounds each started
+    /// afresh (what the fit did before, and what a fresh `KernelWarm` per round still does), on
+    /// the 31-px low-pass problem of the test below.
     #[test]
     fn carried_momentum_converges_further_than_fresh_rounds() {
         let (w, h, k) = (144, 108, 31);
@@ -459,9 +459,12 @@ mod tests {
             carried = fit_kernels_warm(&op, &y, &wt, &carried, set, &mut warm).0;
             fresh = fit_kernels(&op, &y, &wt, &fresh, set).0;
         }
-        let (c, f) = (chi2(&carried) / floor, chi2(&fresh) / floor);
-        eprintln!("31 px, 3 × 20 iterations: χ²/χ²_truth carried {c:.4}, fresh {f:.4}");
-        assert!(c - 1.0 < 0.8 * (f - 1.0), "carried {c:.4} vs fresh {f:.4}");
+        // the gaps to a long solve's χ² (the fit absorbs noise: below the true kernels' χ²)
+        let (long, _) = fit_kernels(&op, &y, &wt, &gaussian_kernels(k, 4, 5.0), KernelFitSettings { iterations: 600, ..set });
+        let (c, f, best) = (chi2(&carried) / floor, chi2(&fresh) / floor, chi2(&long) / floor);
+        eprintln!("31 px, 3 × 20 iterations: χ²/χ²_truth carried {c:.4}, fresh {f:.4}; 600 iterations {best:.4}");
+        assert!(best <= c && c < f, "carried {c:.4}, fresh {f:.4}, long {best:.4}");
+        assert!(c - best < 0.9 * (f - best), "carried {c:.4} vs fresh {f:.4}: gaps to {best:.4}");
         // inside one call the rounds carry it too: 1 call of 3 rounds is the carried chain
         let (one, _) = fit_kernels(&op, &y, &wt, &gaussian_kernels(k, 4, 5.0), KernelFitSettings { rounds: 3, ..set });
         let o = chi2(&one) / floor;

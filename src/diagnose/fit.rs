@@ -8,7 +8,9 @@
 //! `G` the vignetting × gradient gain and `β_c` the offset (each present only when its
 //! correction is). The fit alternates: kernels by projected FISTA ([`super::kernels`]) with the
 //! other parameters fixed, then one Gauss–Newton step for the scalar parameters, then the
-//! weights `1/Var` from the new prediction. Three rounds. Under `veiling_glare` or
+//! weights `1/Var` from the new prediction. Three rounds; the channels' kernel steps run
+//! concurrently, and each channel's FISTA momentum and step norm carry from one round to the
+//! next ([`super::kernels::KernelWarm`]). Under `veiling_glare` or
 //! `black_level`, each kernel step hands the kernels' common flat floor to the additive term
 //! ([`remove_common_floor`]).
 //!
@@ -23,7 +25,8 @@
 //!
 //! Parameters: `C·(T·(k² − 1) + 1)` for the kernels and sums plus each correction's own.
 
-use super::kernels::{fit_kernels_warm, kernel_divergence, KernelFitSettings, KernelStep, StepNorm};
+use super::kernels::{fit_kernels_warm, kernel_divergence_with, rademacher, Divergence, KernelFitSettings, KernelStep, KernelWarm};
+use rayon::prelude::*;
 use crate::optics::kernel_operator::KernelOperator;
 use super::model::{model_transfer, reference_planes, Corrections, GlareCorrection};
 use super::noise::{srgb_slope, NoiseCurve};
@@ -578,16 +581,28 @@ fn fit_on(data: &Data, corrections: &Corrections, init: &Model, settings: FitSet
 pub fn measure_kernel_dof(data: &Data, fit: &Fit, settings: FitSettings, seed: u64, data_pixels: usize) -> KernelDof {
     let corr = fit.model.corrections.clone();
     let setup = Setup::new(data, &corr, &fit.model, &|_, _| true, data_pixels);
-    let mut p = setup.initial_params(&corr, &fit.model);
+    let p = setup.initial_params(&corr, &fit.model);
     let g = gain_plane(&corr, setup.w, setup.h);
     let kset = KernelFitSettings { iterations: settings.kernel_iterations, rounds: settings.rounds.max(1), step: KERNEL_STEP };
+    // the probes drawn in channel order from one generator, then the channels concurrently
     let mut rng = crate::rng::Rng::new(seed);
+    let n = setup.w * setup.h;
+    let probes: Vec<Vec<f32>> = (0..setup.nch).map(|_| rademacher(n, &mut rng)).collect();
+    let divergences: Vec<Divergence> = {
+        let (setup, g, p) = (&setup, &g, &p);
+        probes
+            .par_iter()
+            .enumerate()
+            .map(|(c, b)| {
+                let var = setup.update_variance(c, &p.a_parts[c], &p.u[c], g, p.glare_amp[c], p.beta[c]);
+                let (y, wt) = setup.kernel_target(c, g, p, &var);
+                kernel_divergence_with(&setup.ops[c], &y, &wt, &p.u[c], kset, b)
+            })
+            .collect()
+    };
     let mut df = 0.0;
     let mut highpass_absorbed = Vec::with_capacity(setup.nch);
-    for c in 0..setup.nch {
-        p.variance_lin[c] = setup.update_variance(c, &p.a_parts[c], &p.u[c], &g, p.glare_amp[c], p.beta[c]);
-        let (y, wt) = setup.kernel_target(c, &g, &p);
-        let d = kernel_divergence(&setup.ops[c], &y, &wt, &p.u[c], kset, &mut rng);
+    for d in &divergences {
         df += d.df;
         highpass_absorbed.push(d.highpass_absorbed);
     }
@@ -698,8 +713,16 @@ struct Setup<'a> {
     glare_planes: Option<Vec<Plane>>,
     ops: Vec<KernelOperator>,
     diffraction: Option<super::model::DiffractionCorrection>,
-    /// Per channel, the kernel step's norm estimate, warm-started between rounds.
-    norms: std::sync::Mutex<Vec<StepNorm>>,
+    /// Per channel, the kernel step's norm estimate (and momentum), warm-started between rounds.
+    warm: Vec<std::sync::Mutex<KernelWarm>>,
+}
+
+/// One channel's state after [`Setup::kernel_step`].
+struct KernelStepResult {
+    variance: Plane,
+    u: Vec<Plane>,
+    a_part: Plane,
+    glare_amp: f64,
 }
 
 /// The free parameters of a fit while it runs (see the module doc's model).
@@ -759,8 +782,8 @@ impl<'a> Setup<'a> {
         let masks = Masks::new(data, corr, &registration, grid0.kernel_size / 2, &kept);
         let glare_planes: Option<Vec<Plane>> = corr.veiling_glare.map(|g| reference.iter().map(|p| gaussian_blur_wide(p, g.sigma_px)).collect());
         let diffraction = corr.pinhole_diffraction.clone();
-        let norms = std::sync::Mutex::new(vec![StepNorm::new(); nch]);
-        Self { data, transfer, w, h, nch, reference, open_lin, noise_factor, grid0, masks, glare_planes, ops, diffraction, norms }
+        let warm = (0..nch).map(|_| std::sync::Mutex::new(KernelWarm::default())).collect();
+        Self { data, transfer, w, h, nch, reference, open_lin, noise_factor, grid0, masks, glare_planes, ops, diffraction, warm }
     }
 
     /// The starting parameters: the initial kernels scaled by the exposure (less the glare's
@@ -819,12 +842,20 @@ impl<'a> Setup<'a> {
         })
     }
 
-    /// One round: per channel the new weights and a kernel step, then up to two Gauss–Newton
-    /// steps on the scalar parameters (shared ones couple the channels).
+    /// One round: per channel the new weights and a kernel step (the channels' kernel problems
+    /// are independent and run concurrently), then up to two Gauss–Newton steps on the scalar
+    /// parameters (shared ones couple the channels).
     fn round(&self, corr: &mut Corrections, p: &mut Params, kset: KernelFitSettings) {
         let g = gain_plane(corr, self.w, self.h);
-        for c in 0..self.nch {
-            self.kernel_step(c, corr, &g, p, kset);
+        let steps: Vec<KernelStepResult> = {
+            let (corr, g, params) = (&*corr, &g, &*p);
+            (0..self.nch).into_par_iter().map(|c| self.kernel_step(c, corr, g, params, kset)).collect()
+        };
+        for (c, r) in steps.into_iter().enumerate() {
+            p.variance_lin[c] = r.variance;
+            p.u[c] = r.u;
+            p.a_parts[c] = r.a_part;
+            p.glare_amp[c] = r.glare_amp;
         }
         for _ in 0..2 {
             let mut st = ScalarState { u: &mut p.u, a_parts: &mut p.a_parts, glare_amp: &mut p.glare_amp, beta: &mut p.beta };
@@ -836,8 +867,8 @@ impl<'a> Setup<'a> {
 
     /// Channel `c`'s kernel problem with the other parameters fixed: the target
     /// `y = (open − β)/G − g_c·(G_σ * P̃)` and the weights `G²/Var` (0 off the data mask), with
-    /// `p.variance_lin[c]` as the variance.
-    fn kernel_target(&self, c: usize, g: &Plane, p: &Params) -> (Plane, Vec<f32>) {
+    /// `var` (linear axis) as the variance.
+    fn kernel_target(&self, c: usize, g: &Plane, p: &Params, var: &Plane) -> (Plane, Vec<f32>) {
         let (w, h) = (self.w, self.h);
         let (glare_amp, beta) = (p.glare_amp[c], p.beta[c]);
         let y = Plane::from_fn(w, h, |x, yy| {
@@ -845,34 +876,36 @@ impl<'a> Setup<'a> {
             (self.open_lin[c].data[i] - beta as f32) / g.data[i] - glare_amp as f32 * self.glare_planes.as_ref().map_or(0.0, |gp| gp[c].data[i])
         });
         let fitmask = &self.masks.fitmask[c];
-        let var = &p.variance_lin[c];
         let wt: Vec<f32> = (0..w * h).map(|i| if fitmask[i] { g.data[i] * g.data[i] / var.data[i] } else { 0.0 }).collect();
         (y, wt)
     }
 
     /// Channel `c`'s weights from the current prediction, then its kernels by projected FISTA
-    /// with the scalar parameters fixed.
-    fn kernel_step(&self, c: usize, corr: &Corrections, g: &Plane, p: &mut Params, kset: KernelFitSettings) {
-        p.variance_lin[c] = self.update_variance(c, &p.a_parts[c], &p.u[c], g, p.glare_amp[c], p.beta[c]);
-        let (y, wt) = self.kernel_target(c, g, p);
+    /// with the scalar parameters fixed; reads only channel `c` of `p` and returns its new
+    /// state (so that the channels can run concurrently).
+    fn kernel_step(&self, c: usize, corr: &Corrections, g: &Plane, p: &Params, kset: KernelFitSettings) -> KernelStepResult {
+        let variance = self.update_variance(c, &p.a_parts[c], &p.u[c], g, p.glare_amp[c], p.beta[c]);
+        let (y, wt) = self.kernel_target(c, g, p, &variance);
+        let mut r = KernelStepResult { variance, u: p.u[c].clone(), a_part: p.a_parts[c].clone(), glare_amp: p.glare_amp[c] };
         if kset.iterations > 0 {
-            let mut norms = self.norms.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-            let (nu, _s) = fit_kernels_warm(&self.ops[c], &y, &wt, &p.u[c], kset, &mut norms[c]);
-            p.u[c] = nu;
-            p.a_parts[c] = self.blur_part(c, &p.u[c]);
+            let mut warm = self.warm[c].lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+            let (nu, _s) = fit_kernels_warm(&self.ops[c], &y, &wt, &r.u, kset, &mut warm);
+            r.u = nu;
+            r.a_part = self.blur_part(c, &r.u);
         }
         // an additive smooth term takes the kernels' common floor (see
         // [`remove_common_floor`]); the glare amplitude starts from its mass, the offset is
         // refitted by the Gauss–Newton step (linear in β and the sums)
         if corr.veiling_glare.is_some() || corr.black_level.is_some() {
-            let moved = remove_common_floor(&mut p.u[c]);
+            let moved = remove_common_floor(&mut r.u);
             if moved > 0.0 {
                 if corr.veiling_glare.is_some() {
-                    p.glare_amp[c] += moved;
+                    r.glare_amp += moved;
                 }
-                p.a_parts[c] = self.blur_part(c, &p.u[c]);
+                r.a_part = self.blur_part(c, &r.u);
             }
         }
+        r
     }
 
     /// The final parameters into the model: kernels normalised to sum 1, the exposure per
@@ -951,9 +984,8 @@ impl<'a> Setup<'a> {
     fn figures(&self, corr: &Corrections, p: &mut Params, subset_figures: bool) -> Figures {
         let partial = self.ops.iter().any(|o| o.covered().iter().any(|c| !c));
         if partial && !subset_figures {
-            for c in 0..self.nch {
-                p.a_parts[c] = KernelOperator::new(&self.reference[c], &self.grid0, usize::MAX).apply_planes(&p.u[c]);
-            }
+            let parts: Vec<Plane> = (0..self.nch).into_par_iter().map(|c| KernelOperator::new(&self.reference[c], &self.grid0, usize::MAX).apply_planes(&p.u[c])).collect();
+            p.a_parts = parts;
         }
         let scored = if partial && subset_figures { self.scored_mask(corr) } else { self.masks.interior.clone() };
         let count = |m: &[bool]| m.iter().filter(|&&b| b).count();
@@ -962,11 +994,17 @@ impl<'a> Setup<'a> {
         if f.share <= 0.0 {
             f.share = 1.0;
         }
-        for c in 0..self.nch {
-            if !subset_figures {
-                f.low_band_floor.push(self.low_band_floor(c, p, &g, &scored));
+        let per_channel: Vec<(Option<f64>, ChannelFigures)> = {
+            let (p, g, scored) = (&*p, &g, &scored);
+            (0..self.nch)
+                .into_par_iter()
+                .map(|c| ((!subset_figures).then(|| self.low_band_floor(c, p, g, scored)), self.channel_figures(c, corr, p, g, scored)))
+                .collect()
+        };
+        for (low, cf) in per_channel {
+            if let Some(l) = low {
+                f.low_band_floor.push(l);
             }
-            let cf = self.channel_figures(c, corr, p, &g, &scored);
             let sc = cf.score;
             f.reference_highpass.push(cf.reference_highpass);
             f.predicted.push(sc.predicted);

@@ -15,7 +15,8 @@
 //! the forward model itself, without a prior (the kernel count enters the parameter penalty).
 //!
 //! # Algorithm
-//! FISTA ([`crate::solve::fista`], no stall rule: a fixed number of iterations) with a step
+//! FISTA ([`crate::solve::fista`], no stall rule: a fixed number of iterations; a stop on
+//! χ²'s decrease was measured never to act at 45 px, docs/diagnosis.md "Session 18") with a step
 //! `1/L` from power iteration, and the exact Euclidean projection onto `{U ≥ 0, ΣU = S}` (the
 //! scaled simplex). Two steps ([`KernelStep`]): `L = 1.05 ‖AᵀWA‖` on the whole space, no
 //! restart (the former step), or `L = 1.05 ‖P AᵀWA P‖` with adaptive restart (what the
@@ -25,13 +26,22 @@
 //! bounds the step, as in [`crate::estimate::joint`]. The whole-space norm is set by the flat
 //! mode, whose eigenvalue grows with `k²` (`≈ k²·mean(P)²` per pixel of weight): with it,
 //! 31–45-px kernels take a step many times too small and stall far above the noise floor in
-//! the diagnosis' budgets (docs/diagnosis.md, "Realistic size"). `A` and `Aᵀ` are the blocked kernel operator
+//! the diagnosis' budgets (docs/diagnosis.md, "Realistic size").
+//!
+//! With the tangent step the momentum is carried from one solve to the next on the same
+//! operator ([`KernelWarm`], [`crate::solve::fista::fista_resume`]): the next round of a fit
+//! (whose weights and scalars moved a little) and the next round inside [`fit_kernels`]
+//! continue FISTA's extrapolation `z − x` and its `t` (the offsets scaled with the common
+//! sum) instead of starting again from `z = x, t = 1`; adaptive restart drops the momentum
+//! where it no longer points downhill. At 45 px a fresh start spends the first 20–30 of a
+//! round's 80 iterations rebuilding the momentum (docs/diagnosis.md, "Session 18").
+//! `A` and `Aᵀ` are the blocked kernel operator
 //! [`crate::optics::kernel_operator::KernelOperator`] (mirrored at the image edges like
 //! [`crate::optics::forward::blur_channel`]).
 
 use crate::image::Plane;
 use crate::optics::kernel_operator::KernelOperator;
-use crate::solve::fista::{fista, Composite, FistaOptions};
+use crate::solve::fista::{fista_resume, Composite, FistaOptions, Momentum};
 use crate::solve::operator::LinearOperator;
 use crate::solve::power::{kernel_start, power_iteration, remove_block_means};
 use crate::solve::prox::project_simplex;
@@ -138,6 +148,17 @@ impl StepNorm {
     }
 }
 
+/// What one channel's kernel solve hands to the next on the same operator (the next round of
+/// a fit): the step's norm ([`StepNorm`]) and FISTA's momentum ([`Momentum`]) with the common
+/// sum it was left at.
+#[derive(Clone, Debug, Default)]
+pub struct KernelWarm {
+    pub norm: StepNorm,
+    momentum: Momentum,
+    /// The common sum `S` the momentum's offsets refer to.
+    sum: f32,
+}
+
 /// Pixels per kernel, `k²` (1 without kernels).
 fn kernel_area(init: &[Plane]) -> usize {
     init.first().map_or(1, |k| k.width * k.height).max(1)
@@ -147,17 +168,18 @@ fn kernel_area(init: &[Plane]) -> usize {
 /// kernel is scaled to the common sum first). Returns the kernels `U_t` (summing to the fitted
 /// `S`) and `S`.
 pub fn fit_kernels(op: &KernelOperator, y: &Plane, weight: &[f32], init: &[Plane], settings: KernelFitSettings) -> (Vec<Plane>, f32) {
-    fit_kernels_warm(op, y, weight, init, settings, &mut StepNorm::new())
+    fit_kernels_warm(op, y, weight, init, settings, &mut KernelWarm::default())
 }
 
-/// [`fit_kernels`] with the step's norm estimated from `norm`'s warm start ([`StepNorm`]).
-pub fn fit_kernels_warm(op: &KernelOperator, y: &Plane, weight: &[f32], init: &[Plane], settings: KernelFitSettings, norm: &mut StepNorm) -> (Vec<Plane>, f32) {
-    let l = norm.lipschitz(op, weight, kernel_area(init), settings.step);
-    fit_kernels_with_step(op, y, weight, init, settings, l)
+/// [`fit_kernels`] with the step's norm estimated from `warm`'s start ([`StepNorm`]) and, when
+/// it holds one, FISTA's momentum continued from the previous solve; leaves both in `warm`.
+pub fn fit_kernels_warm(op: &KernelOperator, y: &Plane, weight: &[f32], init: &[Plane], settings: KernelFitSettings, warm: &mut KernelWarm) -> (Vec<Plane>, f32) {
+    let l = warm.norm.lipschitz(op, weight, kernel_area(init), settings.step);
+    fit_kernels_with_step(op, y, weight, init, settings, l, warm)
 }
 
-/// [`fit_kernels`] with the Lipschitz constant `l` given.
-fn fit_kernels_with_step(op: &KernelOperator, y: &Plane, weight: &[f32], init: &[Plane], settings: KernelFitSettings, l: f32) -> (Vec<Plane>, f32) {
+/// [`fit_kernels_warm`] with the Lipschitz constant `l` given.
+fn fit_kernels_with_step(op: &KernelOperator, y: &Plane, weight: &[f32], init: &[Plane], settings: KernelFitSettings, l: f32, warm: &mut KernelWarm) -> (Vec<Plane>, f32) {
     let mut s = (init.iter().map(|k| k.sum()).sum::<f64>() / init.len().max(1) as f64) as f32;
     let (kw, kh) = init.first().map_or((0, 0), |k| (k.width, k.height));
     let k2 = kw * kh;
@@ -168,7 +190,13 @@ fn fit_kernels_with_step(op: &KernelOperator, y: &Plane, weight: &[f32], init: &
     let opts = FistaOptions { max_iterations: settings.iterations, min_iterations: usize::MAX, tolerance: 0.0, restart: settings.step == KernelStep::Tangent, stall: None };
     for _ in 0..settings.rounds.max(1) {
         let mut p = WeightedFit { op, y: &y.data, weight, k2, sum: s, pred: vec![0.0; op.output_len()] };
-        fista(&mut p, &mut x, &opts, l, |_, _| true);
+        // the momentum is carried only under adaptive restart (which drops it where it points
+        // the wrong way); its offsets were left at the common sum `warm.sum`, `x` is at `s`
+        if !opts.restart {
+            warm.momentum = Momentum::default();
+        }
+        let scale = if warm.sum > 0.0 { s / warm.sum } else { 1.0 };
+        fista_resume(&mut p, &mut x, &mut warm.momentum, scale, &opts, l, |_, _| true);
         // common sum by weighted least squares
         op.apply(&x, &mut p.pred);
         let (mut num, mut den) = (0.0f64, 0.0f64);
@@ -181,6 +209,7 @@ fn fit_kernels_with_step(op: &KernelOperator, y: &Plane, weight: &[f32], init: &
             x.iter_mut().for_each(|v| *v *= a);
             s *= a;
         }
+        warm.sum = s;
     }
     let kernels = x.chunks(k2.max(1)).map(|c| Plane { width: kw, height: kh, data: c.to_vec() }).collect();
     (kernels, s)
@@ -216,18 +245,36 @@ pub struct Divergence {
 /// the share of the noise's high-pass the fit absorbs ([`Divergence::highpass_absorbed`], over
 /// the pixels whose 5-point stencil is weighted).
 pub fn kernel_divergence(op: &KernelOperator, y: &Plane, weight: &[f32], init: &[Plane], settings: KernelFitSettings, rng: &mut crate::rng::Rng) -> Divergence {
-    let b: Vec<f32> = weight.iter().map(|_| if rng.next_u32() & 1 == 0 { -1.0 } else { 1.0 }).collect();
+    kernel_divergence_with(op, y, weight, init, settings, &rademacher(weight.len(), rng))
+}
+
+/// `n` Rademacher values (±1) from `rng`: the probe of [`kernel_divergence`].
+pub fn rademacher(n: usize, rng: &mut crate::rng::Rng) -> Vec<f32> {
+    (0..n).map(|_| if rng.next_u32() & 1 == 0 { -1.0 } else { 1.0 }).collect()
+}
+
+/// [`kernel_divergence`] with the probe `b` given (one value per pixel of `weight`). The two
+/// solves are independent and run concurrently.
+pub fn kernel_divergence_with(op: &KernelOperator, y: &Plane, weight: &[f32], init: &[Plane], settings: KernelFitSettings, b: &[f32]) -> Divergence {
     let mut yp = y.clone();
-    for ((v, w), bb) in yp.data.iter_mut().zip(weight).zip(&b) {
+    for ((v, w), bb) in yp.data.iter_mut().zip(weight).zip(b) {
         if *w > 0.0 {
             *v += PROBE_EPS * bb / w.sqrt();
         }
     }
     // the two solves share the weights, hence the step
     let l = StepNorm::new().lipschitz(op, weight, kernel_area(init), settings.step);
-    let (ua, _) = fit_kernels_with_step(op, y, weight, init, settings, l);
-    let (ub, _) = fit_kernels_with_step(op, &yp, weight, init, settings, l);
-    let (pa, pb) = (op.apply_planes(&ua), op.apply_planes(&ub));
+    let (mut wa, mut wb) = (KernelWarm::default(), KernelWarm::default());
+    let ((pa, _), (pb, _)) = rayon::join(
+        || {
+            let (ua, s) = fit_kernels_with_step(op, y, weight, init, settings, l, &mut wa);
+            (op.apply_planes(&ua), s)
+        },
+        || {
+            let (ub, s) = fit_kernels_with_step(op, &yp, weight, init, settings, l, &mut wb);
+            (op.apply_planes(&ub), s)
+        },
+    );
     // the whitened response `h = W^{1/2}·Δm/ε` and the probe, 0 off the weighted pixels
     let mut h = vec![0.0f32; weight.len()];
     let mut bw = vec![0.0f32; weight.len()];
@@ -306,7 +353,7 @@ mod tests {
         }
         let y = op.apply_planes(&truth.kernels[0]);
         let init: Vec<Plane> = (0..6).map(|_| Plane::filled(k, k, 1.0 / (k * k) as f32)).collect();
-        let mut norm = StepNorm::new();
+        let mut norm = KernelWarm::default();
         let set = KernelFitSettings { iterations: 150, rounds: 1, step: KernelStep::Tangent };
         let (u1, _) = fit_kernels_warm(&op, &y, &wt, &init, set, &mut norm);
         let (u2, _) = fit_kernels_warm(&op, &y, &moved, &u1, set, &mut norm);
@@ -384,6 +431,44 @@ mod tests {
         eprintln!("probe: every pixel df {df_all:.1} α {alpha_all:.4}; subset ({share:.2}) df {df_sub:.1} α {alpha_sub:.4} → scaled {:.4}", alpha_sub * share);
         assert!((alpha_sub * share / alpha_all - 1.0).abs() < 0.25, "scaled {:.4} vs {alpha_all:.4}", alpha_sub * share);
         assert!((df_sub / df_all - 1.0).abs() < 0.25, "df on the subset {df_sub:.1} vs {df_all:.1}");
+    }
+
+    /// The momentum carried between solves ([`KernelWarm`]): three rounds of 20 iterations
+    /// handing the momentum on end closer to a long solve's χ² than three rounds each started
+    /// afresh (what the fit did before, and what a fresh `KernelWarm` per round still does), on
+    /// the 31-px low-pass problem of the test below.
+    #[test]
+    fn carried_momentum_converges_further_than_fresh_rounds() {
+        let (w, h, k) = (144, 108, 31);
+        let mut r = Rng::new(7);
+        let noise = Plane::from_fn(w, h, |_, _| r.uniform() as f32);
+        let sharp = crate::image::filter::gaussian_blur(&noise, 1.2).map(|v| 0.2 + v);
+        let truth = PsfGrid { kernels: vec![gaussian_kernels(k, 4, 2.5)], ..grid(w, h, k, 0) };
+        let truth = PsfGrid { columns: 2, rows: 2, centers: PsfGrid::regular_centers(w, h, 2, 2), ..truth };
+        let op = KernelOperator::new(&sharp, &truth, usize::MAX);
+        let sigma = 0.002f32;
+        let mut y = op.apply_planes(&truth.kernels[0]);
+        y.data.iter_mut().for_each(|v| *v += sigma * r.normal() as f32);
+        let wt = vec![1.0 / (sigma * sigma); w * h];
+        let chi2 = |u: &[Plane]| -> f64 { op.apply_planes(u).data.iter().zip(&y.data).map(|(p, q)| ((p - q) / sigma).powi(2) as f64).sum::<f64>() };
+        let floor = chi2(&truth.kernels[0]);
+        let set = KernelFitSettings { iterations: 20, rounds: 1, step: KernelStep::Tangent };
+        let (mut carried, mut fresh) = (gaussian_kernels(k, 4, 5.0), gaussian_kernels(k, 4, 5.0));
+        let mut warm = KernelWarm::default();
+        for _ in 0..3 {
+            carried = fit_kernels_warm(&op, &y, &wt, &carried, set, &mut warm).0;
+            fresh = fit_kernels(&op, &y, &wt, &fresh, set).0;
+        }
+        // the gaps to a long solve's χ² (the fit absorbs noise: below the true kernels' χ²)
+        let (long, _) = fit_kernels(&op, &y, &wt, &gaussian_kernels(k, 4, 5.0), KernelFitSettings { iterations: 600, ..set });
+        let (c, f, best) = (chi2(&carried) / floor, chi2(&fresh) / floor, chi2(&long) / floor);
+        eprintln!("31 px, 3 × 20 iterations: χ²/χ²_truth carried {c:.4}, fresh {f:.4}; 600 iterations {best:.4}");
+        assert!(best <= c && c < f, "carried {c:.4}, fresh {f:.4}, long {best:.4}");
+        assert!(c - best < 0.9 * (f - best), "carried {c:.4} vs fresh {f:.4}: gaps to {best:.4}");
+        // inside one call the rounds carry it too: 1 call of 3 rounds is the carried chain
+        let (one, _) = fit_kernels(&op, &y, &wt, &gaussian_kernels(k, 4, 5.0), KernelFitSettings { rounds: 3, ..set });
+        let o = chi2(&one) / floor;
+        assert!((o - c).abs() < 0.25 * (f - c), "one call {o:.4}, carried {c:.4}, fresh {f:.4}");
     }
 
     /// A compact PSF (a Gaussian of `sigma` px, zero beyond `k/2`) in every tile.

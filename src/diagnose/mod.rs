@@ -21,7 +21,9 @@
 //!    null refit on every pixel and judged by the same rule there (`screened`,
 //!    `rescore_near_misses`). A parameter search runs only from a start
 //!    that already lowers χ² ([`candidates::StartGate`]); the polished winner is adopted only if
-//!    it lowers the whole-pixel χ² by more than `3·√(2N)` (the stop rule of `adopt`).
+//!    it lowers the whole-pixel χ² by more than `3·√(2N)` (the stop rule of `adopt`). The
+//!    winner's polish ends on every pixel; the search's final model is polished again (the
+//!    final polish) only where backward elimination changed it after the last adoption.
 //! 4. The final model's kernels and corrections form a profile ([`model`]); [`report`] writes
 //!    `report.json`, the predictions, residual maps and `index.html`.
 //!
@@ -199,7 +201,8 @@ pub struct FoundEffect {
     pub location: String,
     pub parameters: serde_json::Value,
     /// The model before the effect and with it, both scored with the noise curve measured
-    /// after the effect was added (the last effect: after the final polish).
+    /// after the effect was added (the last effect: the final model, after the final polish where
+    /// one ran).
     pub before: Figures,
     pub after: Figures,
     /// BIC of the model with the effect minus the null refit's.
@@ -371,12 +374,16 @@ struct Search {
     analysis: Analysis,
     effects: Vec<FoundEffect>,
     rounds: Vec<Vec<CandidateScore>>,
+    /// The current model is an adopted winner as `adopt` left it (polished, refitted on every
+    /// pixel) and nothing changed it since: the final polish would polish it again.
+    polished: bool,
 }
 
 /// Adds catalogue effects while the fit is not consistent with noise (module docs, step 3),
-/// then polishes the final model with a larger budget.
+/// then polishes the final model with a larger budget where backward elimination changed it
+/// since the last adoption ([`needs_final_polish`]; an adopted winner is polished already).
 fn add_effects(data: &mut Data, base: Fit, base_analysis: Analysis, repeat_noise: bool, opts: &DiagnoseOptions) -> Search {
-    let mut s = Search { current: base, analysis: base_analysis, effects: Vec::new(), rounds: Vec::new() };
+    let mut s = Search { current: base, analysis: base_analysis, effects: Vec::new(), rounds: Vec::new(), polished: false };
     while s.effects.len() < opts.max_effects && !consistent(&s.current, opts) {
         let mut lap = crate::estimate::stage_clock();
         let (scores, best) = search_round(data, &s.current, &s.analysis, opts);
@@ -404,8 +411,9 @@ fn add_effects(data: &mut Data, base: Fit, base_analysis: Analysis, repeat_noise
         // a screening refit scores only the subset: the current model is scored on every pixel
         s.current = if f.share < 1.0 { rescore(data, &f) } else { f };
         s.analysis = analyse(&s.current);
+        s.polished = false;
     }
-    if !s.effects.is_empty() {
+    if needs_final_polish(s.effects.len(), s.polished) {
         // a last polish of the final model with a larger budget
         let mut lap = crate::estimate::stage_clock();
         let polished = final_polish(data, &s.current, opts);
@@ -417,6 +425,9 @@ fn add_effects(data: &mut Data, base: Fit, base_analysis: Analysis, repeat_noise
                 e.after = Figures::of(&s.current);
             }
         }
+    } else if let Some(e) = s.effects.last_mut() {
+        // no final polish: the last effect's "after" is the final model (the adoption's refit)
+        e.after = Figures::of(&s.current);
     }
     s
 }
@@ -460,6 +471,7 @@ fn adopt(data: &mut Data, s: &mut Search, cand: candidates::Candidate, f: Fit, d
     s.effects.push(FoundEffect { name: cand.name.to_string(), evidence: cand.evidence, location: cand.location, parameters, before, after, delta_bic: dbic });
     s.current = fit::fit(data, &f.model.corrections, &f.model, FitSettings { rounds: 1, kernel_iterations: opts.candidate_fit.kernel_iterations });
     s.current.inherit_dof(&current);
+    s.polished = true;
     if changes_kernel_operator(cand.name) {
         measure_dof(data, &mut s.current, opts, s.rounds.len() as u64);
     }
@@ -497,6 +509,14 @@ fn polish_winner(data: &Data, current: &Fit, f: Fit, opts: &DiagnoseOptions) -> 
     let mut full = fit::fit(data, &f.model.corrections, &f.model, FitSettings { rounds: 1, kernel_iterations: opts.base_fit.kernel_iterations });
     full.inherit_dof(current);
     full
+}
+
+/// Whether the search's final model gets the final polish ([`final_polish`]): only when it
+/// holds an effect (`effects` > 0) and something changed it since `adopt` polished it
+/// (`polished` false: backward elimination removed an effect). After the last adoption the
+/// winner's polish and the final polish would otherwise run back to back on the same model.
+fn needs_final_polish(effects: usize, polished: bool) -> bool {
+    effects > 0 && !polished
 }
 
 /// The final model polished with twice the base budget per round, two rounds; where the
@@ -881,6 +901,17 @@ mod tests {
         assert_eq!(screened(-500.0, 0.3 * g, g, true), Screened::Rejected);
         assert_eq!(screened(34_493.0, 0.02, g, true), Screened::Rejected);
         assert_eq!(screened(-1.0, NEAR_MISS * g, g, true), Screened::NearMiss);
+    }
+
+    /// The final polish runs only where the model changed since the last adoption's polish:
+    /// not right after an adoption (the winner's polish and the final polish would run back to
+    /// back on the same model), after backward elimination, never without an effect.
+    #[test]
+    fn final_polish_only_where_the_model_changed_since_the_last_polish() {
+        assert!(!needs_final_polish(1, true), "the adopted winner is polished already");
+        assert!(!needs_final_polish(2, true));
+        assert!(needs_final_polish(1, false), "backward elimination changed the model");
+        assert!(!needs_final_polish(0, false), "no effect: the base model is final");
     }
 
     /// A Gaussian kernel of standard deviation `sigma` (px), `±3σ`, summing to 1.

@@ -478,7 +478,8 @@ fn main() -> anyhow::Result<()> {
     };
     let mut base = DeconvOptions { cross_weight, local_noise, coloured_windows, positivity, coloured_noise: coloured, ..DeconvOptions::default() };
     // experiment overrides: `--set key=value,…` (denoise, kappa, tile, no_harm, iterations, kappa7, sure, lawdata, texture, rwp, rwe, steps, thr)
-    for kv in list("--set", &[""])[0].split(',').filter(|kv| !kv.is_empty()) {
+    // every comma-separated pair (`list` has split them already; taking only the first dropped the rest)
+    for kv in list("--set", &[""]).iter().filter(|kv| !kv.is_empty()) {
         let (k, v) = kv.split_once('=').ok_or_else(|| anyhow::anyhow!("--set {kv}: key=value"))?;
         match k {
             "denoise" => base.denoise = v.parse()?,

@@ -447,8 +447,8 @@ pub fn deblur(
     let noise = noise_stage(planes, grid, opts)?;
     let order = restoration_order(grid);
     let layout = tile_layout(planes[0].width, planes[0].height, grid, opts);
-    let (out, st) = restore_tiles(planes, grid, opts, &layout, &noise, &order, progress);
-    let (out, no_harm) = finish(planes, out, &noise, opts, (grid, &order));
+    let (out, st, ops) = restore_tiles(planes, grid, opts, &layout, &noise, &order, progress);
+    let (out, no_harm) = finish(planes, out, &noise, opts, (grid, &order), &TileOps { layout: &layout, ops: &ops });
     let report = DeconvReport {
         noise_sigma: noise.sigma,
         estimated_sigma: noise.estimated,
@@ -534,7 +534,9 @@ fn tile_layout(w: usize, h: usize, grid: &PsfGrid, opts: &DeconvOptions) -> Tile
 }
 
 /// Tile stage of [`deblur`]: restores and blends every tile (in parallel if asked); returns
-/// the blended planes and the summed tile counters (`levels`: the maximum).
+/// the blended planes, the summed tile counters (`levels`: the maximum) and, when a stage after
+/// the denoiser needs them ([`DeconvOptions::texture_return`]), each tile's finest-level
+/// operators (index `j · xs.len() + i`; empty otherwise).
 fn restore_tiles(
     planes: &[Plane],
     grid: &PsfGrid,
@@ -543,10 +545,12 @@ fn restore_tiles(
     noise: &NoiseStage,
     order: &[usize],
     progress: &(dyn Fn(usize, usize) + Sync),
-) -> (Vec<Plane>, TileStats) {
+) -> (Vec<Plane>, TileStats, Vec<TileOperators>) {
     let nch = planes.len();
     let (w, h) = (planes[0].width, planes[0].height);
     let TileLayout { xs, ys, pw, ph } = layout;
+    let keep = keeps_tile_operators(opts);
+    let kept: Mutex<Vec<Option<TileOperators>>> = Mutex::new((0..xs.len() * ys.len()).map(|_| None).collect());
     let (pw, ph) = (*pw, *ph);
     let tile_list: Vec<(usize, usize)> = (0..ys.len()).flat_map(|j| (0..xs.len()).map(move |i| (i, j))).collect();
     let total = tile_list.len();
@@ -570,8 +574,11 @@ fn restore_tiles(
         };
         let data_weight = DataWeight::new(opts, noise.law.as_ref(), &tile_variance);
         let setup = TileSetup { width: pw, height: ph, lambda: &tile_lambda, order, opts, field: Some(field), data_weight };
-        let (restored, st) = restore_tile(&windows, &kernels, &setup);
+        let (restored, st, tile_ops) = restore_tile_keeping(&windows, &kernels, &setup, keep);
         blend_tile(&mut out.lock().unwrap_or_else(|e| e.into_inner()), &restored, sx, sy, pw);
+        if let Some(t) = tile_ops {
+            kept.lock().unwrap_or_else(|e| e.into_inner())[j * xs.len() + i] = Some(t);
+        }
         {
             let mut c = counters.lock().unwrap_or_else(|e| e.into_inner());
             c.cp_iterations += st.cp_iterations;
@@ -587,11 +594,40 @@ fn restore_tiles(
         tile_list.iter().for_each(run);
     }
     let stats = counters.into_inner().unwrap_or_else(|e| e.into_inner());
-    (out.into_inner().unwrap_or_else(|e| e.into_inner()), stats)
+    let kept: Vec<TileOperators> = kept.into_inner().unwrap_or_else(|e| e.into_inner()).into_iter().flatten().collect();
+    (out.into_inner().unwrap_or_else(|e| e.into_inner()), stats, kept)
+}
+
+/// Whether [`restore_tiles`] keeps each tile's [`TileOperators`] for a later stage.
+fn keeps_tile_operators(opts: &DeconvOptions) -> bool {
+    opts.texture_return
+}
+
+/// What the stages after the denoiser reuse of the tile stage: the layout and each tile's
+/// finest-level operators (empty unless [`keeps_tile_operators`]).
+struct TileOps<'a> {
+    layout: &'a TileLayout,
+    ops: &'a [TileOperators],
+}
+
+/// A tile's finest-level operators as the solver built them, kept for the stages after the
+/// denoiser (texture return): per channel, the spectrum `F(B)` of the origin-centred tile kernel
+/// on the `pw × ph` window and the 0/1 data mask `M` (0 within the kernel radius of the window
+/// edge and on saturated pixels; stored as bytes, 1 = data).
+pub struct TileOperators {
+    pub spectra: Vec<Vec<rustfft::num_complex::Complex32>>,
+    pub masks: Vec<Vec<u8>>,
+}
+
+impl TileOperators {
+    /// Channel `c`'s mask as 0/1 weights.
+    pub fn mask(&self, c: usize) -> Vec<f32> {
+        self.masks[c].iter().map(|m| f32::from(*m)).collect()
+    }
 }
 
 /// Finishing stage of [`deblur`]: the optional denoiser, then the no-harm rule.
-fn finish(planes: &[Plane], mut out: Vec<Plane>, noise: &NoiseStage, opts: &DeconvOptions, lens: (&PsfGrid, &[usize])) -> (Vec<Plane>, noharm::NoHarmReport) {
+fn finish(planes: &[Plane], mut out: Vec<Plane>, noise: &NoiseStage, opts: &DeconvOptions, lens: (&PsfGrid, &[usize]), tiles: &TileOps) -> (Vec<Plane>, noharm::NoHarmReport) {
     if opts.denoise > 0.0 {
         let d = denoise::DenoiseOptions {
             coefficient_variance: opts.coloured_noise.then(|| coloured_field(planes, lens, noise, opts)),
@@ -604,7 +640,7 @@ fn finish(planes: &[Plane], mut out: Vec<Plane>, noise: &NoiseStage, opts: &Deco
         out = denoise::denoise(&out, &d);
     }
     if opts.texture_return {
-        out = return_texture(planes, out, lens.0, noise, opts);
+        out = return_texture(planes, out, tiles, noise, opts);
     }
     let no_harm = if opts.no_harm.enabled {
         let variance = |c: usize, x: f32| match &noise.law {
@@ -619,33 +655,30 @@ fn finish(planes: &[Plane], mut out: Vec<Plane>, noise: &NoiseStage, opts: &Deco
 }
 /// Texture-return stage of [`deblur`] ([`texture`]): on the tiles of [`tile_layout`], each
 /// channel's lost signal `Δ̂` (Wiener estimate from the residual `M (j − B x̂)` against the law's
-/// floor) is blended with the tiles' partition of unity and added to `out`.
-fn return_texture(planes: &[Plane], mut out: Vec<Plane>, grid: &PsfGrid, noise: &NoiseStage, opts: &DeconvOptions) -> Vec<Plane> {
+/// floor) is blended with the tiles' partition of unity and added to `out`. The layout, the
+/// kernel spectra and the masks are the tile stage's ([`TileOps`]).
+fn return_texture(planes: &[Plane], mut out: Vec<Plane>, tiles: &TileOps, noise: &NoiseStage, opts: &DeconvOptions) -> Vec<Plane> {
     let nch = planes.len();
     let (w, h) = (planes[0].width, planes[0].height);
-    let layout = tile_layout(w, h, grid, opts);
-    let TileLayout { xs, ys, pw, ph } = &layout;
+    let TileLayout { xs, ys, pw, ph } = tiles.layout;
     let (pw, ph) = (*pw, *ph);
+    assert_eq!(tiles.ops.len(), xs.len() * ys.len(), "texture return: the tile stage kept no operators");
     let tile_list: Vec<(usize, usize)> = (0..ys.len()).flat_map(|j| (0..xs.len()).map(move |i| (i, j))).collect();
     let added = Mutex::new(vec![Plane::new(w, h); nch]);
     let fft = Fft2::plan(pw, ph);
     let run = |&(i, j): &(usize, usize)| {
         let (sx, sy) = (&xs[i], &ys[j]);
-        let (cx, cy) = ((sx.core0 + sx.core1) as f64 / 2.0 - 0.5, (sy.core0 + sy.core1) as f64 / 2.0 - 0.5);
+        let ops = &tiles.ops[j * xs.len() + i];
         let delta: Vec<Vec<f32>> = (0..nch)
             .map(|c| {
                 let data = planes[c].window_reflect(sx.window0, sy.window0, pw, ph).data;
                 let est = out[c].window_reflect(sx.window0, sy.window0, pw, ph).data;
-                let k = grid.kernel_at(c, cx, cy);
-                let kernel = fft.forward(&kernel_to_origin(&k, pw, ph));
-                let sat = opts.saturation.map(|t| data.iter().map(|v| if *v >= t { 0.0 } else { 1.0 }).collect());
-                let mask = mask_boundary(sat, &k, pw, ph);
                 let level = gaussian_blur_periodic(&data, pw, ph, 1.0);
                 let variance: Vec<f32> = match &noise.law {
                     Some(l) => level.iter().map(|v| l.variance(c, v.clamp(0.0, 1.0))).collect(),
                     None => vec![noise.sigma[c] * noise.sigma[c]; pw * ph],
                 };
-                texture::lost_signal(&fft, &data, &est, &kernel, &mask, &variance)
+                texture::lost_signal(&fft, &data, &est, &ops.spectra[c], &ops.mask(c), &variance)
             })
             .collect();
         blend_tile(&mut added.lock().unwrap_or_else(|e| e.into_inner()), &delta, sx, sy, pw);
@@ -953,10 +986,18 @@ fn cross_channel<'a>(o: &'a [f32], opts: &DeconvOptions, lam: f32, pw: usize, ph
 /// Restores all channels of one tile window (`windows[c]`, `width × height`, linear) blurred
 /// by `kernels[c]`; returns the restored windows (periodic domain: crop the margin).
 pub fn restore_tile(windows: &[Vec<f32>], kernels: &[Plane], setup: &TileSetup) -> (Vec<Vec<f32>>, TileStats) {
+    let (restored, stats, _) = restore_tile_keeping(windows, kernels, setup, false);
+    (restored, stats)
+}
+
+/// [`restore_tile`], also returning (with `keep`) the finest level's kernel spectra and 0/1
+/// data masks ([`TileOperators`]) for the stages after the denoiser.
+pub fn restore_tile_keeping(windows: &[Vec<f32>], kernels: &[Plane], setup: &TileSetup, keep: bool) -> (Vec<Vec<f32>>, TileStats, Option<TileOperators>) {
     let opts = setup.opts;
     let nch = windows.len();
     let mut stats = TileStats::default();
-    let pyr = tile_pyramid(windows, kernels, setup, &mut stats);
+    let pyr = tile_pyramid(windows, kernels, setup, keep, &mut stats);
+    let mut spectra: Vec<Vec<rustfft::num_complex::Complex32>> = vec![Vec::new(); if keep { nch } else { 0 }];
     let mut prev: Option<Vec<Vec<f32>>> = None;
     for z in (0..stats.levels).rev() {
         let (pw, ph) = (setup.width >> z, setup.height >> z);
@@ -964,6 +1005,9 @@ pub fn restore_tile(windows: &[Vec<f32>], kernels: &[Plane], setup: &TileSetup) 
         let mut restored: Vec<Option<Vec<f32>>> = vec![None; nch];
         for (pos, &c) in setup.order.iter().enumerate() {
             let ksp = KernelSpectrum::new(&fft, &kernel_to_origin(&pyr.ks[z][c], pw, ph));
+            if keep && z == 0 {
+                spectra[c] = ksp.b.clone();
+            }
             let data = &pyr.js[z][c];
             // warm start of the level's first (non-residual) solve: the upsampled coarser result,
             // or the blurred data at the coarsest level
@@ -983,7 +1027,8 @@ pub fn restore_tile(windows: &[Vec<f32>], kernels: &[Plane], setup: &TileSetup) 
         }
         prev = Some(restored.into_iter().map(|r| r.unwrap_or_default()).collect());
     }
-    (prev.unwrap_or_default(), stats)
+    let ops = keep.then(|| TileOperators { spectra, masks: pyr.data_masks.unwrap_or_default() });
+    (prev.unwrap_or_default(), stats, ops)
 }
 
 /// A tile's per-level data, index 0 = finest.
@@ -994,11 +1039,14 @@ struct TilePyramid {
     ms: Vec<Vec<Option<Vec<f32>>>>,
     /// Kernels per level and channel.
     ks: Vec<Vec<Plane>>,
+    /// The finest level's 0/1 masks (unknown boundary and saturation, before any data weight)
+    /// per channel, when [`restore_tile_keeping`] keeps them.
+    data_masks: Option<Vec<Vec<u8>>>,
 }
 
 /// Pyramid stage of [`restore_tile`]: data masks, depth, and the downsampled windows, masks and
 /// kernels; sets `stats.levels` and `stats.saturated`.
-fn tile_pyramid(windows: &[Vec<f32>], kernels: &[Plane], setup: &TileSetup, stats: &mut TileStats) -> TilePyramid {
+fn tile_pyramid(windows: &[Vec<f32>], kernels: &[Plane], setup: &TileSetup, keep: bool, stats: &mut TileStats) -> TilePyramid {
     let opts = setup.opts;
     // saturation masks (only channels that have saturated pixels)
     let masks0 = saturation_masks(windows, opts.saturation, stats);
@@ -1013,6 +1061,18 @@ fn tile_pyramid(windows: &[Vec<f32>], kernels: &[Plane], setup: &TileSetup, stat
     } else {
         masks0
     };
+    // the 0/1 masks the stages after the denoiser use: the boundary is masked there even when
+    // the solver's data term is not
+    let data_masks = keep.then(|| {
+        masks0
+            .iter()
+            .zip(kernels)
+            .map(|(m, k)| {
+                let m = if opts.unknown_boundary { m.clone() } else { Some(mask_boundary(m.clone(), k, setup.width, setup.height)) };
+                m.map(|m| m.iter().map(|v| u8::from(*v > 0.5)).collect()).unwrap_or_else(|| vec![1; setup.width * setup.height])
+            })
+            .collect()
+    });
     let masks0: Vec<Option<Vec<f32>>> = match &setup.data_weight {
         Some(dw) => masks0
             .into_iter()
@@ -1036,7 +1096,7 @@ fn tile_pyramid(windows: &[Vec<f32>], kernels: &[Plane], setup: &TileSetup, stat
         ms.push(ms[z - 1].iter().map(|m| m.as_ref().map(|m| pyramid::downsample_mask_periodic(m, pw, ph))).collect());
         ks.push(ks[z - 1].iter().map(pyramid::downsample_kernel).collect());
     }
-    TilePyramid { js, ms, ks }
+    TilePyramid { js, ms, ks, data_masks }
 }
 
 /// One channel's solve setting at pyramid level `z` (`pw × ph`).

@@ -624,3 +624,33 @@ fn texture_return_adds_no_noise_where_nothing_was_lost() {
     eprintln!("texture return on an exact estimate: rms {rms:.2e} (noise {sigma:.0e})");
     assert!(rms < 0.1 * sigma as f64, "rms {rms:.2e}");
 }
+
+/// The operators the tile stage keeps for texture return ([`restore_tile_keeping`]) are the
+/// ones the stage rebuilt before they were shared: the spectrum of the origin-centred tile
+/// kernel and the 0/1 mask of the unknown boundary and the saturated pixels — also when the
+/// solver's own data term has no boundary mask — and nothing is kept without `keep`.
+#[test]
+fn kept_tile_operators_are_the_kernel_spectrum_and_the_boundary_mask() {
+    let (w, h) = (64usize, 48usize);
+    let grid = SyntheticLens::new(9, 3).grid(w, h, 3, 1, 1);
+    let kernels: Vec<Plane> = (0..3).map(|c| grid.kernel_at(c, 32.0, 24.0)).collect();
+    let mut windows: Vec<Vec<f32>> = textured_scene(w, h, 3).into_iter().map(|p| p.data).collect();
+    windows[1][10 * w + 20] = 1.0; // one saturated pixel in green
+    let fft = Fft2::plan(w, h);
+    for unknown_boundary in [true, false] {
+        let opts = DeconvOptions { unknown_boundary, denoise: 0.0, parallel: false, ..DeconvOptions::default() };
+        let (lambda, order) = (vec![1e-4f32; 3], vec![1usize, 0, 2]);
+        let setup = TileSetup { width: w, height: h, lambda: &lambda, order: &order, opts: &opts, field: None, data_weight: None };
+        let (plain, _) = restore_tile(&windows, &kernels, &setup);
+        let (kept_x, _, ops) = restore_tile_keeping(&windows, &kernels, &setup, true);
+        assert_eq!(plain, kept_x, "keeping must not change the restoration");
+        assert!(restore_tile_keeping(&windows, &kernels, &setup, false).2.is_none());
+        let ops = ops.expect("kept operators");
+        for c in 0..3 {
+            let sat = opts.saturation.map(|t| windows[c].iter().map(|v| if *v >= t { 0.0 } else { 1.0 }).collect());
+            assert_eq!(ops.mask(c), mask_boundary(sat, &kernels[c], w, h), "channel {c}, unknown boundary {unknown_boundary}");
+            assert_eq!(ops.spectra[c], fft.forward(&kernel_to_origin(&kernels[c], w, h)), "channel {c}");
+        }
+        assert_eq!(ops.mask(1)[10 * w + 20], 0.0);
+    }
+}

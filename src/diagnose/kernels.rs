@@ -433,25 +433,43 @@ mod tests {
         assert!((df_sub / df_all - 1.0).abs() < 0.25, "df on the subset {df_sub:.1} vs {df_all:.1}");
     }
 
+    /// The 31-px low-pass problem of the two tests below (a natural image's falling spectrum
+    /// makes the kernel problem ill-conditioned): compact Gaussian kernels (σ 2.5 px) on a 2 × 2
+    /// grid over blurred noise, 144 × 108, white noise σ = 0.002; `floor` is χ² at the truth.
+    struct LowPass { op: KernelOperator, y: Plane, wt: Vec<f32>, k: usize, floor: f64 }
+
+    impl LowPass {
+        const SIGMA: f32 = 0.002;
+
+        fn new() -> LowPass {
+            let (w, h, k) = (144, 108, 31);
+            let mut r = Rng::new(7);
+            let noise = Plane::from_fn(w, h, |_, _| r.uniform() as f32);
+            let sharp = crate::image::filter::gaussian_blur(&noise, 1.2).map(|v| 0.2 + v);
+            let truth = PsfGrid { kernels: vec![gaussian_kernels(k, 4, 2.5)], ..grid(w, h, k, 0) };
+            let truth = PsfGrid { columns: 2, rows: 2, centers: PsfGrid::regular_centers(w, h, 2, 2), ..truth };
+            let op = KernelOperator::new(&sharp, &truth, usize::MAX);
+            let mut y = op.apply_planes(&truth.kernels[0]);
+            y.data.iter_mut().for_each(|v| *v += Self::SIGMA * r.normal() as f32);
+            let wt = vec![1.0 / (Self::SIGMA * Self::SIGMA); w * h];
+            let floor = Self::chi2_of(&op, &y, &truth.kernels[0]);
+            LowPass { op, y, wt, k, floor }
+        }
+
+        /// χ² of kernels `u` against the noisy data.
+        fn chi2_of(op: &KernelOperator, y: &Plane, u: &[Plane]) -> f64 {
+            op.apply_planes(u).data.iter().zip(&y.data).map(|(p, q)| ((p - q) / Self::SIGMA).powi(2) as f64).sum::<f64>()
+        }
+    }
+
     /// The momentum carried between solves ([`KernelWarm`]): three rounds of 20 iterations
     /// handing the momentum on end closer to a long solve's χ² than three rounds each started
     /// afresh (what the fit did before, and what a fresh `KernelWarm` per round still does), on
     /// the 31-px low-pass problem of the test below.
     #[test]
     fn carried_momentum_converges_further_than_fresh_rounds() {
-        let (w, h, k) = (144, 108, 31);
-        let mut r = Rng::new(7);
-        let noise = Plane::from_fn(w, h, |_, _| r.uniform() as f32);
-        let sharp = crate::image::filter::gaussian_blur(&noise, 1.2).map(|v| 0.2 + v);
-        let truth = PsfGrid { kernels: vec![gaussian_kernels(k, 4, 2.5)], ..grid(w, h, k, 0) };
-        let truth = PsfGrid { columns: 2, rows: 2, centers: PsfGrid::regular_centers(w, h, 2, 2), ..truth };
-        let op = KernelOperator::new(&sharp, &truth, usize::MAX);
-        let sigma = 0.002f32;
-        let mut y = op.apply_planes(&truth.kernels[0]);
-        y.data.iter_mut().for_each(|v| *v += sigma * r.normal() as f32);
-        let wt = vec![1.0 / (sigma * sigma); w * h];
-        let chi2 = |u: &[Plane]| -> f64 { op.apply_planes(u).data.iter().zip(&y.data).map(|(p, q)| ((p - q) / sigma).powi(2) as f64).sum::<f64>() };
-        let floor = chi2(&truth.kernels[0]);
+        let LowPass { op, y, wt, k, floor } = LowPass::new();
+        let chi2 = |u: &[Plane]| LowPass::chi2_of(&op, &y, u);
         let set = KernelFitSettings { iterations: 20, rounds: 1, step: KernelStep::Tangent };
         let (mut carried, mut fresh) = (gaussian_kernels(k, 4, 5.0), gaussian_kernels(k, 4, 5.0));
         let mut warm = KernelWarm::default();
@@ -491,20 +509,8 @@ mod tests {
     /// `k²`) is many times smaller and leaves χ² far above the floor in the same budget.
     #[test]
     fn large_kernels_reach_the_floor_in_the_base_budget() {
-        let (w, h, k) = (144, 108, 31);
-        let mut r = Rng::new(7);
-        let noise = Plane::from_fn(w, h, |_, _| r.uniform() as f32);
-        let sharp = crate::image::filter::gaussian_blur(&noise, 1.2).map(|v| 0.2 + v);
-        let truth = PsfGrid { kernels: vec![gaussian_kernels(k, 4, 2.5)], ..grid(w, h, k, 0) };
-        let truth = PsfGrid { columns: 2, rows: 2, centers: PsfGrid::regular_centers(w, h, 2, 2), ..truth };
-        let op = KernelOperator::new(&sharp, &truth, usize::MAX);
-        let clean = op.apply_planes(&truth.kernels[0]);
-        let sigma = 0.002f32;
-        let mut y = clean.clone();
-        y.data.iter_mut().for_each(|v| *v += sigma * r.normal() as f32);
-        let wt = vec![1.0 / (sigma * sigma); w * h];
-        let chi2 = |u: &[Plane]| -> f64 { op.apply_planes(u).data.iter().zip(&y.data).map(|(p, q)| ((p - q) / sigma).powi(2) as f64).sum::<f64>() };
-        let floor = chi2(&truth.kernels[0]);
+        let LowPass { op, y, wt, k, floor } = LowPass::new();
+        let chi2 = |u: &[Plane]| LowPass::chi2_of(&op, &y, u);
         let init = gaussian_kernels(k, 4, 5.0);
         let set = KernelFitSettings { iterations: 80, rounds: 3, step: KernelStep::Tangent };
         let (u, _) = fit_kernels(&op, &y, &wt, &init, set);

@@ -133,13 +133,16 @@ fn run<T: Read + Write>(mut port: T, mut fw: Firmware, state: &Mutex<SimState>, 
         }
         fw.tick(Instant::now(), faults);
         let out = fw.take_output();
+        // The true state is published before the bytes that report it are written: a client
+        // that has read a reply (an `ALARM:`) and then looks at the state sees what caused it,
+        // however the threads are scheduled.
+        if let Ok(mut s) = state.lock() {
+            fw.snapshot_into(&mut s);
+        }
         if !out.is_empty() && !faults.silent.load(Ordering::SeqCst) {
             let out = if faults.garbage.load(Ordering::SeqCst) { garble(&out) } else { out };
             // A client that stopped reading must not wedge the firmware: drop what won't fit.
             let _ = port.write_all(&out).and_then(|_| port.flush());
-        }
-        if let Ok(mut s) = state.lock() {
-            fw.snapshot_into(&mut s);
         }
     }
 }

@@ -321,8 +321,19 @@ pub(crate) fn with_thread_cached<T: 'static, R>(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
+
+    #[cfg(target_arch = "x86_64")]
+    /// Whether this CPU has AVX2, for the tests that compare the AVX2 builds of hot loops with
+    /// the baseline ([`has_avx2`]); says so on stderr when it has not (nothing to compare).
+    pub(crate) fn cpu_has_avx2() -> bool {
+        let yes = std::is_x86_feature_detected!("avx2");
+        if !yes {
+            eprintln!("this CPU has no AVX2: nothing to compare");
+        }
+        yes
+    }
 
     #[test]
     fn good_sizes() {

@@ -3,6 +3,8 @@
 //! Non-finite values are refused by default with the file and the pixel named; with
 //! `--mask-invalid` they are excluded from the data term and the result on the remaining
 //! pixels matches the clean run; negative values are legal, and many of them are reported.
+//! A pair stored at two sample depths (8-bit and 16-bit) is accepted with a note naming the
+//! coarser file.
 
 use lensrig::image::{Plane, SampleFormat};
 use lensrig::optics::psf_grid::PsfGrid;
@@ -202,4 +204,30 @@ fn deblur_and_simulate_refuse_or_mask_non_finite_inputs() {
     let neg = f.damaged("pinhole.tiff", "sharp-neg.tiff", -0.01, &many);
     let e = ok(&["simulate", "--profile", &profile, "--sharp", &neg, "--out", &f.s("neg-pred.png")]);
     assert!(e.contains("are negative"), "{e}");
+}
+
+/// An 8-bit wide-open capture with a 16-bit pinhole: both are read onto one linear full scale
+/// (the kernels match the float pair's within the 8-bit quantisation), and stderr says which
+/// file's quantisation adds to its noise; a pair of one depth gets no such note.
+#[test]
+fn estimate_notes_a_pair_of_two_sample_depths() {
+    let f = Files::new();
+    let as_png = |from: &str, to: &str, bits: u8| {
+        let img = lensrig::image::io::read_image(&f.p(from)).unwrap();
+        let w = if bits == 8 { lensrig::image::io::write_png8 } else { lensrig::image::io::write_png16 };
+        w(&f.p(to), &img, lensrig::fsutil::Overwrite::Never).unwrap();
+        f.s(to)
+    };
+    let (o8, o16, p16) = (as_png("open.tiff", "open8.png", 8), as_png("open.tiff", "open16.png", 16), as_png("pinhole.tiff", "pinhole16.png", 16));
+    let clean = f.estimate(&f.s("open.tiff"), &f.s("pinhole.tiff"), &f.s("clean"), &[]);
+    assert!(clean.status.success(), "{}", String::from_utf8_lossy(&clean.stderr));
+    let same = f.estimate(&o16, &p16, &f.s("same"), &[]);
+    let e = String::from_utf8_lossy(&same.stderr);
+    assert!(same.status.success() && !e.contains("quantisation"), "{e}");
+    let mixed = f.estimate(&o8, &p16, &f.s("mixed"), &[]);
+    let e = String::from_utf8_lossy(&mixed.stderr);
+    assert!(mixed.status.success(), "{e}");
+    assert!(e.contains("open8.png is 8-bit integer") && e.contains("pinhole16.png is 16-bit integer") && e.contains("open8.png's quantisation"), "{e}");
+    let d = rel_l2(&kernels(&f.p("mixed")), &kernels(&f.p("clean")));
+    assert!(d < 0.05, "the 8-bit/16-bit pair's kernels differ from the float pair's by {d:.3}");
 }

@@ -13,7 +13,7 @@ use lensrig::diagnose::report::{write_report, Sources};
 use lensrig::diagnose::session::pair_inputs;
 use lensrig::diagnose::{diagnose, DiagnoseOptions, Diagnosis};
 use lensrig::estimate::session::load_finished;
-use lensrig::image::io::read_pair;
+use lensrig::image::io::{depth_note, read_pair};
 use lensrig::image::{Image, Transfer};
 use lensrig::profile::Profile;
 use std::path::{Path, PathBuf};
@@ -105,6 +105,9 @@ pub fn run(a: &DiagnoseArgs) -> Result<()> {
     };
     check_kernel(a.estimation.kernel, 3)?;
     let (mut o, mut p) = read_pair(open, pinhole)?;
+    if let Some(note) = depth_note(open, &o, pinhole, &p) {
+        eprintln!("lensrig: note: {note}");
+    }
     o.transfer = a.transfer;
     p.transfer = a.transfer;
     let profile = match &a.profile {

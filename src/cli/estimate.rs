@@ -10,7 +10,7 @@ use lensrig::estimate::register::RegistrationModel;
 use lensrig::profile::uncertainty::save_uncertainty;
 use lensrig::estimate::session::estimate_session;
 use lensrig::estimate::{estimate, Estimate, EstimateOptions};
-use lensrig::image::io::read_pair_with;
+use lensrig::image::io::{depth_note, read_pair_with};
 use lensrig::image::validate::InvalidPixels;
 use lensrig::image::Transfer;
 use std::path::{Path, PathBuf};
@@ -70,7 +70,8 @@ impl EstimateCommandArgs {
 /// stderr), tags the transfer function the user declared, and estimates.
 pub fn estimate_files(open: &Path, pinhole: &Path, opts: &EstimateOptions, transfer: Transfer, invalid: InvalidPixels) -> Result<Estimate> {
     let (lo, lp) = read_pair_with(open, pinhole, invalid)?;
-    for note in lo.values.notes(open).into_iter().chain(lp.values.notes(pinhole)) {
+    let depth = depth_note(open, &lo.image, pinhole, &lp.image);
+    for note in lo.values.notes(open).into_iter().chain(lp.values.notes(pinhole)).chain(depth) {
         eprintln!("lensrig: note: {note}");
     }
     let (mut o, mut p) = (lo.image, lp.image);

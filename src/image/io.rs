@@ -322,12 +322,59 @@ pub fn read_pair_with(a: &Path, b: &Path, policy: InvalidPixels) -> Result<(Load
     Ok((la, lb))
 }
 
+/// A note when the two captures of a pair were stored at different sample depths (8-bit and
+/// 16-bit, or an integer and a float file). Both are read onto the same linear full scale, so
+/// the pair is usable, but the coarser file's quantisation step `q` (full scale / largest code)
+/// adds `q²/12` of variance to its noise: with 8 bits `q/√12` ≈ 0.0011 of full scale, larger
+/// than the read noise of most sensors. `None` when the depths agree.
+pub fn depth_note(a: &Path, ia: &Image, b: &Path, ib: &Image) -> Option<String> {
+    if ia.format == ib.format {
+        return None;
+    }
+    let bits = |f: SampleFormat| match f {
+        SampleFormat::U8 => "8-bit integer",
+        SampleFormat::U16 => "16-bit integer",
+        SampleFormat::F32 => "32-bit float",
+    };
+    // the coarser of the two: the larger quantisation step (floats have none worth naming)
+    let step = |f: SampleFormat| if f == SampleFormat::F32 { 0.0 } else { 1.0 / f.full_scale() as f64 };
+    let (coarse, fmt) = if step(ia.format) >= step(ib.format) { (a, ia.format) } else { (b, ib.format) };
+    Some(format!(
+        "{} is {} and {} is {}: both are read on one linear full scale, but {}'s quantisation (σ = {:.1e} of full scale) is part of its noise; capture both at the same depth for the best profile",
+        a.display(),
+        bits(ia.format),
+        b.display(),
+        bits(ib.format),
+        coarse.display(),
+        step(fmt) / 12f64.sqrt()
+    ))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
     fn rgb() -> Image {
         Image::new((0..3).map(|c| Plane::from_fn(7, 5, |x, y| ((x + 2 * y + c) % 11) as f32 / 10.0)).collect())
+    }
+
+    #[test]
+    fn pairs_of_different_depth_get_a_note_naming_the_coarser_file() {
+        let mut a = rgb();
+        let mut b = rgb();
+        a.format = SampleFormat::U8;
+        b.format = SampleFormat::U16;
+        let (pa, pb) = (Path::new("open.png"), Path::new("pinhole.png"));
+        let note = depth_note(pa, &a, pb, &b).expect("8-bit against 16-bit is noted");
+        assert!(note.contains("open.png is 8-bit integer") && note.contains("pinhole.png is 16-bit integer"), "{note}");
+        // the 8-bit file is the coarser one; its quantisation σ = (1/255)/√12
+        assert!(note.contains("but open.png's quantisation (σ = 1.1e-3"), "{note}");
+        let swapped = depth_note(pb, &b, pa, &a).unwrap();
+        assert!(swapped.contains("but open.png's quantisation"), "{swapped}");
+        b.format = SampleFormat::U8;
+        assert_eq!(depth_note(pa, &a, pb, &b), None);
+        b.format = SampleFormat::F32;
+        assert!(depth_note(pa, &a, pb, &b).unwrap().contains("pinhole.png is 32-bit float"));
     }
 
     #[test]

@@ -525,6 +525,38 @@ pub fn screen(data: &Data, corrections: &Corrections, init: &Model, settings: Fi
     fit_on(data, corrections, init, settings, &|_, _| true, data.screen_pixels, true)
 }
 
+/// A whole-pixel fit whose round count is set by a convergence rule instead of a count
+/// ([`fit_converging`]): at most `max_rounds` rounds of `kernel_iterations` each (the
+/// momentum carried between them), stopped after the first round that lowers χ² by no more
+/// than `tolerance` (χ² units; `τ·√(2N)` compares the fall with χ²'s own noise).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Convergence {
+    pub kernel_iterations: usize,
+    pub max_rounds: usize,
+    pub tolerance: f64,
+}
+
+/// [`fit`] on every pixel with rounds run while they still lower χ² ([`Convergence`]).
+/// Returns the fit and χ² before the first round and after each round run (every pixel of the
+/// evaluation set, the scalars refitted: the same χ² as [`Fit::chi2`] of a fit stopped there).
+pub fn fit_converging(data: &Data, corrections: &Corrections, init: &Model, rule: Convergence) -> (Fit, Vec<f64>) {
+    let mut corr = corrections.clone();
+    let setup = Setup::new(data, &corr, init, &|_, _| true, usize::MAX);
+    let mut p = setup.initial_params(&corr, init);
+    let kset = KernelFitSettings { iterations: rule.kernel_iterations, rounds: 1, step: KERNEL_STEP };
+    let mut trace = vec![setup.chi2(&corr, &p)];
+    for _round in 0..rule.max_rounds {
+        setup.round(&mut corr, &mut p, kset);
+        let chi2 = setup.chi2(&corr, &p);
+        let fall = trace[trace.len() - 1] - chi2;
+        trace.push(chi2);
+        if fall <= rule.tolerance {
+            break;
+        }
+    }
+    (finish(data, setup, corr, p, false), trace)
+}
+
 /// `subset_figures`: score only the kernel operators' kept blocks ([`fit_subset`]) instead of
 /// every pixel.
 #[allow(clippy::too_many_arguments)]
@@ -536,6 +568,11 @@ fn fit_on(data: &Data, corrections: &Corrections, init: &Model, settings: FitSet
     for _round in 0..settings.rounds {
         setup.round(&mut corr, &mut p, kset);
     }
+    finish(data, setup, corr, p, subset_figures)
+}
+
+/// The fitted parameters `p` into a [`Fit`]: the model, its figures and the noise law's fit.
+fn finish(data: &Data, setup: Setup, mut corr: Corrections, mut p: Params, subset_figures: bool) -> Fit {
     let (grid, exposure) = setup.final_model(&mut corr, &p);
     let f = setup.figures(&corr, &mut p, subset_figures);
     let (nch, k) = (setup.nch, setup.grid0.kernel_size);
@@ -1017,6 +1054,14 @@ impl<'a> Setup<'a> {
             f.var_channel.push(sc.var_sum);
         }
         f
+    }
+
+    /// χ² of the parameters `p` on every pixel of the evaluation set (the operators cover
+    /// every pixel: a whole-pixel fit).
+    fn chi2(&self, corr: &Corrections, p: &Params) -> f64 {
+        let g = gain_plane(corr, self.w, self.h);
+        let scored = &self.masks.interior;
+        (0..self.nch).into_par_iter().map(|c| self.channel_figures(c, corr, p, &g, scored).score.chi2).sum()
     }
 
     /// Channel `c`'s prediction, variance and χ² on the stored axis (back on the wide-open

@@ -1110,3 +1110,50 @@ impl<'a> Setup<'a> {
         ChannelFigures { score, reference_highpass: hp }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A small clean case (128×96, monochrome, 9-px kernels on 3×2 tiles) with its data and the
+    /// model to start from: the rendered PSFs blurred (so that rounds still lower χ²).
+    fn small_case() -> (Data, Model) {
+        let spec = super::super::proof::CaseSpec { width: 128, height: 96, kernel_size: 9, ..Default::default() };
+        let case = super::super::proof::render_case(None, 5, &spec).expect("a clean case renders");
+        let data = Data::new(&case.open.image, &case.pinhole.image, 1.0 / case.pinhole_frames as f64);
+        let mut grid = case.open.psfs.clone().expect("rendered PSFs");
+        for ks in grid.kernels.iter_mut() {
+            for k in ks.iter_mut() {
+                *k = Plane::filled(k.width, k.height, 1.0 / (k.width * k.height) as f32);
+            }
+        }
+        let exposure = vec![1.0; data.open.channel_count()];
+        (data, Model { corrections: Corrections::default(), grid, exposure })
+    }
+
+    /// The convergence rule ([`fit_converging`]): its per-round χ² is the χ² of the fit it
+    /// returns, with no tolerance it runs its cap and is then the fixed-count fit bit for bit
+    /// (the momentum carried alike), and it stops after the first round whose fall is within
+    /// the tolerance.
+    #[test]
+    fn converging_fit_stops_at_the_first_round_within_the_tolerance() {
+        let (data, init) = small_case();
+        let corr = Corrections::default();
+        let rule = |max_rounds, tolerance| Convergence { kernel_iterations: 20, max_rounds, tolerance };
+        let (all, trace) = fit_converging(&data, &corr, &init, rule(4, f64::NEG_INFINITY));
+        assert_eq!(trace.len(), 5, "{trace:?}");
+        assert!(trace.windows(2).all(|w| w[1] < w[0]), "χ² falls every round: {trace:?}");
+        let counted = fit(&data, &corr, &init, FitSettings { rounds: 4, kernel_iterations: 20 });
+        assert_eq!(all.chi2(), counted.chi2(), "a capped rule is the fixed count");
+        assert!((trace[4] - all.chi2()).abs() <= 1e-9 * all.chi2(), "the trace's last χ² {} is the fit's {}", trace[4], all.chi2());
+        // a tolerance between the falls of rounds 2 and 1 stops after round 2
+        let falls: Vec<f64> = trace.windows(2).map(|w| w[0] - w[1]).collect();
+        let tol = 0.5 * (falls[1] + falls[0]).min(2.0 * falls[1]);
+        assert!(falls[1] <= tol && falls[0] > tol, "{falls:?}");
+        let (two, t2) = fit_converging(&data, &corr, &init, rule(4, tol));
+        assert_eq!(t2.len(), 3, "{t2:?}");
+        assert_eq!(two.chi2(), fit(&data, &corr, &init, FitSettings { rounds: 2, kernel_iterations: 20 }).chi2());
+        let (_, t1) = fit_converging(&data, &corr, &init, rule(4, f64::INFINITY));
+        assert_eq!(t1.len(), 2, "one round when any fall is within the tolerance");
+    }
+}

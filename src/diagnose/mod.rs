@@ -20,11 +20,15 @@
 //!    subset's gain samples the whole image's with an error of its own) is refitted with the
 //!    null refit on every pixel and judged by the same rule there (`screened`,
 //!    `rescore_near_misses`). A parameter search runs only from a start
-//!    that already lowers χ² ([`candidates::StartGate`]); the polished winner is adopted only if
-//!    it lowers the whole-pixel χ² by more than `3·√(2N)` (the stop rule of `adopt`). The
-//!    winner's polish ends on every pixel; the search's final model is polished again (the
-//!    final polish) only where backward elimination changed it after the last adoption or
-//!    where it is not yet consistent with the noise (`needs_final_polish`).
+//!    that already lowers χ² ([`candidates::StartGate`]); a search of many converged fits
+//!    (`pinhole_diffraction`'s Airy radius) is deferred until its provisional candidate's
+//!    screening shows it could decide the round (`in_contention`). The polished winner is
+//!    adopted only if it lowers the whole-pixel χ² by more than `3·√(2N)` (the stop rule of
+//!    `adopt`). The winner's polish ends on every pixel; the search's final model is polished
+//!    again (the final polish) only where backward elimination changed it after the last
+//!    adoption or where it is not yet consistent with the noise (`needs_final_polish`); its
+//!    whole-pixel rounds run while a round still lowers χ² by more than `3·√(2N)`, at most six
+//!    (`final_polish_rule`).
 //! 4. The final model's kernels and corrections form a profile ([`model`]); [`report`] writes
 //!    `report.json`, the predictions, residual maps and `index.html`.
 //!

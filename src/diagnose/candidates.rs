@@ -28,6 +28,38 @@ pub struct Candidate {
     pub location: String,
     /// Starting point other than the current model (kernels moved to the new geometry).
     pub init: Option<Model>,
+    /// A provisional candidate whose parameter search has not run yet (see [`Deferred`]):
+    /// [`complete`] runs it where the provisional screening shows it could decide the round.
+    pub deferred: Option<Deferred>,
+}
+
+/// The part of a candidate's parameter search left until the round's screening shows that
+/// the candidate could win it (docs/diagnosis.md, "Session 19"): a search that costs many
+/// converged fits is worth its cost only there.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Deferred {
+    /// `pinhole_diffraction` at the radius screen's best green Airy radius (px) with `σ_a = 0`;
+    /// left: the golden sections of converged fits on the radius and `σ_a`
+    /// ([`DiffractionSearch::radius`], [`DiffractionSearch::aberration`]).
+    Diffraction { radius_px: f64 },
+}
+
+/// `cand` with its deferred search run ([`Deferred`]); `cand` itself when nothing was deferred.
+pub fn complete(data: &Data, current: &Fit, cand: Candidate) -> Candidate {
+    match cand.deferred {
+        None => cand,
+        Some(Deferred::Diffraction { radius_px }) => {
+            let search = DiffractionSearch { data, current };
+            let (r, v) = search.radius(radius_px);
+            let (best_r, best_sa) = search.aberration(r, v);
+            Candidate {
+                corrections: Corrections { pinhole_diffraction: Some(search.correction(best_r, best_sa)), ..current.model.corrections.clone() },
+                init: Some(search.init(best_r, best_sa)),
+                deferred: None,
+                ..cand
+            }
+        }
+    }
 }
 
 /// The χ² gate of a candidate's parameter search (docs/diagnosis.md, "Gated proposals"): a
@@ -257,6 +289,7 @@ fn vignetting_candidate(data: &Data, c0: &Corrections, a: &Analysis) -> Candidat
         corrections: Corrections { vignetting: Some(VignettingCorrection { k1: 0.0, k2: 0.0, k3: 0.0 }), ..c0.clone() },
         evidence: format!("residual against radius: {}", curve_text(a, "radius")),
         init: None,
+        deferred: None,
         location: location(data, a, "radial, centre to corners"),
     }
 }
@@ -267,6 +300,7 @@ fn gradient_candidate(data: &Data, c0: &Corrections, a: &Analysis) -> Candidate 
         corrections: Corrections { illumination_gradient: Some(GradientCorrection { gx: 0.0, gy: 0.0 }), ..c0.clone() },
         evidence: format!("planar trend of the residual: z ≈ {:+.3} {:+.3}·x̂ {:+.3}·ŷ", a.planar[0], a.planar[1], a.planar[2]),
         init: None,
+        deferred: None,
         location: location(data, a, "planar across the field"),
     }
 }
@@ -277,6 +311,7 @@ fn black_level_candidate(data: &Data, c0: &Corrections, a: &Analysis) -> Candida
         corrections: Corrections { black_level: Some(BlackLevelCorrection { offset: vec![0.0; data.open.channel_count()] }), ..c0.clone() },
         evidence: format!("residual against intensity (an offset weighs most in the dark): {}", curve_text(a, "intensity")),
         init: None,
+        deferred: None,
         location: location(data, a, "dark regions first"),
     }
 }
@@ -300,6 +335,7 @@ fn tone_candidate(data: &Data, current: &Fit, a: &Analysis) -> Candidate {
             100.0 * srgb.iter().sum::<f64>() / srgb.len().max(1) as f64
         ),
         init: linearised_estimate(data, current, Transfer::Srgb),
+        deferred: None,
         location: location(data, a, "all intensities, nonlinear"),
     }
 }
@@ -312,6 +348,7 @@ fn glare_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Candidate
         corrections: Corrections { veiling_glare: Some(GlareCorrection { fraction: 0.02, sigma_px: sigma }), ..current.model.corrections.clone() },
         evidence: format!("residual against the large-scale brightness of the scene: {}", curve_text(a, "large_scale_brightness")),
         init: None,
+        deferred: None,
         location: location(data, a, "beyond the kernel support, around bright regions"),
     })
 }
@@ -380,6 +417,7 @@ fn similarity_candidate(data: &Data, current: &Fit, a: &Analysis, p0: [f64; 2]) 
         corrections: Corrections { misregistration: Some(info), ..current.model.corrections.clone() },
         location: location(data, a, "growing towards the corners"),
         init: Some(init),
+        deferred: None,
     })
 }
 
@@ -407,6 +445,7 @@ fn saturation_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Cand
             curve_text(a, "intensity")
         ),
         init: None,
+        deferred: None,
         location: location(data, a, "the brightest regions"),
     })
 }
@@ -427,6 +466,7 @@ fn field_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Candidate
         corrections: Corrections { psf_field_variation: Some(FieldCorrection { columns: cols, rows }), ..current.model.corrections.clone() },
         evidence: format!("residual against position inside the tile: {}; per-tile reduced χ² spans {:.2}", curve_text(a, "position_in_tile"), spread),
         init: None,
+        deferred: None,
         location: location(data, a, &format!("between tile centres; refit on {cols}x{rows} tiles instead of {}x{}", g.columns, g.rows)),
     })
 }
@@ -481,7 +521,9 @@ const AIRY_RADII: [f64; 5] = [0.9, 1.3, 1.9, 2.8, 4.0];
 /// The `pinhole_diffraction` candidate: the evidence is the wide-open capture's power above
 /// what any non-negative kernel can pass from the reference (`|K̂| ≤ ΣK = s`), per radial
 /// frequency band, noise power subtracted; the radius is screened over [`AIRY_RADII`] with the
-/// kernels refitted briefly, then refined by golden section on `ln r`.
+/// kernels refitted briefly. The candidate is provisional ([`Deferred::Diffraction`]): the
+/// golden sections on `ln r` and `σ_a` run in [`complete`], only where the round's screening
+/// shows that the candidate could win.
 fn diffraction_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Candidate> {
     let worst = worst_excess_detail(data, current);
     if worst.1 <= 1.0 {
@@ -489,18 +531,18 @@ fn diffraction_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Can
         return None;
     }
     let search = DiffractionSearch { data, current };
-    let (r, v) = search.radius();
-    let (best_r, best_sa) = search.aberration(r, v);
+    let r = search.screened_radius();
     Some(Candidate {
         name: "pinhole_diffraction",
-        corrections: Corrections { pinhole_diffraction: Some(search.correction(best_r, best_sa)), ..current.model.corrections.clone() },
+        corrections: Corrections { pinhole_diffraction: Some(search.correction(r, 0.0)), ..current.model.corrections.clone() },
         evidence: format!(
             "the wide-open capture has {:.2}× the power a non-negative kernel can pass from the reference at {:.2} cycles/px (noise removed; at most 1 without this effect); residual against image gradient: {}",
             worst.1,
             worst.0,
             curve_text(a, "gradient")
         ),
-        init: Some(search.init(best_r, best_sa)),
+        init: Some(search.init(r, 0.0)),
+        deferred: Some(Deferred::Diffraction { radius_px: r }),
         location: format!("fine detail everywhere (above {:.2} cycles/px); channels {}; {}", worst.0, channel_list(data), where_text(a)),
     })
 }
@@ -576,17 +618,22 @@ impl DiffractionSearch<'_> {
         self.chi2(r, sa, FitSettings { rounds: 3, kernel_iterations: 150 })
     }
 
-    /// The radius (with `σ_a = 0`) and its χ²: screened over [`AIRY_RADII`], then refined by
-    /// golden section on `ln r` within a factor 1.5.
-    fn radius(&self) -> (f64, f64) {
+    /// The radius screen (with `σ_a = 0`): the best of [`AIRY_RADII`] by χ² of a short fit
+    /// from each warm start. The screen's short fits only locate the basin (they favour too
+    /// large a radius: the kernels have not yet shed the sharpening the unrestored reference
+    /// forced on them); [`Self::radius`] refines it with converged fits.
+    fn screened_radius(&self) -> f64 {
         let screen = FitSettings { rounds: 1, kernel_iterations: 30 };
         let scores: Vec<(f64, f64)> = AIRY_RADII.iter().map(|&r| (r, self.chi2(r, 0.0, screen))).collect();
-        let mut best_r = scores.iter().copied().fold((AIRY_RADII[0], f64::INFINITY), |b, s| if s.1 < b.1 { s } else { b }).0;
-        // the screen's short fits only locate the basin (they favour too large a radius: the
-        // kernels have not yet shed the sharpening the unrestored reference forced on them); the
-        // refinement compares converged fits only
-        let mut best_v = f64::INFINITY;
-        let points = golden_section((best_r / 1.5).ln(), (best_r * 1.5).ln(), 3, &|x| self.refined(x.exp(), 0.0));
+        scores.iter().copied().fold((AIRY_RADII[0], f64::INFINITY), |b, s| if s.1 < b.1 { s } else { b }).0
+    }
+
+    /// The radius (with `σ_a = 0`) and its χ²: the screened radius `r0`
+    /// ([`Self::screened_radius`]) refined by golden section on `ln r` within a factor 1.5,
+    /// comparing converged fits only.
+    fn radius(&self, r0: f64) -> (f64, f64) {
+        let (mut best_r, mut best_v) = (r0, f64::INFINITY);
+        let points = golden_section((r0 / 1.5).ln(), (r0 * 1.5).ln(), 3, &|x| self.refined(x.exp(), 0.0));
         for (x, v) in points {
             if v < best_v {
                 (best_r, best_v) = (x.exp(), v);

@@ -525,6 +525,38 @@ pub fn screen(data: &Data, corrections: &Corrections, init: &Model, settings: Fi
     fit_on(data, corrections, init, settings, &|_, _| true, data.screen_pixels, true)
 }
 
+/// A whole-pixel fit whose round count is set by a convergence rule instead of a count
+/// ([`fit_converging`]): at most `max_rounds` rounds of `kernel_iterations` each (the
+/// momentum carried between them), stopped after the first round that lowers χ² by no more
+/// than `tolerance` (χ² units; `τ·√(2N)` compares the fall with χ²'s own noise).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Convergence {
+    pub kernel_iterations: usize,
+    pub max_rounds: usize,
+    pub tolerance: f64,
+}
+
+/// [`fit`] on every pixel with rounds run while they still lower χ² ([`Convergence`]).
+/// Returns the fit and χ² before the first round and after each round run (every pixel of the
+/// evaluation set, the scalars refitted: the same χ² as [`Fit::chi2`] of a fit stopped there).
+pub fn fit_converging(data: &Data, corrections: &Corrections, init: &Model, rule: Convergence) -> (Fit, Vec<f64>) {
+    let mut corr = corrections.clone();
+    let setup = Setup::new(data, &corr, init, &|_, _| true, usize::MAX);
+    let mut p = setup.initial_params(&corr, init);
+    let kset = KernelFitSettings { iterations: rule.kernel_iterations, rounds: 1, step: KERNEL_STEP };
+    let mut trace = vec![setup.chi2(&corr, &p)];
+    for _round in 0..rule.max_rounds {
+        setup.round(&mut corr, &mut p, kset);
+        let chi2 = setup.chi2(&corr, &p);
+        let fall = trace[trace.len() - 1] - chi2;
+        trace.push(chi2);
+        if fall <= rule.tolerance {
+            break;
+        }
+    }
+    (finish(data, setup, corr, p, false), trace)
+}
+
 /// `subset_figures`: score only the kernel operators' kept blocks ([`fit_subset`]) instead of
 /// every pixel.
 #[allow(clippy::too_many_arguments)]
@@ -536,6 +568,11 @@ fn fit_on(data: &Data, corrections: &Corrections, init: &Model, settings: FitSet
     for _round in 0..settings.rounds {
         setup.round(&mut corr, &mut p, kset);
     }
+    finish(data, setup, corr, p, subset_figures)
+}
+
+/// The fitted parameters `p` into a [`Fit`]: the model, its figures and the noise law's fit.
+fn finish(data: &Data, setup: Setup, mut corr: Corrections, mut p: Params, subset_figures: bool) -> Fit {
     let (grid, exposure) = setup.final_model(&mut corr, &p);
     let f = setup.figures(&corr, &mut p, subset_figures);
     let (nch, k) = (setup.nch, setup.grid0.kernel_size);
@@ -1019,6 +1056,14 @@ impl<'a> Setup<'a> {
         f
     }
 
+    /// χ² of the parameters `p` on every pixel of the evaluation set (the operators cover
+    /// every pixel: a whole-pixel fit).
+    fn chi2(&self, corr: &Corrections, p: &Params) -> f64 {
+        let g = gain_plane(corr, self.w, self.h);
+        let scored = &self.masks.interior;
+        (0..self.nch).into_par_iter().map(|c| self.channel_figures(c, corr, p, &g, scored).score.chi2).sum()
+    }
+
     /// Channel `c`'s prediction, variance and χ² on the stored axis (back on the wide-open
     /// geometry under `misregistration`), and the reference noise's share of the residual's
     /// high-pass.
@@ -1063,5 +1108,52 @@ impl<'a> Setup<'a> {
         let sat = m.saturation.then_some((&m.clipped_open[c][..], &m.pin_clipped[c][..]));
         let score = score_channel(&mlin, &vl, self.transfer, clip, scored, &data.open.planes[c], sat);
         ChannelFigures { score, reference_highpass: hp }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A small clean case (128×96, monochrome, 9-px kernels on 3×2 tiles) with its data and the
+    /// model to start from: the rendered PSFs blurred (so that rounds still lower χ²).
+    fn small_case() -> (Data, Model) {
+        let spec = super::super::proof::CaseSpec { width: 128, height: 96, kernel_size: 9, ..Default::default() };
+        let case = super::super::proof::render_case(None, 5, &spec).expect("a clean case renders");
+        let data = Data::new(&case.open.image, &case.pinhole.image, 1.0 / case.pinhole_frames as f64);
+        let mut grid = case.open.psfs.clone().expect("rendered PSFs");
+        for ks in grid.kernels.iter_mut() {
+            for k in ks.iter_mut() {
+                *k = Plane::filled(k.width, k.height, 1.0 / (k.width * k.height) as f32);
+            }
+        }
+        let exposure = vec![1.0; data.open.channel_count()];
+        (data, Model { corrections: Corrections::default(), grid, exposure })
+    }
+
+    /// The convergence rule ([`fit_converging`]): its per-round χ² is the χ² of the fit it
+    /// returns, with no tolerance it runs its cap and is then the fixed-count fit bit for bit
+    /// (the momentum carried alike), and it stops after the first round whose fall is within
+    /// the tolerance.
+    #[test]
+    fn converging_fit_stops_at_the_first_round_within_the_tolerance() {
+        let (data, init) = small_case();
+        let corr = Corrections::default();
+        let rule = |max_rounds, tolerance| Convergence { kernel_iterations: 20, max_rounds, tolerance };
+        let (all, trace) = fit_converging(&data, &corr, &init, rule(4, f64::NEG_INFINITY));
+        assert_eq!(trace.len(), 5, "{trace:?}");
+        assert!(trace.windows(2).all(|w| w[1] < w[0]), "χ² falls every round: {trace:?}");
+        let counted = fit(&data, &corr, &init, FitSettings { rounds: 4, kernel_iterations: 20 });
+        assert_eq!(all.chi2(), counted.chi2(), "a capped rule is the fixed count");
+        assert!((trace[4] - all.chi2()).abs() <= 1e-9 * all.chi2(), "the trace's last χ² {} is the fit's {}", trace[4], all.chi2());
+        // a tolerance between the falls of rounds 2 and 1 stops after round 2
+        let falls: Vec<f64> = trace.windows(2).map(|w| w[0] - w[1]).collect();
+        let tol = 0.5 * (falls[1] + falls[0]).min(2.0 * falls[1]);
+        assert!(falls[1] <= tol && falls[0] > tol, "{falls:?}");
+        let (two, t2) = fit_converging(&data, &corr, &init, rule(4, tol));
+        assert_eq!(t2.len(), 3, "{t2:?}");
+        assert_eq!(two.chi2(), fit(&data, &corr, &init, FitSettings { rounds: 2, kernel_iterations: 20 }).chi2());
+        let (_, t1) = fit_converging(&data, &corr, &init, rule(4, f64::INFINITY));
+        assert_eq!(t1.len(), 2, "one round when any fall is within the tolerance");
     }
 }

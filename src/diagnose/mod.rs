@@ -20,11 +20,15 @@
 //!    subset's gain samples the whole image's with an error of its own) is refitted with the
 //!    null refit on every pixel and judged by the same rule there (`screened`,
 //!    `rescore_near_misses`). A parameter search runs only from a start
-//!    that already lowers χ² ([`candidates::StartGate`]); the polished winner is adopted only if
-//!    it lowers the whole-pixel χ² by more than `3·√(2N)` (the stop rule of `adopt`). The
-//!    winner's polish ends on every pixel; the search's final model is polished again (the
-//!    final polish) only where backward elimination changed it after the last adoption or
-//!    where it is not yet consistent with the noise (`needs_final_polish`).
+//!    that already lowers χ² ([`candidates::StartGate`]); a search of many converged fits
+//!    (`pinhole_diffraction`'s Airy radius) is deferred until its provisional candidate's
+//!    screening shows it could decide the round (`in_contention`). The polished winner is
+//!    adopted only if it lowers the whole-pixel χ² by more than `3·√(2N)` (the stop rule of
+//!    `adopt`). The winner's polish ends on every pixel; the search's final model is polished
+//!    again (the final polish) only where backward elimination changed it after the last
+//!    adoption or where it is not yet consistent with the noise (`needs_final_polish`); its
+//!    whole-pixel rounds run while a round still lowers χ² by more than `3·√(2N)`, at most six
+//!    (`final_polish_rule`).
 //! 4. The final model's kernels and corrections form a profile ([`model`]); [`report`] writes
 //!    `report.json`, the predictions, residual maps and `index.html`.
 //!
@@ -523,18 +527,34 @@ fn needs_final_polish(effects: usize, polished: bool, consistent: bool) -> bool 
 }
 
 /// The final model polished with twice the base budget per round, two rounds; where the
-/// screening subset thins the data ([`screens`]) those rounds run on the subset and one round
-/// of the base budget on every pixel follows.
+/// screening subset thins the data ([`screens`]) those rounds run on the subset, then rounds
+/// of the base budget on every pixel follow while they still lower χ² by more than its noise
+/// ([`final_polish_rule`]).
 fn final_polish(data: &Data, current: &Fit, opts: &DiagnoseOptions) -> Fit {
     let settings = FitSettings { rounds: 2, kernel_iterations: 2 * opts.base_fit.kernel_iterations };
     let mut polished = if screens(data, opts) {
         let sub = fit::fit_subset(data, &current.model.corrections, &current.model, settings, opts.screen_pixels);
-        fit::fit(data, &sub.model.corrections, &sub.model, FitSettings { rounds: 1, kernel_iterations: opts.base_fit.kernel_iterations })
+        let (f, trace) = fit::fit_converging(data, &sub.model.corrections, &sub.model, final_polish_rule(current.n(), opts));
+        if opts.progress {
+            let falls: Vec<String> = trace.windows(2).map(|w| format!("{:.0}", w[0] - w[1])).collect();
+            eprintln!("final polish on every pixel: {} rounds, χ² {:.0} → {:.0} (falls {}; noise {:.0})", trace.len() - 1, trace[0], trace[trace.len() - 1], falls.join(", "), (2.0 * current.n() as f64).sqrt());
+        }
+        f
     } else {
         fit::fit(data, &current.model.corrections, &current.model, settings)
     };
     polished.inherit_dof(current);
     polished
+}
+
+/// Most whole-pixel rounds of the final polish ([`final_polish_rule`]).
+const FINAL_POLISH_MAX_ROUNDS: usize = 6;
+
+/// The final polish's whole-pixel rounds ([`final_polish`]): the base budget per round, run
+/// while a round lowers χ² by more than [`STOP_SIGMAS`]` · √(2N)` (χ²'s own noise for `N`
+/// pixels), at most [`FINAL_POLISH_MAX_ROUNDS`].
+fn final_polish_rule(n: usize, opts: &DiagnoseOptions) -> fit::Convergence {
+    fit::Convergence { kernel_iterations: opts.base_fit.kernel_iterations, max_rounds: FINAL_POLISH_MAX_ROUNDS, tolerance: STOP_SIGMAS * (2.0 * n as f64).sqrt() }
 }
 
 /// `f`'s model scored with `data`'s current noise curves, unchanged (no fitting round), with
@@ -639,15 +659,53 @@ fn search_round(data: &Data, current: &Fit, analysis: &Analysis, opts: &Diagnose
     let mut scores = vec![CandidateScore { name: "(null refit)".into(), reduced_chi2: null.reduced_chi2(), parameters: serde_json::Value::Null, delta_bic: 0.0, note: "the current model refitted with the candidates' budget".into() }];
     let mut best: Option<(candidates::Candidate, Fit, f64)> = None;
     let mut near: Vec<(candidates::Candidate, f64)> = Vec::new();
+    let mut provisional: Vec<(candidates::Candidate, Screened, f64)> = Vec::new();
+    let on = if subset { " on the screening subset" } else { "" };
+    let score = |name: &str, f: &Fit, dbic: f64, gain: f64| CandidateScore { name: name.to_string(), parameters: candidates::parameters_json(name, &f.model.corrections), reduced_chi2: f.reduced_chi2(), delta_bic: dbic, note: format!("removes {:.1}% of χ²{on}", 100.0 * gain) };
     for cand in proposed {
         let f = screen(cand.name, &cand.corrections, cand.init.as_ref().unwrap_or(&current.model));
         let dbic = f.bic() - null.bic();
         let gain = chi2_gain(&null, &f);
-        let on = if subset { " on the screening subset" } else { "" };
-        scores.push(CandidateScore { name: cand.name.to_string(), parameters: candidates::parameters_json(cand.name, &f.model.corrections), reduced_chi2: f.reduced_chi2(), delta_bic: dbic, note: format!("removes {:.1}% of χ²{on}", 100.0 * gain) });
-        match screened(dbic, gain, opts.min_gain, subset) {
+        scores.push(score(cand.name, &f, dbic, gain));
+        let verdict = screened(dbic, gain, opts.min_gain, subset);
+        if cand.deferred.is_some() {
+            // decided below, against the round's best complete candidate
+            provisional.push((cand, verdict, dbic));
+            continue;
+        }
+        match verdict {
             Screened::Winner if best.as_ref().map_or(true, |b| dbic < b.2) => best = Some((cand, f, dbic)),
             Screened::NearMiss => near.push((cand, dbic)),
+            _ => {}
+        }
+    }
+    // a provisional candidate's deferred search runs only where its provisional score could
+    // decide the round ([`in_contention`]); its completed candidate is screened again
+    for (cand, verdict, dbic) in provisional {
+        let entry = scores.iter().position(|s| s.name == cand.name);
+        if !in_contention(verdict, dbic, best.as_ref().map(|b| b.2)) {
+            if let Some(i) = entry {
+                scores[i].note += "; its parameter search skipped: cannot decide the round";
+            }
+            if opts.progress {
+                eprintln!("{}: provisional ΔBIC {dbic:.0} ({verdict:?}) against the round's best {:?}: its parameter search skipped", cand.name, best.as_ref().map(|b| b.2.round()));
+            }
+            continue;
+        }
+        let mut lap = crate::estimate::stage_clock();
+        let cand = candidates::complete(data, current, cand);
+        progress_lap(opts, lap("deferred parameter search"));
+        let f = screen(cand.name, &cand.corrections, cand.init.as_ref().unwrap_or(&current.model));
+        let (dbic2, gain) = (f.bic() - null.bic(), chi2_gain(&null, &f));
+        if opts.progress {
+            eprintln!("{}: provisional ΔBIC {dbic:.0}, after its parameter search {dbic2:.0}", cand.name);
+        }
+        if let Some(i) = entry {
+            scores[i] = score(cand.name, &f, dbic2, gain);
+        }
+        match screened(dbic2, gain, opts.min_gain, subset) {
+            Screened::Winner if best.as_ref().map_or(true, |b| dbic2 < b.2) => best = Some((cand, f, dbic2)),
+            Screened::NearMiss => near.push((cand, dbic2)),
             _ => {}
         }
     }
@@ -659,6 +717,22 @@ fn search_round(data: &Data, current: &Fit, analysis: &Analysis, opts: &Diagnose
     }
     (scores, best)
 }
+
+/// Whether a provisional candidate ([`candidates::Deferred`]) could decide its round, so that
+/// its deferred parameter search must run: its provisional screening passes the acceptance
+/// rule or is a near miss ([`screened`]), and either no complete candidate won the round
+/// (`best` `None`) or its ΔBIC reaches [`CONTENTION`] of the best one's (both negative). The
+/// search refines a start the screen already located (the radius within a factor 1.5, the
+/// aberration blur added): on `pinhole_diffraction` at 1024×768 (seed 41) it took ΔBIC from
+/// −2 263 714 to −4 107 681, a factor 1.8 (docs/diagnosis.md, "Session 19"); a candidate
+/// below a quarter of the best would need more than twice that.
+fn in_contention(provisional: Screened, dbic: f64, best: Option<f64>) -> bool {
+    provisional != Screened::Rejected && best.map_or(true, |b| dbic < CONTENTION * b)
+}
+
+/// The share of the round's best ΔBIC a provisional candidate must reach to have its search
+/// run ([`in_contention`]).
+const CONTENTION: f64 = 0.25;
 
 /// The share of the null refit's χ² (the noise law's term included) that `f` removes.
 fn chi2_gain(null: &Fit, f: &Fit) -> f64 {
@@ -911,6 +985,22 @@ mod tests {
     /// winner's polish and the final polish would run back to back on the same model), after
     /// backward elimination, after an adoption that left it above the noise (the tone curve at
     /// 1024×768: 1.24× the floor without the final polish), never without an effect.
+    /// A provisional candidate's parameter search (the Airy radius's golden sections of
+    /// converged fits) runs only where its provisional score could decide the round:
+    /// vignetting seed 42 at 1024×768, where `pinhole_diffraction` removes 10.5 % of χ² against
+    /// vignetting's 83.8 %, skips it (486 CPU-s before).
+    #[test]
+    fn a_deferred_search_runs_only_where_the_candidate_could_win() {
+        assert!(!in_contention(Screened::Winner, -1.67e6, Some(-1.3e7)), "far behind the round's best");
+        assert!(!in_contention(Screened::Winner, -2.6e6, Some(-1.3e7)), "a fifth of the best");
+        assert!(in_contention(Screened::Winner, -4.0e6, Some(-1.3e7)), "within reach of the best");
+        assert!(in_contention(Screened::Winner, -2.0e7, Some(-1.3e7)), "ahead of the best");
+        assert!(in_contention(Screened::Winner, -1.0e3, None), "no complete candidate won");
+        assert!(in_contention(Screened::NearMiss, -1.0e3, None), "a near miss with no winner");
+        assert!(!in_contention(Screened::NearMiss, -1.0e3, Some(-1.3e7)));
+        assert!(!in_contention(Screened::Rejected, 5.0, None), "rejected even before its search");
+    }
+
     #[test]
     fn final_polish_only_where_the_model_changed_or_is_not_consistent() {
         assert!(!needs_final_polish(1, true, true), "the adopted winner is polished and consistent");

@@ -127,6 +127,7 @@ fn keystone_candidate(data: &Data, current: &Fit, a: &Analysis, k0: [f64; 2], co
         ),
         location: format!("growing quadratically towards the edges across an axis at {axis:.0}° (tilt axis at {:.0}°); {}", axis + 90.0, where_text(a)),
         init: Some(init),
+        deferred: None,
     })
 }
 

@@ -980,11 +980,6 @@ mod tests {
         assert_eq!(screened(-1.0, NEAR_MISS * g, g, true), Screened::NearMiss);
     }
 
-    /// The final polish runs only where the model changed since the last adoption's polish or
-    /// is not yet consistent: not right after an adoption that left it consistent (the
-    /// winner's polish and the final polish would run back to back on the same model), after
-    /// backward elimination, after an adoption that left it above the noise (the tone curve at
-    /// 1024×768: 1.24× the floor without the final polish), never without an effect.
     /// A provisional candidate's parameter search (the Airy radius's golden sections of
     /// converged fits) runs only where its provisional score could decide the round:
     /// vignetting seed 42 at 1024×768, where `pinhole_diffraction` removes 10.5 % of χ² against
@@ -1001,6 +996,11 @@ mod tests {
         assert!(!in_contention(Screened::Rejected, 5.0, None), "rejected even before its search");
     }
 
+    /// The final polish runs only where the model changed since the last adoption's polish or
+    /// is not yet consistent: not right after an adoption that left it consistent (the
+    /// winner's polish and the final polish would run back to back on the same model), after
+    /// backward elimination, after an adoption that left it above the noise (the tone curve at
+    /// 1024×768: 1.24× the floor without the final polish), never without an effect.
     #[test]
     fn final_polish_only_where_the_model_changed_or_is_not_consistent() {
         assert!(!needs_final_polish(1, true, true), "the adopted winner is polished and consistent");

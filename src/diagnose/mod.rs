@@ -659,9 +659,16 @@ fn search_round(data: &Data, current: &Fit, analysis: &Analysis, opts: &Diagnose
     let mut scores = vec![CandidateScore { name: "(null refit)".into(), reduced_chi2: null.reduced_chi2(), parameters: serde_json::Value::Null, delta_bic: 0.0, note: "the current model refitted with the candidates' budget".into() }];
     let mut best: Option<(candidates::Candidate, Fit, f64)> = None;
     let mut near: Vec<(candidates::Candidate, f64)> = Vec::new();
-    let mut provisional: Vec<(candidates::Candidate, Screened, f64)> = Vec::new();
+    // deferred candidates with their provisional verdict, ΔBIC and entry in `scores`
+    let mut provisional: Vec<(candidates::Candidate, Screened, f64, usize)> = Vec::new();
     let on = if subset { " on the screening subset" } else { "" };
     let score = |name: &str, f: &Fit, dbic: f64, gain: f64| CandidateScore { name: name.to_string(), parameters: candidates::parameters_json(name, &f.model.corrections), reduced_chi2: f.reduced_chi2(), delta_bic: dbic, note: format!("removes {:.1}% of χ²{on}", 100.0 * gain) };
+    // a screened candidate becomes the round's best (the lowest ΔBIC among winners) or a near miss
+    let consider = |best: &mut Option<(candidates::Candidate, Fit, f64)>, near: &mut Vec<(candidates::Candidate, f64)>, verdict: Screened, cand: candidates::Candidate, f: Fit, dbic: f64| match verdict {
+        Screened::Winner if best.as_ref().map_or(true, |b| dbic < b.2) => *best = Some((cand, f, dbic)),
+        Screened::NearMiss => near.push((cand, dbic)),
+        _ => {}
+    };
     for cand in proposed {
         let f = screen(cand.name, &cand.corrections, cand.init.as_ref().unwrap_or(&current.model));
         let dbic = f.bic() - null.bic();
@@ -670,23 +677,16 @@ fn search_round(data: &Data, current: &Fit, analysis: &Analysis, opts: &Diagnose
         let verdict = screened(dbic, gain, opts.min_gain, subset);
         if cand.deferred.is_some() {
             // decided below, against the round's best complete candidate
-            provisional.push((cand, verdict, dbic));
+            provisional.push((cand, verdict, dbic, scores.len() - 1));
             continue;
         }
-        match verdict {
-            Screened::Winner if best.as_ref().map_or(true, |b| dbic < b.2) => best = Some((cand, f, dbic)),
-            Screened::NearMiss => near.push((cand, dbic)),
-            _ => {}
-        }
+        consider(&mut best, &mut near, verdict, cand, f, dbic);
     }
     // a provisional candidate's deferred search runs only where its provisional score could
     // decide the round ([`in_contention`]); its completed candidate is screened again
-    for (cand, verdict, dbic) in provisional {
-        let entry = scores.iter().position(|s| s.name == cand.name);
+    for (cand, verdict, dbic, entry) in provisional {
         if !in_contention(verdict, dbic, best.as_ref().map(|b| b.2)) {
-            if let Some(i) = entry {
-                scores[i].note += "; its parameter search skipped: cannot decide the round";
-            }
+            scores[entry].note += "; its parameter search skipped: cannot decide the round";
             if opts.progress {
                 eprintln!("{}: provisional ΔBIC {dbic:.0} ({verdict:?}) against the round's best {:?}: its parameter search skipped", cand.name, best.as_ref().map(|b| b.2.round()));
             }
@@ -700,14 +700,8 @@ fn search_round(data: &Data, current: &Fit, analysis: &Analysis, opts: &Diagnose
         if opts.progress {
             eprintln!("{}: provisional ΔBIC {dbic:.0}, after its parameter search {dbic2:.0}", cand.name);
         }
-        if let Some(i) = entry {
-            scores[i] = score(cand.name, &f, dbic2, gain);
-        }
-        match screened(dbic2, gain, opts.min_gain, subset) {
-            Screened::Winner if best.as_ref().map_or(true, |b| dbic2 < b.2) => best = Some((cand, f, dbic2)),
-            Screened::NearMiss => near.push((cand, dbic2)),
-            _ => {}
-        }
+        scores[entry] = score(cand.name, &f, dbic2, gain);
+        consider(&mut best, &mut near, screened(dbic2, gain, opts.min_gain, subset), cand, f, dbic2);
     }
     bar.finish_and_clear();
     if best.is_none() && !near.is_empty() {

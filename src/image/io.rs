@@ -331,11 +331,7 @@ pub fn depth_note(a: &Path, ia: &Image, b: &Path, ib: &Image) -> Option<String> 
     if ia.format == ib.format {
         return None;
     }
-    let bits = |f: SampleFormat| match f {
-        SampleFormat::U8 => "8-bit integer",
-        SampleFormat::U16 => "16-bit integer",
-        SampleFormat::F32 => "32-bit float",
-    };
+    let bits = |f: SampleFormat| format!("{}-bit {}", f.bits(), if f == SampleFormat::F32 { "float" } else { "integer" });
     // the coarser of the two: the larger quantisation step (floats have none worth naming)
     let step = |f: SampleFormat| if f == SampleFormat::F32 { 0.0 } else { 1.0 / f.full_scale() as f64 };
     let (coarse, fmt) = if step(ia.format) >= step(ib.format) { (a, ia.format) } else { (b, ib.format) };

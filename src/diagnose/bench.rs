@@ -71,7 +71,8 @@ pub fn bench_case(effect: Option<&str>, seed: u64, spec: &CaseSpec, opts: &Diagn
     let opts = DiagnoseOptions { pinhole_variance_scale: 1.0 / case.pinhole_frames as f64, ..opts.clone() };
     let d = diagnose(&case.open.image, &case.pinhole.image, None, &opts)?;
     let set = effect.map(super::proof::effect_set).transpose()?.unwrap_or_default();
-    let (named, correct) = score_names(&set, &d);
+    let names: Vec<&str> = d.effects.iter().map(|e| e.name.as_str()).collect();
+    let (named, correct) = score_names(&set, &names, &d.verdict);
     let ratio = floor_ratio(&case, &d.final_fit.predicted, &d.final_fit.eval);
     let recovered = match (correct, d.effects.first()) {
         (true, Some(e)) => recovered_text(&e.parameters, &case.truth),
@@ -94,14 +95,16 @@ pub fn bench_case(effect: Option<&str>, seed: u64, spec: &CaseSpec, opts: &Diagn
 
 /// The "named" column and whether it is correct: one concealed effect must be named first; a
 /// set of `n` must be the first `n` effects named, in any order (the column shows every name,
-/// `+`-joined, so an effect named after them shows); clean data must name none.
-fn score_names(set: &[&str], d: &Diagnosis) -> (String, bool) {
-    let names: Vec<&str> = d.effects.iter().map(|e| e.name.as_str()).collect();
+/// `+`-joined, so an effect named after them shows); clean data must name none **and** end with
+/// the verdict "no mismatch" (an "unexplained" verdict on clean data is a false alarm). Where
+/// nothing is named the column shows the verdict's class, "no mismatch" or "unexplained".
+fn score_names(set: &[&str], names: &[&str], verdict: &str) -> (String, bool) {
+    let class = verdict.split(':').next().unwrap_or(verdict).trim();
+    let text = if names.is_empty() { class.to_string() } else { names.join("+") };
     match set.len() {
-        0 => ("no mismatch".to_string(), names.is_empty()),
-        1 => (names.first().map_or("no mismatch".to_string(), |n| n.to_string()), names.first() == set.first()),
+        0 => (text, names.is_empty() && class == "no mismatch"),
+        1 => (names.first().map_or(text, |n| n.to_string()), names.first() == set.first()),
         _ => {
-            let text = if names.is_empty() { "no mismatch".to_string() } else { names.join("+") };
             let (mut a, mut b) = (names[..names.len().min(set.len())].to_vec(), set.to_vec());
             a.sort_unstable();
             b.sort_unstable();
@@ -117,7 +120,19 @@ pub fn proof_options(spec: &CaseSpec) -> DiagnoseOptions {
 
 #[cfg(test)]
 mod tests {
-    use super::recovered_text;
+    use super::{recovered_text, score_names};
+
+    #[test]
+    fn unnamed_cases_show_the_verdict_and_clean_needs_no_mismatch() {
+        let unexplained = "unexplained: reduced χ² 1.543 remains; residual depends on radius";
+        assert_eq!(score_names(&[], &[], "no mismatch: the base model fits to the noise floor"), ("no mismatch".to_string(), true));
+        // a false alarm on clean data is not a pass
+        assert_eq!(score_names(&[], &[], unexplained), ("unexplained".to_string(), false));
+        assert_eq!(score_names(&["misregistration"], &[], unexplained), ("unexplained".to_string(), false));
+        assert_eq!(score_names(&["vignetting"], &["vignetting", "black_level"], "explained: …"), ("vignetting".to_string(), true));
+        assert_eq!(score_names(&["vignetting", "black_level"], &["black_level", "vignetting"], "explained: …"), ("black_level+vignetting".to_string(), true));
+        assert_eq!(score_names(&["vignetting", "black_level"], &[], unexplained), ("unexplained".to_string(), false));
+    }
     use serde_json::json;
 
     #[test]

@@ -452,12 +452,9 @@ fn field_pairs(grid: &PsfGrid, kernels: &[Plane], g: f64, sigma: f64) -> Vec<(us
 /// rate `g_c`, which switches on the field-smoothness prior ([`field_pairs`], its weights
 /// scaled with `σ̂²` when `σ̂` is re-measured); `None` leaves it off. `tail`: when given, the fit
 /// is continued from its end on the same objective ([`continue_fit`], the returned kernels are
-/// not changed) and the convergence term of every kernel is written there
-/// ([`super::bootstrap::convergence_map`]). `prediction`: when given, it receives the fitted
-/// model's prediction `A b = Σ_t w_t ⊙ (s·I ⊛ b_t)` of the whole image at the returned kernels
-/// (the forward model of [`crate::optics::forward::blur_channel`], from the operator's sharp-image
-/// spectra, which are already computed; when the fit kept only a subset of the blocks, from an
-/// operator on all blocks built for it).
+/// not changed) and the convergence term of every kernel is returned
+/// ([`super::bootstrap::convergence_map`]). Returns the kernels' [`ChannelFit`]: the loop's
+/// statistics, the residual RMS, the prediction and the convergence terms.
 #[allow(clippy::too_many_arguments)]
 pub fn refine_channel(
     open: &Plane,
@@ -472,9 +469,8 @@ pub fn refine_channel(
     max_pixels: usize,
     select: bool,
     field: Option<f64>,
-    tail: Option<&mut Vec<Plane>>,
-    prediction: Option<&mut Vec<f32>>,
-) -> (Stats, f64) {
+    tail: bool,
+) -> ChannelFit {
     let mut p = build_problem(open, sharp, valid, grid, kernels, fits, max_pixels);
     let k = grid.kernel_size;
     let mut sig: Vec<f64> = fits.iter().map(|f| f.2).collect();
@@ -514,24 +510,35 @@ pub fn refine_channel(
     let rest = SplitOptions { max_iterations: opts.max_iterations.saturating_sub(st1.iterations), ..opts.clone() };
     let mut stats = run_fista(&mut p, &mut x, &rest, l_f, progress);
     let f = if stats.iterations > 0 { p.last_data } else { p.normal(&x, &mut g, true) };
-    if let Some(out) = prediction {
-        out.clear();
-        out.resize(p.op.output_len(), 0.0);
-        if p.op.covered().iter().all(|&c| c) {
-            p.op.apply(&x, out);
-        } else {
-            // the fit kept a subset of the blocks: the whole image needs every block's spectrum
-            KernelOperator::new(sharp, grid, usize::MAX).apply(&x, out);
-        }
+    let mut prediction = Plane::new(sharp.width, sharp.height);
+    if p.op.covered().iter().all(|&c| c) {
+        p.op.apply(&x, &mut prediction.data);
+    } else {
+        // the fit kept a subset of the blocks: the whole image needs every block's spectrum
+        KernelOperator::new(sharp, grid, usize::MAX).apply(&x, &mut prediction.data);
     }
-    if let Some(out) = tail {
-        *out = convergence_maps(&mut p, &x, l_f, st1.iterations + stats.iterations);
-    }
+    let convergence = if tail { convergence_maps(&mut p, &x, l_f, st1.iterations + stats.iterations) } else { vec![] };
     stats.iterations += st1.iterations + selecting;
     for (kp, xb) in kernels.iter_mut().zip(x.chunks(k * k)) {
         kp.data.copy_from_slice(xb);
     }
-    (stats, (2.0 * f / count as f64).sqrt())
+    ChannelFit { stats, residual_rms: (2.0 * f / count as f64).sqrt(), prediction, convergence }
+}
+
+/// What [`refine_channel`] returns besides the kernels it refines in place.
+#[derive(Clone, Debug)]
+pub struct ChannelFit {
+    /// The loop's statistics; `iterations` counts every phase (first quarter, λ choice, rest).
+    pub stats: Stats,
+    /// The masked residual RMS at the last extrapolated point (within a step of the result).
+    pub residual_rms: f64,
+    /// The fitted model's prediction `A b = Σ_t w_t ⊙ (s·I ⊛ b_t)` of the whole image at the
+    /// returned kernels (the forward model of [`crate::optics::forward::blur_channel`], from the
+    /// operator's sharp-image spectra, which are already computed; when the fit kept only a
+    /// subset of the blocks, from an operator on all blocks built for it).
+    pub prediction: Plane,
+    /// The convergence term of every kernel (tile order) when `tail` was asked for, else empty.
+    pub convergence: Vec<Plane>,
 }
 
 /// Chunks of the convergence tail ([`continue_fit`]). 16 (80 iterations, about twice the fit's
@@ -717,9 +724,8 @@ mod tests {
         random_kernels(&mut start, 9);
         let run = |cap: usize| {
             let mut kernels = start.kernels[0].clone();
-            let mut pred = vec![1.0f32; 3];
-            super::refine_channel(&open, &sharp, &vec![true; w * h], &g, &mut kernels, &fits, &o, &mut Vec::new(), &indicatif::ProgressBar::hidden(), cap, false, None, None, Some(&mut pred));
-            (kernels, pred)
+            let fit = super::refine_channel(&open, &sharp, &vec![true; w * h], &g, &mut kernels, &fits, &o, &mut Vec::new(), &indicatif::ProgressBar::hidden(), cap, false, None, false);
+            (kernels, fit.prediction.data)
         };
         for cap in [usize::MAX, w * h / 3] {
             let (kernels, pred) = run(cap);
@@ -746,7 +752,7 @@ mod tests {
         let mut est = estimate(&img(&open), &img(&sharp), &opts).expect("estimate");
         let stored = est.profile.meta.noise.clone().expect("a noise law");
         est.profile.meta.noise = crate::profile::noise::NoiseLaw::fit_image(&est.open_linear, opts.saturation).ok();
-        let forward = crate::estimate::profile_noise_law(&est, vec![]).expect("a noise law");
+        let forward = crate::estimate::profile_noise_law(&est, &crate::estimate::bootstrap::predictions(&est)).expect("a noise law");
         assert_eq!(stored.source, forward.source);
         for (a, b) in [(stored.gain[0], forward.gain[0]), (stored.read[0], forward.read[0])] {
             assert!((a - b).abs() <= 1e-3 * b.abs().max(1e-9), "{stored:?} against {forward:?}");
@@ -775,7 +781,7 @@ mod tests {
         let run = |field: Option<f64>| {
             let mut kernels = starts.clone();
             let o = crate::solve::primal_dual::SplitOptions { max_iterations: 40, min_iterations: usize::MAX, tolerance: 0.0 };
-            super::refine_channel(&open, &sharp, &vec![true; w * h], &g, &mut kernels, &fits, &o, &mut Vec::new(), &indicatif::ProgressBar::hidden(), usize::MAX, false, field, None, None);
+            super::refine_channel(&open, &sharp, &vec![true; w * h], &g, &mut kernels, &fits, &o, &mut Vec::new(), &indicatif::ProgressBar::hidden(), usize::MAX, false, field, false);
             kernels.iter().map(|b| relative_error(b, &centre)).sum::<f64>() / kernels.len() as f64
         };
         let (plain, coupled) = (run(None), run(Some(1e-3)));
@@ -804,7 +810,7 @@ mod tests {
         assert!(kept < w * h / 2 && kept > w * h / 6, "kept {kept} of {}", w * h);
         assert!(p.op.every_tile_has_data(), "a tile lost all its data");
         let o = crate::solve::primal_dual::SplitOptions { max_iterations: 200, min_iterations: 5, tolerance: 1e-5 };
-        super::refine_channel(&est.open_linear[0], &sharp_s, &est.valid_masks[0], &grid, &mut kernels, &fits, &o, &mut Vec::new(), &indicatif::ProgressBar::hidden(), cap, false, None, None, None);
+        super::refine_channel(&est.open_linear[0], &sharp_s, &est.valid_masks[0], &grid, &mut kernels, &fits, &o, &mut Vec::new(), &indicatif::ProgressBar::hidden(), cap, false, None, false);
         let mut refined = grid.clone();
         refined.kernels[0] = kernels;
         let cv = |gr: &PsfGrid| interior_rms(&blur_channel(&sharp2.map(|v| v * s), gr, 0), &open2, k / 2) / noise as f64;

@@ -310,7 +310,9 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
     profile.meta.noise = crate::profile::noise::NoiseLaw::fit_image(&open_lin, opts.saturation).ok();
     let field_variation = if opts.joint_iterations > 0 && opts.lambda_scale > 0.0 { layout.variation.clone() } else { vec![] };
     let mut est = Estimate { profile, noise_sigma: noise, valid_masks: data.valid_masks, pinhole_registered: pin_reg, open_linear: open_lin, stage_seconds: stages, field_variation, convergence };
-    est.profile.meta.noise = profile_noise_law(&est, predictions);
+    // the fitted model's prediction: the joint fit's, or (without it) the forward model's
+    let predictions = if predictions.len() == est.open_linear.len() { predictions } else { bootstrap::predictions(&est) };
+    est.profile.meta.noise = profile_noise_law(&est, &predictions);
     est.stage_seconds.push(lap("noise law"));
     Ok(est)
 }
@@ -324,14 +326,12 @@ pub fn estimate(open: &Image, pinhole: &Image, opts: &EstimateOptions) -> Result
 ///
 /// `law_c = argmin_{L ∈ {image, residual}} g_L·m_c + r_L²`.
 ///
-/// Either alone when the other cannot be fitted; `None` when neither can. `predictions`: the
-/// fitted model's prediction per channel when the joint fit computed it (the same forward
-/// model as [`bootstrap::predictions`], from the joint operator's spectra); otherwise (empty)
-/// it is computed here.
-fn profile_noise_law(est: &Estimate, predictions: Vec<Plane>) -> Option<crate::profile::noise::NoiseLaw> {
+/// Either alone when the other cannot be fitted; `None` when neither can. `pred`: the fitted
+/// model's prediction per channel (the joint fit's, [`joint::ChannelFit::prediction`], or
+/// without the joint fit [`bootstrap::predictions`]: the same forward model).
+fn profile_noise_law(est: &Estimate, pred: &[Plane]) -> Option<crate::profile::noise::NoiseLaw> {
     let image = est.profile.meta.noise.clone();
-    let pred = if predictions.len() == est.open_linear.len() { predictions } else { bootstrap::predictions(est) };
-    let residual = bootstrap::residual_noise_law(est, &pred);
+    let residual = bootstrap::residual_noise_law(est, pred);
     let (image, residual) = match (image, residual) {
         (Some(i), Some(r)) if i.channels() == r.channels() => (i, r),
         (i, r) => return r.or(i),
@@ -603,17 +603,18 @@ fn refine_jointly(open_lin: &[Plane], pin_reg: &[Plane], data: &ValidData, layou
     let o = crate::solve::primal_dual::SplitOptions { max_iterations: opts.joint_iterations, min_iterations: 5, tolerance: opts.tolerance * 0.1 };
     let mut power = Vec::new();
     let bar = progress_bar(opts.progress, (open_lin.len() * opts.joint_iterations) as u64, "joint refinement");
-    let mut convergence = vec![Vec::new(); if opts.convergence_tail { open_lin.len() } else { 0 }];
+    let mut convergence = Vec::new();
     let mut predictions = Vec::with_capacity(open_lin.len());
     for c in 0..open_lin.len() {
         let mut sharp = pin_reg[c].clone();
         sharp.scale(data.ratio[c] as f32);
         let field = if opts.lambda_scale > 0.0 { layout.variation.get(c).copied() } else { None };
-        let mut pred = Vec::new();
-        let (st, rms) = joint::refine_channel(&open_lin[c], &sharp, &data.valid_masks[c], &shape, &mut kernels[c], &fits[c], &o, &mut power, &bar, joint::JOINT_DATA_PIXELS, opts.select_lambda && opts.lambda_scale > 0.0, field, convergence.get_mut(c), Some(&mut pred));
-        if !pred.is_empty() {
-            predictions.push(Plane { width: open_lin[c].width, height: open_lin[c].height, data: pred });
+        let fit = joint::refine_channel(&open_lin[c], &sharp, &data.valid_masks[c], &shape, &mut kernels[c], &fits[c], &o, &mut power, &bar, joint::JOINT_DATA_PIXELS, opts.select_lambda && opts.lambda_scale > 0.0, field, opts.convergence_tail);
+        predictions.push(fit.prediction);
+        if opts.convergence_tail {
+            convergence.push(fit.convergence);
         }
+        let (st, rms) = (fit.stats, fit.residual_rms);
         bar.set_position(((c + 1) * opts.joint_iterations) as u64);
         for t in 0..layout.tiles() {
             info.iterations[c][t] += st.iterations;

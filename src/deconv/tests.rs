@@ -768,8 +768,9 @@ fn coloured_scale_probe() {
     ];
     let only: Option<String> = std::env::var("PROBE_CASES").ok();
     let laws = [("gauss", None), ("pg15k", Some((15_000.0f64, 4.0f64))), ("pg3k", Some((3_000.0, 6.0)))];
-    // (case, sharp planes, grid, window centres)
-    let mut cases: Vec<(String, Vec<Plane>, PsfGrid, Vec<(f32, f32)>, usize)> = Vec::new();
+    // (case, sharp planes, grid, window centres, window side)
+    type Case = (String, Vec<Plane>, PsfGrid, Vec<(f32, f32)>, usize);
+    let mut cases: Vec<Case> = Vec::new();
     let (w, h) = (128, 128);
     cases.push(("textured".into(), textured_scene(w, h, 21), SyntheticLens::new(21, 3).grid(w, h, 3, 1, 1), vec![(63.5, 63.5)], 128));
     cases.push(("flat".into(), vec![Plane::from_fn(w, h, |_, _| 0.3); 3], SyntheticLens::new(21, 3).grid(w, h, 3, 1, 1), vec![(63.5, 63.5)], 128));

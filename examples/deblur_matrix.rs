@@ -11,7 +11,8 @@
 //! field position (outer fifth of the frame / inner part) and frequency band. Experiment
 //! overrides of lensrig's options: `--set key=value,…` with `denoise`, `kappa` (the solver's κ
 //! with the denoiser), `kappa7` (κ without it), `tile`, `no_harm` (on/off), `iterations`,
-//! `sure` (on/off: [`DeconvOptions::coloured_sure`]), `lawdata` (on/off: the variance-weighted
+//! `sure` (on/off: [`DeconvOptions::coloured_sure`]), `response` (`pilot`/`excess`:
+//! [`DeconvOptions::coloured_response`]), `lawdata` (on/off: the variance-weighted
 //! data term, [`DeconvOptions::law_data_weight`]), `texture` (on/off: the texture return,
 //! [`DeconvOptions::texture_return`]), `rwp` / `rwe` (the reweighted-ℓ1 exponent and ε),
 //! `steps` (residual steps), `thr` (the denoiser's hard threshold).
@@ -489,6 +490,13 @@ fn main() -> anyhow::Result<()> {
             "iterations" => base.max_iterations = v.parse()?,
             "kappa7" => base.lambda_per_variance = v.parse()?,
             "sure" => base.coloured_sure = v == "on",
+            "response" => {
+                base.coloured_response = match v {
+                    "pilot" => lensrig::deconv::coloured::Response::Pilot,
+                    "excess" => lensrig::deconv::coloured::Response::Forward(1.0),
+                    _ => anyhow::bail!("--set response={v}: pilot or excess"),
+                }
+            }
             "lawdata" => base.law_data_weight = v == "on",
             "rwp" => base.reweight_power = v.parse()?,
             "rwe" => base.reweight_eps = v.parse()?,

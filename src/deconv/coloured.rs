@@ -102,40 +102,85 @@ pub fn block_variance(x: &[f32], w: usize, h: usize, m: usize) -> [f32; 64] {
     std::array::from_fn(|k| (acc[k] / blocks.max(1) as f64) as f32)
 }
 
+/// How [`through_solver`] perturbs a window `j` with the white draw `n` (the law's variance at
+/// `j`) to read the solver's noise off it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Response {
+    /// `(restore(j + ε n) − restore(j)) / ε`; `ε` = 1 is the response to extra noise on top of
+    /// the already noisy data (the field of sessions 13–19).
+    Forward(f32),
+    /// `(restore(j + ε n) − restore(j − ε n)) / 2ε`: the solver's Jacobian at its operating
+    /// point `j`, applied to `n`, to second order in `ε`.
+    Symmetric(f32),
+    /// The two-realisation noise of the solve on the re-blurred pilot: `x̂ = restore(j)`,
+    /// `d = B x̂` (circular, the window's kernels), `(restore(d + n₁) − restore(d + n₂)) / √2`
+    /// with `n₁`, `n₂` independent white draws of the law's variance at `d`. Three solves.
+    Pilot,
+}
+
 /// Noise through the solver, per decorrelated plane (opponent for three channels) and DCT
-/// coefficient: the difference `restore(j + n) − restore(j)` on square windows `base[c]`
-/// (side `setup.width`, e.g. [`window_side`]) of data `j` (a flat level, or a crop of the
-/// photograph), `n` white with the per-pixel variance `variance(c, j)`, `kernels[c]` the
-/// channel's kernel, `setup` the solver settings. Deterministic (fixed seed).
+/// coefficient: the response `Δ` of [`Response`] `response` (`restore(j + n) − restore(j)` for
+/// `Forward(1)`) on square windows `base[c]` (side `setup.width`, e.g. [`window_side`]) of data
+/// `j` (a flat level, or a crop of the photograph), `n` white with the per-pixel variance
+/// `variance(c, j)`, `kernels[c]` the channel's kernel, `setup` the solver settings.
+/// Deterministic (fixed seed). Two window solves either way.
 pub fn through_solver(base: &[Vec<f32>], variance: &dyn Fn(usize, f32) -> f32, kernels: &[Plane], setup: &TileSetup) -> Propagation {
+    through_solver_as(base, variance, kernels, setup, Response::Forward(1.0))
+}
+
+/// [`through_solver`] with an explicit [`Response`].
+pub fn through_solver_as(base: &[Vec<f32>], variance: &dyn Fn(usize, f32) -> f32, kernels: &[Plane], setup: &TileSetup, response: Response) -> Propagation {
     let side = setup.width;
-    let n = side * side;
     let mut rng = crate::rng::Rng::new(0x5eed);
-    let noisy: Vec<Vec<f32>> = base.iter().enumerate().map(|(c, b)| b.iter().map(|j| j + (variance(c, *j).max(0.0).sqrt() as f64 * rng.normal()) as f32).collect()).collect();
+    let draw: Vec<Vec<f32>> = base.iter().enumerate().map(|(c, b)| b.iter().map(|j| (variance(c, *j).max(0.0).sqrt() as f64 * rng.normal()) as f32).collect()).collect();
+    let shifted = |e: f32| -> Vec<Vec<f32>> { base.iter().zip(&draw).map(|(b, d)| b.iter().zip(d).map(|(j, v)| j + e * v).collect()).collect() };
     let setup = TileSetup { width: side, height: side, field: None, ..*setup };
-    let (perturbed, _) = restore_tile(&noisy, kernels, &setup);
-    let (clean, _) = restore_tile(base, kernels, &setup);
-    let restored: Vec<Vec<f32>> = perturbed.iter().zip(&clean).map(|(r, c)| r.iter().zip(c).map(|(a, b)| a - b).collect()).collect();
-    let m = interior_margin(kernels, side);
-    let planes: Vec<Vec<f32>> = if restored.len() == 3 {
-        (0..3).map(|i| (0..n).map(|p| (0..3).map(|c| OPP[i][c] * restored[c][p]).sum()).collect()).collect()
-    } else {
-        restored
+    if response == Response::Pilot {
+        let (pilot, _) = restore_tile(base, kernels, &setup);
+        let fft = Fft2::plan(side, side);
+        let data: Vec<Vec<f32>> = pilot.iter().zip(kernels).map(|(x, k)| super::convolve_spec(&fft, x, &KernelSpectrum::new(&fft, &kernel_to_origin(k, side, side))).iter().map(|v| v.clamp(0.0, 1.0)).collect()).collect();
+        let noisy = |rng: &mut crate::rng::Rng| -> Vec<Vec<f32>> { data.iter().enumerate().map(|(c, d)| d.iter().map(|j| j + (variance(c, *j).max(0.0).sqrt() as f64 * rng.normal()) as f32).collect()).collect() };
+        let (a, b) = (noisy(&mut rng), noisy(&mut rng));
+        let (ra, _) = restore_tile(&a, kernels, &setup);
+        let (rb, _) = restore_tile(&b, kernels, &setup);
+        let diff: Vec<Vec<f32>> = ra.iter().zip(&rb).map(|(x, y)| x.iter().zip(y).map(|(p, q)| (p - q) * std::f32::consts::FRAC_1_SQRT_2).collect()).collect();
+        let variances = opponent_block_variances(&diff, side, interior_margin(kernels, side));
+        return Propagation { variances, restored: pilot, perturbed: ra, perturbation: draw };
+    }
+    let (eps, low) = match response {
+        Response::Forward(e) => (e, 0.0),
+        Response::Symmetric(e) => (e, -e),
+        Response::Pilot => unreachable!("handled above"),
     };
-    let variances = planes.iter().map(|p| block_variance(p, side, side, m)).collect();
-    let perturbation = noisy.iter().zip(base).map(|(a, b)| a.iter().zip(b).map(|(x, y)| x - y).collect()).collect();
+    let (perturbed, _) = restore_tile(&shifted(eps), kernels, &setup);
+    let (clean, _) = if low == 0.0 { restore_tile(base, kernels, &setup) } else { restore_tile(&shifted(low), kernels, &setup) };
+    let scale = 1.0 / (eps - low);
+    let restored: Vec<Vec<f32>> = perturbed.iter().zip(&clean).map(|(r, c)| r.iter().zip(c).map(|(a, b)| (a - b) * scale).collect()).collect();
+    let variances = opponent_block_variances(&restored, side, interior_margin(kernels, side));
+    let perturbation = draw.iter().map(|d| d.iter().map(|v| v * (eps - low)).collect()).collect();
     Propagation { variances, restored: clean, perturbed, perturbation }
+}
+
+/// [`block_variance`] of `d` (per channel, `side²`) per decorrelated plane: the opponent planes
+/// of the denoiser for three channels, the channels otherwise.
+fn opponent_block_variances(d: &[Vec<f32>], side: usize, m: usize) -> Vec<[f32; 64]> {
+    let n = side * side;
+    if d.len() == 3 {
+        (0..3).map(|i| block_variance(&(0..n).map(|p| (0..3).map(|c| OPP[i][c] * d[c][p]).sum()).collect::<Vec<f32>>(), side, side, m)).collect()
+    } else {
+        d.iter().map(|p| block_variance(p, side, side, m)).collect()
+    }
 }
 
 /// What [`through_solver`] measured on a window.
 pub struct Propagation {
     /// `σ²_k` per decorrelated plane.
     pub variances: Vec<[f32; 64]>,
-    /// `restore(j)` per channel.
+    /// `restore(j)` per channel (`restore(j − ε n)` for [`Response::Symmetric`]).
     pub restored: Vec<Vec<f32>>,
-    /// `restore(j + n)` per channel.
+    /// `restore(j + ε n)` per channel.
     pub perturbed: Vec<Vec<f32>>,
-    /// `n` per channel (white, the law's variance at `j`).
+    /// The difference of the two inputs per channel (`ε n`, `2ε n` for [`Response::Symmetric`]).
     pub perturbation: Vec<Vec<f32>>,
 }
 

@@ -284,6 +284,12 @@ pub struct DeconvOptions {
     /// Scale each coloured-noise window's variances by `s²`, `s` chosen by Stein's unbiased
     /// risk estimate of the re-blurred, denoised window ([`coloured::sure_scale`]).
     pub coloured_sure: bool,
+    /// How the coloured-noise windows read the solver's noise ([`coloured::Response`]):
+    /// `Forward(1)` (default) restores the window with extra noise on top of its own, `Pilot`
+    /// restores the re-blurred window restoration under two fresh noise draws (one more window
+    /// solve; docs/deconvolution.md "Issue-12, m20"). With [`Self::coloured_sure`] the forward
+    /// response is used (the risk estimate needs `restore(j)` and `restore(j + n)`).
+    pub coloured_response: coloured::Response,
     /// Positivity ([`problem::ChannelProblem::lower_bound`]): the ADMM solve keeps the restored
     /// channel non-negative (`x ≥ 0`, one more split with the projection as its prox), as light
     /// is. Not applied on the Chambolle–Pock path (dark-region term). On by default: chosen on
@@ -349,6 +355,7 @@ impl Default for DeconvOptions {
             coloured_noise: true,
             coloured_windows: 3,
             coloured_sure: false,
+            coloured_response: coloured::Response::Forward(1.0),
             positivity: true,
             local_noise: true,
             law_data_weight: false,
@@ -752,7 +759,8 @@ fn coloured_field(planes: &[Plane], lens: (&PsfGrid, &[usize]), noise: &NoiseSta
         let kernels: Vec<Plane> = (0..planes.len()).map(|c| grid.kernel_at(c, cx as f64, cy as f64)).collect();
         let data_weight = DataWeight::new(opts, noise.law.as_ref(), &reference);
         let setup = TileSetup { width: side, height: side, lambda: &lambda, order, opts, field: None, data_weight };
-        let prop = coloured::through_solver(&base, &variance, &kernels, &setup);
+        let response = if opts.coloured_sure { coloured::Response::Forward(1.0) } else { opts.coloured_response };
+        let prop = coloured::through_solver_as(&base, &variance, &kernels, &setup, response);
         let mut v = prop.variances.clone();
         if opts.coloured_sure {
             let denoiser = denoise::DenoiseOptions { transfer: opts.output_transfer.unwrap_or(crate::image::Transfer::Linear), parallel: false, ..opts.denoiser.clone() };

@@ -121,6 +121,7 @@ pub fn proof_options(spec: &CaseSpec) -> DiagnoseOptions {
 #[cfg(test)]
 mod tests {
     use super::{recovered_text, score_names};
+    use serde_json::json;
 
     #[test]
     fn unnamed_cases_show_the_verdict_and_clean_needs_no_mismatch() {
@@ -133,7 +134,6 @@ mod tests {
         assert_eq!(score_names(&["vignetting", "black_level"], &["black_level", "vignetting"], "explained: …"), ("black_level+vignetting".to_string(), true));
         assert_eq!(score_names(&["vignetting", "black_level"], &[], unexplained), ("unexplained".to_string(), false));
     }
-    use serde_json::json;
 
     #[test]
     fn recovered_pairs_shared_numeric_keys() {

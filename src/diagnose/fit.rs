@@ -10,7 +10,8 @@
 //! other parameters fixed, then one Gauss–Newton step for the scalar parameters, then the
 //! weights `1/Var` from the new prediction. Three rounds; the channels' kernel steps run
 //! concurrently, and each channel's FISTA momentum and step norm carry from one round to the
-//! next ([`super::kernels::KernelWarm`]). Under `veiling_glare` or
+//! next ([`super::kernels::KernelWarm`]), and from one fit to a fit that continues it
+//! ([`Warm`], [`fit_from`]). Under `veiling_glare` or
 //! `black_level`, each kernel step hands the kernels' common flat floor to the additive term
 //! ([`remove_common_floor`]).
 //!
@@ -90,7 +91,7 @@ pub struct Model {
 }
 
 /// Iteration budget of a fit.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct FitSettings {
     pub rounds: usize,
     pub kernel_iterations: usize,
@@ -157,6 +158,33 @@ pub struct Fit {
     /// pixels of `1 + ρ(x)·(⟨|Û|²⟩_band − Σ U²)/ΣU²`, `ρ` the reference's share of the variance
     /// ([`Setup::low_band_floor`]). Empty for screening fits.
     pub low_band_floor: Vec<f64>,
+    /// The kernel solver's state at the end of the fit ([`Warm`]): what a later fit continuing
+    /// this one ([`fit_from`], [`fit_subset_from`], [`fit_converging`])
+    /// starts its FISTA momentum from.
+    pub warm: Warm,
+}
+
+/// The kernel solver's state a fit leaves ([`Fit::warm`]): per channel the FISTA momentum, its
+/// common sum and the step norm's power vector ([`KernelWarm`]), and the data term's pixel
+/// budget it was left on (`data_pixels` of the fit: the subset's blocks or every pixel).
+///
+/// A later fit that starts from the fitted model continues the momentum instead of starting
+/// from `z = x, t = 1` (the offsets rescaled by the ratio of the common sums, as between the
+/// rounds of one fit; docs/diagnosis.md, "Session 20 (d20)"). The norm's vector is kept only
+/// when the later fit runs on the same pixel budget (the same operator); across a subset and
+/// every pixel it is estimated cold. Where the momentum points uphill for the new problem (a
+/// new effect's parameters, new weights), adaptive restart drops it after one iteration.
+#[derive(Clone, Debug, Default)]
+pub struct Warm {
+    channels: Vec<KernelWarm>,
+    data_pixels: usize,
+}
+
+impl Warm {
+    /// Whether the fit left no momentum (a fit of no rounds, or of no kernel iterations).
+    pub fn is_empty(&self) -> bool {
+        self.channels.iter().all(KernelWarm::is_empty)
+    }
 }
 
 impl Fit {
@@ -494,7 +522,13 @@ fn score_channel(mlin: &Plane, vl: &Plane, transfer: Transfer, clip: Option<f32>
 /// Fits `corrections` (their parameter values are starting points) to `data`, starting from
 /// `init`'s kernels and exposure ratios.
 pub fn fit(data: &Data, corrections: &Corrections, init: &Model, settings: FitSettings) -> Fit {
-    fit_on(data, corrections, init, settings, &|_, _| true, usize::MAX, false)
+    fit_on(data, corrections, init, settings, &|_, _| true, usize::MAX, false, None)
+}
+
+/// [`fit`] continuing the kernel solver's state `warm` (a previous fit's [`Fit::warm`], of the
+/// fit whose model `init` is) instead of starting every channel's FISTA afresh.
+pub fn fit_from(data: &Data, corrections: &Corrections, init: &Model, settings: FitSettings, warm: &Warm) -> Fit {
+    fit_on(data, corrections, init, settings, &|_, _| true, usize::MAX, false, Some(warm))
 }
 
 /// [`fit`] with the data term restricted to pixels where `keep(x, y)` and, as in
@@ -505,7 +539,7 @@ pub fn fit(data: &Data, corrections: &Corrections, init: &Model, settings: FitSe
 /// operators), `Setup::initial_params`, `settings.rounds` × `Setup::round` (kernels, then
 /// Gauss–Newton on the scalars), `Setup::final_model` and `Setup::figures`.
 pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings: FitSettings, keep: &dyn Fn(usize, usize) -> bool, data_pixels: usize) -> Fit {
-    fit_on(data, corrections, init, settings, keep, data_pixels, false)
+    fit_on(data, corrections, init, settings, keep, data_pixels, false, None)
 }
 
 /// [`fit`] with the data term on a spread subset of about `data_pixels` pixels (every n-th
@@ -515,14 +549,19 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
 /// them to the whole evaluation set ([`Fit::share`]). Fits with the same grid keep the same
 /// blocks, so a round's null refit and candidates are scored on the same pixels.
 pub fn fit_subset(data: &Data, corrections: &Corrections, init: &Model, settings: FitSettings, data_pixels: usize) -> Fit {
-    fit_on(data, corrections, init, settings, &|_, _| true, data_pixels, true)
+    fit_on(data, corrections, init, settings, &|_, _| true, data_pixels, true, None)
+}
+
+/// [`fit_subset`] continuing the kernel solver's state `warm` ([`fit_from`]).
+pub fn fit_subset_from(data: &Data, corrections: &Corrections, init: &Model, settings: FitSettings, data_pixels: usize, warm: &Warm) -> Fit {
+    fit_on(data, corrections, init, settings, &|_, _| true, data_pixels, true, Some(warm))
 }
 
 /// [`fit_subset`] on [`Data::screen_pixels`]: the quick fits with which a candidate's
 /// parameters are searched (glare width, similarity, keystone, Airy radius) and backward
 /// elimination's refits. Every pixel when the capture has no more than that per channel.
 pub fn screen(data: &Data, corrections: &Corrections, init: &Model, settings: FitSettings) -> Fit {
-    fit_on(data, corrections, init, settings, &|_, _| true, data.screen_pixels, true)
+    fit_on(data, corrections, init, settings, &|_, _| true, data.screen_pixels, true, None)
 }
 
 /// A whole-pixel fit whose round count is set by a convergence rule instead of a count
@@ -539,30 +578,41 @@ pub struct Convergence {
 /// [`fit`] on every pixel with rounds run while they still lower χ² ([`Convergence`]).
 /// Returns the fit and χ² before the first round and after each round run (every pixel of the
 /// evaluation set, the scalars refitted: the same χ² as [`Fit::chi2`] of a fit stopped there).
-pub fn fit_converging(data: &Data, corrections: &Corrections, init: &Model, rule: Convergence) -> (Fit, Vec<f64>) {
+/// `warm`: a previous fit's solver state to continue ([`fit_from`]), or `None`.
+pub fn fit_converging(data: &Data, corrections: &Corrections, init: &Model, rule: Convergence, warm: Option<&Warm>) -> (Fit, Vec<f64>) {
     let mut corr = corrections.clone();
-    let setup = Setup::new(data, &corr, init, &|_, _| true, usize::MAX);
+    let mut setup = Setup::new(data, &corr, init, &|_, _| true, usize::MAX);
+    if let Some(w) = warm {
+        setup.continue_from(w);
+    }
     let mut p = setup.initial_params(&corr, init);
     let kset = KernelFitSettings { iterations: rule.kernel_iterations, rounds: 1, step: KERNEL_STEP };
-    let mut trace = vec![setup.chi2(&corr, &p)];
+    // each evaluation's figures are kept: the last one's are the returned fit's (`finish`
+    // does not score the same parameters again)
+    let mut scored = setup.whole_figures(&corr, &p);
+    let mut trace = vec![Setup::chi2_of(&scored)];
     for _round in 0..rule.max_rounds {
         setup.round(&mut corr, &mut p, kset);
-        let chi2 = setup.chi2(&corr, &p);
+        scored = setup.whole_figures(&corr, &p);
+        let chi2 = Setup::chi2_of(&scored);
         let fall = trace[trace.len() - 1] - chi2;
         trace.push(chi2);
         if fall <= rule.tolerance {
             break;
         }
     }
-    (finish(data, setup, corr, p, false), trace)
+    (finish_scored(data, setup, corr, p, false, Some(scored)), trace)
 }
 
 /// `subset_figures`: score only the kernel operators' kept blocks ([`fit_subset`]) instead of
 /// every pixel.
 #[allow(clippy::too_many_arguments)]
-fn fit_on(data: &Data, corrections: &Corrections, init: &Model, settings: FitSettings, keep: &dyn Fn(usize, usize) -> bool, data_pixels: usize, subset_figures: bool) -> Fit {
+fn fit_on(data: &Data, corrections: &Corrections, init: &Model, settings: FitSettings, keep: &dyn Fn(usize, usize) -> bool, data_pixels: usize, subset_figures: bool, warm: Option<&Warm>) -> Fit {
     let mut corr = corrections.clone();
-    let setup = Setup::new(data, &corr, init, keep, data_pixels);
+    let mut setup = Setup::new(data, &corr, init, keep, data_pixels);
+    if let Some(w) = warm {
+        setup.continue_from(w);
+    }
     let mut p = setup.initial_params(&corr, init);
     let kset = KernelFitSettings { iterations: settings.kernel_iterations, rounds: 1, step: KERNEL_STEP };
     for _round in 0..settings.rounds {
@@ -572,9 +622,15 @@ fn fit_on(data: &Data, corrections: &Corrections, init: &Model, settings: FitSet
 }
 
 /// The fitted parameters `p` into a [`Fit`]: the model, its figures and the noise law's fit.
-fn finish(data: &Data, setup: Setup, mut corr: Corrections, mut p: Params, subset_figures: bool) -> Fit {
+fn finish(data: &Data, setup: Setup, corr: Corrections, p: Params, subset_figures: bool) -> Fit {
+    finish_scored(data, setup, corr, p, subset_figures, None)
+}
+
+/// [`finish`] with the whole-pixel figures of `p` already computed ([`Setup::whole_figures`],
+/// on the same `p`; the final model's normalisation does not change them), or `None`.
+fn finish_scored(data: &Data, setup: Setup, mut corr: Corrections, mut p: Params, subset_figures: bool, scored: Option<Vec<ChannelFigures>>) -> Fit {
     let (grid, exposure) = setup.final_model(&mut corr, &p);
-    let f = setup.figures(&corr, &mut p, subset_figures);
+    let f = setup.figures(&corr, &mut p, subset_figures, scored);
     let (nch, k) = (setup.nch, setup.grid0.kernel_size);
     let laws: Vec<super::noise::PoissonGaussian> = data.curves.iter().map(|c| super::noise::PoissonGaussian::fit(c, setup.transfer)).collect();
     let kernel_params = nch * (grid.tile_count() * (k * k - 1) + 1);
@@ -600,6 +656,7 @@ fn finish(data: &Data, setup: Setup, mut corr: Corrections, mut p: Params, subse
         reference_highpass: f.reference_highpass,
         share: f.share,
         low_band_floor: f.low_band_floor,
+        warm: Warm { channels: setup.warm.into_iter().map(|m| m.into_inner().unwrap_or_else(std::sync::PoisonError::into_inner)).collect(), data_pixels: setup.data_pixels },
     }
 }
 
@@ -752,6 +809,8 @@ struct Setup<'a> {
     diffraction: Option<super::model::DiffractionCorrection>,
     /// Per channel, the kernel step's norm estimate (and momentum), warm-started between rounds.
     warm: Vec<std::sync::Mutex<KernelWarm>>,
+    /// The data term's pixel budget ([`Setup::new`]'s `data_pixels`).
+    data_pixels: usize,
 }
 
 /// One channel's state after [`Setup::kernel_step`].
@@ -820,7 +879,22 @@ impl<'a> Setup<'a> {
         let glare_planes: Option<Vec<Plane>> = corr.veiling_glare.map(|g| reference.iter().map(|p| gaussian_blur_wide(p, g.sigma_px)).collect());
         let diffraction = corr.pinhole_diffraction.clone();
         let warm = (0..nch).map(|_| std::sync::Mutex::new(KernelWarm::default())).collect();
-        Self { data, transfer, w, h, nch, reference, open_lin, noise_factor, grid0, masks, glare_planes, ops, diffraction, warm }
+        Self { data, transfer, w, h, nch, reference, open_lin, noise_factor, grid0, masks, glare_planes, ops, diffraction, warm, data_pixels }
+    }
+
+    /// Starts every channel's kernel solver from `warm` ([`Warm`]): the momentum always (its
+    /// length is checked by the solver), the norm's power vector only on the same pixel budget.
+    fn continue_from(&mut self, warm: &Warm) {
+        if warm.channels.len() != self.nch {
+            return;
+        }
+        for (slot, w) in self.warm.iter_mut().zip(&warm.channels) {
+            let mut w = w.clone();
+            if warm.data_pixels != self.data_pixels {
+                w.norm = super::kernels::StepNorm::new();
+            }
+            *slot = std::sync::Mutex::new(w);
+        }
     }
 
     /// The starting parameters: the initial kernels scaled by the exposure (less the glare's
@@ -1018,8 +1092,11 @@ impl<'a> Setup<'a> {
     /// kernel operators keep only some blocks: with `subset_figures`, on the kept blocks'
     /// evaluation pixels ([`Setup::scored_mask`]); otherwise on every pixel, the blur parts
     /// recomputed with whole-image operators first.
-    fn figures(&self, corr: &Corrections, p: &mut Params, subset_figures: bool) -> Figures {
+    /// `scored`: every channel's [`Setup::channel_figures`] on the evaluation set, already
+    /// computed for these parameters (a whole-pixel fit only), or `None`.
+    fn figures(&self, corr: &Corrections, p: &mut Params, subset_figures: bool, scored_figures: Option<Vec<ChannelFigures>>) -> Figures {
         let partial = self.ops.iter().any(|o| o.covered().iter().any(|c| !c));
+        let scored_figures = scored_figures.filter(|f| !partial && f.len() == self.nch);
         if partial && !subset_figures {
             let parts: Vec<Plane> = (0..self.nch).into_par_iter().map(|c| KernelOperator::new(&self.reference[c], &self.grid0, usize::MAX).apply_planes(&p.u[c])).collect();
             p.a_parts = parts;
@@ -1033,10 +1110,13 @@ impl<'a> Setup<'a> {
         }
         let per_channel: Vec<(Option<f64>, ChannelFigures)> = {
             let (p, g, scored) = (&*p, &g, &scored);
-            (0..self.nch)
-                .into_par_iter()
-                .map(|c| ((!subset_figures).then(|| self.low_band_floor(c, p, g, scored)), self.channel_figures(c, corr, p, g, scored)))
-                .collect()
+            match scored_figures {
+                Some(done) => done.into_par_iter().enumerate().map(|(c, cf)| ((!subset_figures).then(|| self.low_band_floor(c, p, g, scored)), cf)).collect(),
+                None => (0..self.nch)
+                    .into_par_iter()
+                    .map(|c| ((!subset_figures).then(|| self.low_band_floor(c, p, g, scored)), self.channel_figures(c, corr, p, g, scored)))
+                    .collect(),
+            }
         };
         for (low, cf) in per_channel {
             if let Some(l) = low {
@@ -1056,12 +1136,18 @@ impl<'a> Setup<'a> {
         f
     }
 
-    /// χ² of the parameters `p` on every pixel of the evaluation set (the operators cover
-    /// every pixel: a whole-pixel fit).
-    fn chi2(&self, corr: &Corrections, p: &Params) -> f64 {
+    /// Every channel's figures of the parameters `p` on every pixel of the evaluation set (the
+    /// operators cover every pixel: a whole-pixel fit).
+    fn whole_figures(&self, corr: &Corrections, p: &Params) -> Vec<ChannelFigures> {
         let g = gain_plane(corr, self.w, self.h);
         let scored = &self.masks.interior;
-        (0..self.nch).into_par_iter().map(|c| self.channel_figures(c, corr, p, &g, scored).score.chi2).sum()
+        (0..self.nch).into_par_iter().map(|c| self.channel_figures(c, corr, p, &g, scored)).collect()
+    }
+
+    /// χ² of [`Setup::whole_figures`] (the channels' sum, in the order the evaluation used
+    /// before the figures were kept).
+    fn chi2_of(figures: &[ChannelFigures]) -> f64 {
+        figures.par_iter().map(|f| f.score.chi2).sum()
     }
 
     /// Channel `c`'s prediction, variance and χ² on the stored axis (back on the wide-open
@@ -1131,6 +1217,26 @@ mod tests {
         (data, Model { corrections: Corrections::default(), grid, exposure })
     }
 
+    /// A fit continued from another fit's solver state ([`fit_from`], [`Fit::warm`]) carries
+    /// its momentum: one round after a two-round fit lands (nearly) where the three-round fit
+    /// does, and nearer it than the same round started afresh from the two-round fit's model.
+    #[test]
+    fn a_fit_continued_from_a_fits_state_carries_its_momentum() {
+        let (data, init) = small_case();
+        let corr = Corrections::default();
+        let s = |rounds| FitSettings { rounds, kernel_iterations: 20 };
+        let two = fit(&data, &corr, &init, s(2));
+        assert!(!two.warm.is_empty(), "a fit leaves its solver state");
+        let three = fit(&data, &corr, &init, s(3)).chi2();
+        let carried = fit_from(&data, &two.model.corrections, &two.model, s(1), &two.warm).chi2();
+        let fresh = fit(&data, &two.model.corrections, &two.model, s(1)).chi2();
+        eprintln!("χ²: two rounds {:.1}, three {three:.1}; a third as a new fit: carried {carried:.1}, fresh {fresh:.1}", two.chi2());
+        assert!(carried < fresh, "carried {carried:.1} vs fresh {fresh:.1}");
+        assert!((carried - three).abs() < 0.1 * (fresh - three), "carried {carried:.1}, fresh {fresh:.1}, three rounds {three:.1}");
+        // a fit of no rounds leaves no momentum
+        assert!(fit(&data, &corr, &init, s(0)).warm.is_empty());
+    }
+
     /// The convergence rule ([`fit_converging`]): its per-round χ² is the χ² of the fit it
     /// returns, with no tolerance it runs its cap and is then the fixed-count fit bit for bit
     /// (the momentum carried alike), and it stops after the first round whose fall is within
@@ -1140,7 +1246,7 @@ mod tests {
         let (data, init) = small_case();
         let corr = Corrections::default();
         let rule = |max_rounds, tolerance| Convergence { kernel_iterations: 20, max_rounds, tolerance };
-        let (all, trace) = fit_converging(&data, &corr, &init, rule(4, f64::NEG_INFINITY));
+        let (all, trace) = fit_converging(&data, &corr, &init, rule(4, f64::NEG_INFINITY), None);
         assert_eq!(trace.len(), 5, "{trace:?}");
         assert!(trace.windows(2).all(|w| w[1] < w[0]), "χ² falls every round: {trace:?}");
         let counted = fit(&data, &corr, &init, FitSettings { rounds: 4, kernel_iterations: 20 });
@@ -1150,10 +1256,10 @@ mod tests {
         let falls: Vec<f64> = trace.windows(2).map(|w| w[0] - w[1]).collect();
         let tol = 0.5 * (falls[1] + falls[0]).min(2.0 * falls[1]);
         assert!(falls[1] <= tol && falls[0] > tol, "{falls:?}");
-        let (two, t2) = fit_converging(&data, &corr, &init, rule(4, tol));
+        let (two, t2) = fit_converging(&data, &corr, &init, rule(4, tol), None);
         assert_eq!(t2.len(), 3, "{t2:?}");
         assert_eq!(two.chi2(), fit(&data, &corr, &init, FitSettings { rounds: 2, kernel_iterations: 20 }).chi2());
-        let (_, t1) = fit_converging(&data, &corr, &init, rule(4, f64::INFINITY));
+        let (_, t1) = fit_converging(&data, &corr, &init, rule(4, f64::INFINITY), None);
         assert_eq!(t1.len(), 2, "one round when any fall is within the tolerance");
     }
 }

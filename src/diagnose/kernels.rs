@@ -159,6 +159,13 @@ pub struct KernelWarm {
     sum: f32,
 }
 
+impl KernelWarm {
+    /// Whether no solve has left a momentum here.
+    pub fn is_empty(&self) -> bool {
+        self.momentum.ahead.is_empty()
+    }
+}
+
 /// Pixels per kernel, `k²` (1 without kernels).
 fn kernel_area(init: &[Plane]) -> usize {
     init.first().map_or(1, |k| k.width * k.height).max(1)
@@ -487,6 +494,46 @@ mod tests {
         let (one, _) = fit_kernels(&op, &y, &wt, &gaussian_kernels(k, 4, 5.0), KernelFitSettings { rounds: 3, ..set });
         let o = chi2(&one) / floor;
         assert!((o - c).abs() < 0.25 * (f - c), "one call {o:.4}, carried {c:.4}, fresh {f:.4}");
+    }
+
+    /// A carried momentum that points uphill for the next solve (here: the previous solve's,
+    /// reversed, as a fit of a different model may hand on) is dropped by the adaptive restart
+    /// at the first iteration (`t` back to 1, so one iteration leaves `t = (1 + √5)/2`), while
+    /// the momentum as left continues (`t` grows) and ends lower than a fresh start. The first
+    /// iteration's step is still taken from the extrapolated point: the χ² after 20 more
+    /// iterations is printed for a reversed momentum at its own size and at 50 times it
+    /// (docs/diagnosis.md, "Session 20 (d20)": ×50 ends above a fresh start).
+    #[test]
+    fn an_uphill_carried_momentum_is_dropped_at_the_first_iteration() {
+        let LowPass { op, y, wt, k, floor } = LowPass::new();
+        let chi2 = |u: &[Plane]| LowPass::chi2_of(&op, &y, u);
+        let set = KernelFitSettings { iterations: 20, rounds: 1, step: KernelStep::Tangent };
+        let mut warm = KernelWarm::default();
+        let u = fit_kernels_warm(&op, &y, &wt, &gaussian_kernels(k, 4, 5.0), set, &mut warm).0;
+        let t_left = warm.momentum.t;
+        assert!(t_left > 2.0, "the first solve built momentum: t = {t_left}");
+        let reversed = |factor: f32| {
+            let mut r = warm.clone();
+            r.momentum.ahead.iter_mut().for_each(|a| *a *= -factor);
+            r
+        };
+        let one = KernelFitSettings { iterations: 1, ..set };
+        let golden = 0.5 * (1.0 + 5f64.sqrt());
+        let mut w = warm.clone();
+        fit_kernels_warm(&op, &y, &wt, &u, one, &mut w);
+        assert!(w.momentum.t > t_left, "the momentum as left continues: t {} after {t_left}", w.momentum.t);
+        for factor in [1.0, 50.0] {
+            let mut w = reversed(factor);
+            fit_kernels_warm(&op, &y, &wt, &u, one, &mut w);
+            assert!((w.momentum.t - golden).abs() < 1e-12, "the reversed momentum (×{factor}) is dropped: t = {}", w.momentum.t);
+        }
+        // 20 further iterations
+        let after = |mut w: KernelWarm| chi2(&fit_kernels_warm(&op, &y, &wt, &u, set, &mut w).0) / floor;
+        let from_fresh = after(KernelWarm { momentum: Momentum::default(), ..warm.clone() });
+        let from_carried = after(warm.clone());
+        let (rev1, rev50) = (after(reversed(1.0)), after(reversed(50.0)));
+        eprintln!("χ²/χ²_truth after 20 more: carried {from_carried:.5}, fresh {from_fresh:.5}, reversed {rev1:.5}, reversed ×50 {rev50:.5}");
+        assert!(from_carried < from_fresh, "carried {from_carried:.5} vs fresh {from_fresh:.5}");
     }
 
     /// A compact PSF (a Gaussian of `sigma` px, zero beyond `k/2`) in every tile.

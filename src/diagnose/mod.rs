@@ -315,22 +315,39 @@ fn base_model(open: &Image, pinhole: &Image, base_profile: &Profile, opts: &Diag
     let mut data = Data::new(open, pinhole, opts.pinhole_variance_scale);
     data.screen_pixels = opts.screen_pixels;
     let init = Model { corrections: model::Corrections::default(), grid: base_profile.grid.clone(), exposure: base_profile.meta.exposure_ratio.clone() };
-    let mut provisional = fit::fit(&data, &init.corrections, &init, opts.base_fit);
+    let (provisional_fit, probe, refit) = base_budget(screens(&data, opts), opts.base_fit);
+    let mut provisional = fit::fit(&data, &init.corrections, &init, provisional_fit);
     progress_lap(opts, lap("provisional fit"));
     // the probe measures what the kernel fit absorbs (its dof, and its share of the noise's
     // high-pass, which the residual's curve is corrected for); the probe's response does not
     // depend on the curve's overall scale, so the refit inherits it
-    measure_dof(&data, &mut provisional, opts, 0);
+    provisional.set_dof(fit::measure_kernel_dof(&data, &provisional, probe, DOF_PROBE_SEED, opts.screen_pixels));
     progress_lap(opts, lap("dof probe"));
     let repeat_noise = opts.repeat_noise.as_ref().filter(|r| r.len() == open.channel_count() && r.iter().all(|c| !c.bins.is_empty()));
     data.curves = match repeat_noise {
         Some(r) => r.clone(),
         None => residual_curves(open, &provisional),
     };
-    let mut base = fit::fit(&data, &provisional.model.corrections, &provisional.model, FitSettings { rounds: 1, kernel_iterations: opts.base_fit.kernel_iterations });
+    let mut base = fit::fit_from(&data, &provisional.model.corrections, &provisional.model, refit, &provisional.warm);
     base.inherit_dof(&provisional);
     progress_lap(opts, lap("base refit"));
     (data, base, repeat_noise.is_some())
+}
+
+/// The base stage's budgets ([`base_model`]): the provisional fit, its degrees-of-freedom
+/// probe and the refit on the residual's noise curve. The refit continues the provisional
+/// fit's kernel momentum ([`fit::fit_from`]); where the screening subset thins the data
+/// ([`screens`]) the provisional fit therefore runs one round fewer than the base budget and
+/// the refit is in effect its last round: `(rounds − 1) × iterations`, the probe with the same
+/// budget, then `1 × iterations` (docs/diagnosis.md, "Session 20 (d20)"). Elsewhere the base
+/// budget for the fit and the probe, then one round.
+fn base_budget(screens: bool, base_fit: FitSettings) -> (FitSettings, FitSettings, FitSettings) {
+    let refit = FitSettings { rounds: 1, kernel_iterations: base_fit.kernel_iterations };
+    if !screens {
+        return (base_fit, base_fit, refit);
+    }
+    let provisional = FitSettings { rounds: base_fit.rounds.saturating_sub(1).max(1), ..base_fit };
+    (provisional, provisional, refit)
 }
 
 /// The low-band test ([`low_band`]) of a model on stderr, with progress on.
@@ -474,7 +491,7 @@ fn adopt(data: &mut Data, s: &mut Search, cand: candidates::Candidate, f: Fit, d
     }
     let (before, after) = (Figures::of(&previous), Figures::of(&current));
     s.effects.push(FoundEffect { name: cand.name.to_string(), evidence: cand.evidence, location: cand.location, parameters, before, after, delta_bic: dbic });
-    s.current = fit::fit(data, &f.model.corrections, &f.model, FitSettings { rounds: 1, kernel_iterations: opts.candidate_fit.kernel_iterations });
+    s.current = fit::fit_from(data, &f.model.corrections, &f.model, FitSettings { rounds: 1, kernel_iterations: opts.candidate_fit.kernel_iterations }, &f.warm);
     s.current.inherit_dof(&current);
     s.polished = true;
     if changes_kernel_operator(cand.name) {
@@ -505,13 +522,13 @@ fn changes_kernel_operator(name: &str) -> bool {
 /// noise curve is measured from is in-sample everywhere.
 fn polish_winner(data: &Data, current: &Fit, f: Fit, opts: &DiagnoseOptions) -> Fit {
     let budget = if screens(data, opts) { opts.screen_pixels } else { usize::MAX };
-    let mut polished = fit::fit_subset(data, &f.model.corrections, &f.model, opts.base_fit, budget);
+    let mut polished = fit::fit_subset_from(data, &f.model.corrections, &f.model, opts.base_fit, budget, &f.warm);
     polished.inherit_dof(current);
     let f = if polished.chi2() <= f.chi2() { polished } else { f };
     if !screens(data, opts) {
         return f;
     }
-    let mut full = fit::fit(data, &f.model.corrections, &f.model, FitSettings { rounds: 1, kernel_iterations: opts.base_fit.kernel_iterations });
+    let mut full = fit::fit_from(data, &f.model.corrections, &f.model, FitSettings { rounds: 1, kernel_iterations: opts.base_fit.kernel_iterations }, &f.warm);
     full.inherit_dof(current);
     full
 }
@@ -533,15 +550,15 @@ fn needs_final_polish(effects: usize, polished: bool, consistent: bool) -> bool 
 fn final_polish(data: &Data, current: &Fit, opts: &DiagnoseOptions) -> Fit {
     let settings = FitSettings { rounds: 2, kernel_iterations: 2 * opts.base_fit.kernel_iterations };
     let mut polished = if screens(data, opts) {
-        let sub = fit::fit_subset(data, &current.model.corrections, &current.model, settings, opts.screen_pixels);
-        let (f, trace) = fit::fit_converging(data, &sub.model.corrections, &sub.model, final_polish_rule(current.n(), opts));
+        let sub = fit::fit_subset_from(data, &current.model.corrections, &current.model, settings, opts.screen_pixels, &current.warm);
+        let (f, trace) = fit::fit_converging(data, &sub.model.corrections, &sub.model, final_polish_rule(current.n(), opts), Some(&sub.warm));
         if opts.progress {
             let falls: Vec<String> = trace.windows(2).map(|w| format!("{:.0}", w[0] - w[1])).collect();
             eprintln!("final polish on every pixel: {} rounds, χ² {:.0} → {:.0} (falls {}; noise {:.0})", trace.len() - 1, trace[0], trace[trace.len() - 1], falls.join(", "), (2.0 * current.n() as f64).sqrt());
         }
         f
     } else {
-        fit::fit(data, &current.model.corrections, &current.model, settings)
+        fit::fit_from(data, &current.model.corrections, &current.model, settings, &current.warm)
     };
     polished.inherit_dof(current);
     polished
@@ -562,6 +579,8 @@ fn final_polish_rule(n: usize, opts: &DiagnoseOptions) -> fit::Convergence {
 fn rescore(data: &Data, f: &Fit) -> Fit {
     let mut r = fit::fit(data, &f.model.corrections, &f.model, FitSettings { rounds: 0, kernel_iterations: 0 });
     r.inherit_dof(f);
+    // the same model: a later fit continues `f`'s kernel solver state
+    r.warm = f.warm.clone();
     r
 }
 
@@ -988,6 +1007,19 @@ mod tests {
         assert!(in_contention(Screened::NearMiss, -1.0e3, None), "a near miss with no winner");
         assert!(!in_contention(Screened::NearMiss, -1.0e3, Some(-1.3e7)));
         assert!(!in_contention(Screened::Rejected, 5.0, None), "rejected even before its search");
+    }
+
+    /// The base stage's budgets ([`base_budget`]): where the subset screens, the provisional
+    /// fit and its probe run one round fewer than the base budget (the refit, continuing the
+    /// provisional fit's momentum, is the last); elsewhere the base budget, then one round.
+    #[test]
+    fn the_base_stage_drops_a_provisional_round_only_where_the_subset_screens() {
+        let base = FitSettings { rounds: 3, kernel_iterations: 80 };
+        let (two, one) = (FitSettings { rounds: 2, kernel_iterations: 80 }, FitSettings { rounds: 1, kernel_iterations: 80 });
+        assert_eq!(base_budget(true, base), (two, two, one));
+        assert_eq!(base_budget(false, base), (base, base, one));
+        let single = FitSettings { rounds: 1, kernel_iterations: 40 };
+        assert_eq!(base_budget(true, single), (single, single, single), "at least one provisional round");
     }
 
     /// The final polish runs only where the model changed since the last adoption's polish or

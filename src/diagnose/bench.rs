@@ -123,6 +123,9 @@ mod tests {
     use super::{recovered_text, score_names};
     use serde_json::json;
 
+    /// The "named" column ([`score_names`]): where nothing is named it shows the verdict's
+    /// class, and clean data passes only with the verdict "no mismatch" (an "unexplained" false
+    /// alarm named nothing but is not a pass).
     #[test]
     fn unnamed_cases_show_the_verdict_and_clean_needs_no_mismatch() {
         let unexplained = "unexplained: reduced χ² 1.543 remains; residual depends on radius";

@@ -132,15 +132,18 @@ pub fn through_solver(base: &[Vec<f32>], variance: &dyn Fn(usize, f32) -> f32, k
 pub fn through_solver_as(base: &[Vec<f32>], variance: &dyn Fn(usize, f32) -> f32, kernels: &[Plane], setup: &TileSetup, response: Response) -> Propagation {
     let side = setup.width;
     let mut rng = crate::rng::Rng::new(0x5eed);
-    let draw: Vec<Vec<f32>> = base.iter().enumerate().map(|(c, b)| b.iter().map(|j| (variance(c, *j).max(0.0).sqrt() as f64 * rng.normal()) as f32).collect()).collect();
-    let shifted = |e: f32| -> Vec<Vec<f32>> { base.iter().zip(&draw).map(|(b, d)| b.iter().zip(d).map(|(j, v)| j + e * v).collect()).collect() };
+    // a white draw of the law's variance at the levels `at`, per channel
+    let white = |at: &[Vec<f32>], rng: &mut crate::rng::Rng| -> Vec<Vec<f32>> { at.iter().enumerate().map(|(c, b)| b.iter().map(|j| (variance(c, *j).max(0.0).sqrt() as f64 * rng.normal()) as f32).collect()).collect() };
+    let plus = |a: &[Vec<f32>], d: &[Vec<f32>], e: f32| -> Vec<Vec<f32>> { a.iter().zip(d).map(|(b, d)| b.iter().zip(d).map(|(j, v)| j + e * v).collect()).collect() };
+    let draw = white(base, &mut rng);
+    let shifted = |e: f32| plus(base, &draw, e);
     let setup = TileSetup { width: side, height: side, field: None, ..*setup };
     if response == Response::Pilot {
         let (pilot, _) = restore_tile(base, kernels, &setup);
         let fft = Fft2::plan(side, side);
         let data: Vec<Vec<f32>> = pilot.iter().zip(kernels).map(|(x, k)| super::convolve_spec(&fft, x, &KernelSpectrum::new(&fft, &kernel_to_origin(k, side, side))).iter().map(|v| v.clamp(0.0, 1.0)).collect()).collect();
-        let noisy = |rng: &mut crate::rng::Rng| -> Vec<Vec<f32>> { data.iter().enumerate().map(|(c, d)| d.iter().map(|j| j + (variance(c, *j).max(0.0).sqrt() as f64 * rng.normal()) as f32).collect()).collect() };
-        let (a, b) = (noisy(&mut rng), noisy(&mut rng));
+        let (na, nb) = (white(&data, &mut rng), white(&data, &mut rng));
+        let (a, b) = (plus(&data, &na, 1.0), plus(&data, &nb, 1.0));
         let (ra, _) = restore_tile(&a, kernels, &setup);
         let (rb, _) = restore_tile(&b, kernels, &setup);
         let diff: Vec<Vec<f32>> = ra.iter().zip(&rb).map(|(x, y)| x.iter().zip(y).map(|(p, q)| (p - q) * std::f32::consts::FRAC_1_SQRT_2).collect()).collect();

@@ -43,6 +43,18 @@ fn demo_recovers_the_simulated_lens_and_simulate_predicts() {
     let e = fails_one_line(&["simulate", "--profile", run.join("profile").to_str().unwrap(), "--sharp", run.join("pinhole.png").to_str().unwrap(), "--out", pred.to_str().unwrap()]);
     assert!(e.contains("already exists") && e.contains("--force"), "{e}");
     assert_eq!(std::fs::read(&pred).unwrap(), before);
+    // estimate never replaces a profile without --force (a hand-edited or cited profile), and
+    // leaves it byte for byte; with --force it writes a fresh one
+    let prof = run.join("profile");
+    let toml_before = std::fs::read(prof.join("profile.toml")).unwrap();
+    let (open_s, pin_s, prof_s) = (run.join("open.png"), run.join("pinhole.png"), prof.to_str().unwrap().to_string());
+    let args = ["estimate", "--open", open_s.to_str().unwrap(), "--pinhole", pin_s.to_str().unwrap(), "--out", &prof_s, "--quiet"];
+    let e = fails_one_line(&args);
+    assert!(e.contains("already holds a profile") && e.contains("--force"), "{e}");
+    assert_eq!(std::fs::read(prof.join("profile.toml")).unwrap(), toml_before);
+    ok(&[&args[..], &["--force"]].concat());
+    let replaced = std::fs::read_to_string(prof.join("profile.toml")).unwrap();
+    assert!(replaced.contains(open_s.to_str().unwrap()), "--force writes the new estimate's profile: {replaced}");
     let p = lensrig::image::io::read_image(&pred).unwrap();
     let o = lensrig::image::io::read_image(&run.join("open.png")).unwrap();
     assert_eq!((p.width(), p.height(), p.channel_count(), p.format), (512, 384, 3, lensrig::image::SampleFormat::U16));

@@ -76,6 +76,11 @@ fn calibrate_on_the_mock_rig_recovers_the_true_psfs() {
     let prof = out.join("again");
     ok(&["estimate", "--session", out.join("session").to_str().unwrap(), "--out", prof.to_str().unwrap(), "--quiet", "--kernel", "31"]);
     assert!(prof.join("002-stage-X-60.000/profile.toml").is_file());
+    // a second run is refused before any work and leaves the profiles as they were
+    let kept = std::fs::read(prof.join("002-stage-X-60.000/profile.toml")).unwrap();
+    let e = fails(&["estimate", "--session", out.join("session").to_str().unwrap(), "--out", prof.to_str().unwrap(), "--quiet", "--kernel", "31"]);
+    assert!(e.contains("already holds a profile") && e.contains("--force"), "{e}");
+    assert_eq!(std::fs::read(prof.join("002-stage-X-60.000/profile.toml")).unwrap(), kept);
     let e = fails(&["estimate", "--session", "s", "--open", "a.png", "--out", "x"]);
     assert!(e.contains("cannot be used with"), "{e}");
     let _ = std::fs::remove_dir_all(&out);

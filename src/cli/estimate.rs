@@ -8,7 +8,7 @@ use clap::Args;
 use lensrig::estimate::bootstrap::{bootstrap_estimate, totals, BootstrapOptions};
 use lensrig::estimate::register::RegistrationModel;
 use lensrig::profile::uncertainty::save_uncertainty;
-use lensrig::estimate::session::estimate_session;
+use lensrig::estimate::session::{estimate_session, load_finished};
 use lensrig::estimate::{estimate, Estimate, EstimateOptions};
 use lensrig::image::io::{depth_note, read_pair_with};
 use lensrig::image::validate::InvalidPixels;
@@ -26,9 +26,13 @@ pub struct EstimateCommandArgs {
     /// A capture session (from `capture`): one profile per stage position in OUT/<pair key>/.
     #[arg(long)]
     pub session: Option<PathBuf>,
-    /// Profile directory to write.
+    /// Profile directory to write (with --session: one per pair, OUT/<pair key>/). A directory
+    /// that already holds a profile is kept unless `--force`.
     #[arg(long)]
     pub out: PathBuf,
+    /// Replace the profile(s) already in OUT (written atomically, file by file).
+    #[arg(long)]
+    pub force: bool,
     #[command(flatten)]
     pub estimation: EstimateArgs,
     /// How the files encode light: linear (raw, machine vision) or srgb (webcams).
@@ -83,11 +87,26 @@ pub fn estimate_files(open: &Path, pinhole: &Path, opts: &EstimateOptions, trans
     Ok(est)
 }
 
+/// Refuses, before any work, to write into a directory of `dirs` that already holds a profile
+/// (`profile.toml`) unless `force`: a profile may have been edited by hand or be the one a
+/// report cites, and a re-estimate would replace it without a trace.
+fn refuse_existing_profiles(dirs: &[PathBuf], force: bool) -> Result<()> {
+    if force {
+        return Ok(());
+    }
+    if let Some(d) = dirs.iter().find(|d| d.join("profile.toml").exists()) {
+        bail!("{} already holds a profile, which is kept (use --force to replace it, or choose another --out)", d.display());
+    }
+    Ok(())
+}
+
 pub fn run(a: &EstimateCommandArgs) -> Result<()> {
     let opts = a.options();
     check_kernel(a.estimation.kernel, 1)?;
     let (open, pinhole) = match (&a.open, &a.pinhole, &a.session) {
         (_, _, Some(s)) => {
+            let keys = load_finished(s)?.pairs.into_iter().map(|p| p.key);
+            refuse_existing_profiles(&keys.map(|k| a.out.join(k)).collect::<Vec<_>>(), a.force)?;
             let done = estimate_session(s, &a.out, &opts, !a.quiet)?;
             for (p, e) in &done {
                 println!("wrote {}: {} tiles, {}px kernels", a.out.join(&p.key).display(), e.profile.grid.tile_count(), e.profile.grid.kernel_size);
@@ -97,6 +116,7 @@ pub fn run(a: &EstimateCommandArgs) -> Result<()> {
         (Some(o), Some(p), None) => (o, p),
         _ => bail!("give --open and --pinhole, or --session"),
     };
+    refuse_existing_profiles(std::slice::from_ref(&a.out), a.force)?;
     let invalid = if a.mask_invalid { InvalidPixels::Mask } else { InvalidPixels::Refuse };
     // the bootstrap's uncertainty includes the joint fit's convergence term, measured by
     // continuing the fit past its end (the kernels are not changed)

@@ -254,6 +254,7 @@ fn propose_all(data: &Data, current: &Fit, a: &Analysis, wanted: &dyn Fn(&str) -
         add("black_level", Some(black_level_candidate(data, c0, a)), &mut out);
     }
     let gate = StartGate::new(data, current);
+    let registered = super::registered::RegisteredStarts::new(data, current);
     if c0.tone_curve.is_none() && data.open.transfer == Transfer::Linear {
         add("tone_curve", Some(tone_candidate(data, current, a)), &mut out);
     }
@@ -261,11 +262,11 @@ fn propose_all(data: &Data, current: &Fit, a: &Analysis, wanted: &dyn Fn(&str) -
         add("veiling_glare", glare_candidate(data, current, a), &mut out);
     }
     if c0.misregistration.is_none() {
-        let (c, label) = misregistration_candidate(data, current, a, &gate);
+        let (c, label) = misregistration_candidate(data, current, a, &gate, &registered);
         add(label, c, &mut out);
     }
     if wanted("target_tilt") {
-        let (c, label) = super::tilt::tilt_candidate(data, current, a, &gate);
+        let (c, label) = super::tilt::tilt_candidate(data, current, a, &gate, &registered);
         add(label, c, &mut out);
     }
     if c0.saturation.is_none() {
@@ -386,16 +387,46 @@ fn glare_sigma(data: &Data, current: &Fit) -> Option<f64> {
 }
 
 /// `misregistration`: the similarity the kernels' centroids follow, refined
-/// ([`refine_similarity`]) when that start passes the [`StartGate`]; proposed when the refined
-/// similarity moves the corners by at least a quarter pixel. The label says whether the gate
-/// stopped it.
-fn misregistration_candidate(data: &Data, current: &Fit, a: &Analysis, gate: &StartGate) -> (Option<Candidate>, &'static str) {
+/// ([`refine_similarity`]) when that start (the current kernels moved to it) passes the
+/// [`StartGate`]; proposed when the refined similarity moves the corners by at least a quarter
+/// pixel. Where the gate refuses and the similarity moves the corners by at least
+/// [`super::registered::MIN_CORNER_PX`], the start is re-estimated under the similarity and
+/// pre-fitted, and proposed where it beats the same start without the similarity
+/// ([`super::registered`]). The label says which path stopped it or proposed it.
+fn misregistration_candidate(data: &Data, current: &Fit, a: &Analysis, gate: &StartGate, registered: &super::registered::RegisteredStarts) -> (Option<Candidate>, &'static str) {
     let Some(p0) = centroid_similarity(current) else { return (None, "misregistration") };
-    let (info0, init0, _) = similarity_model(current, &data.base_registration, p0);
-    if !gate.passes(&Corrections { misregistration: Some(info0), ..current.model.corrections.clone() }, &init0) {
+    let (info0, init0, corner0) = similarity_model(current, &data.base_registration, p0);
+    let corr0 = Corrections { misregistration: Some(info0), ..current.model.corrections.clone() };
+    if gate.passes(&corr0, &init0) {
+        return (similarity_candidate(data, current, a, p0), "misregistration");
+    }
+    if corner0 < super::registered::MIN_CORNER_PX {
         return (None, "misregistration (gated: no χ² gain at the centroids' similarity)");
     }
-    (similarity_candidate(data, current, a, p0), "misregistration")
+    match registered.start(&corr0, gate.base()) {
+        Some((start, cmp)) if cmp.wins() => (Some(registered_similarity_candidate(data, a, p0, corner0, start, &cmp)), "misregistration (re-estimated start)"),
+        _ => (None, "misregistration (gated: re-estimated start, no gain over the same start without the map)"),
+    }
+}
+
+/// The `misregistration` candidate from a start re-estimated under the centroids' similarity
+/// `p` ([`super::registered`]); the similarity is not refined (its rotation is the centroids',
+/// free of the lens's coma; the scale carries the coma's share, docs "Session 20").
+fn registered_similarity_candidate(data: &Data, a: &Analysis, p: [f64; 2], corner: f64, start: Model, cmp: &super::registered::Comparison) -> Candidate {
+    let rot = p[1].atan2(1.0 + p[0]).to_degrees();
+    let scale = ((1.0 + p[0]).powi(2) + p[1] * p[1]).sqrt() - 1.0;
+    Candidate {
+        name: "misregistration",
+        evidence: format!(
+            "the fitted kernels' centroids follow a similarity across the field: rotation {rot:+.3}°, scale {scale:+.5}, i.e. {corner:.2} px at the corners, which tile-wise kernels follow only at the tile centres; kernels {}; residual against position in tile: {}",
+            cmp.text(),
+            curve_text(a, "position_in_tile")
+        ),
+        corrections: start.corrections.clone(),
+        location: location(data, a, "growing towards the corners"),
+        init: Some(start),
+        deferred: None,
+    }
 }
 
 /// [`misregistration_candidate`] after its gate: the refined similarity, when it moves the
@@ -695,10 +726,19 @@ fn lower(points: [(f64, f64); 2]) -> (f64, f64) {
 /// candidate's short refit would not get there). `None` when the estimate fails or its grid
 /// differs from the current one.
 fn linearised_estimate(data: &Data, current: &Fit, transfer: Transfer) -> Option<Model> {
-    let g = &current.model.grid;
     let (mut o, mut p) = (data.open.clone(), data.pinhole.clone());
     o.transfer = transfer;
     p.transfer = transfer;
+    estimate_model(data, current, &o, &p)
+}
+
+/// Kernels and exposure ratios estimated ([`crate::estimate`], window fits only) from `open`
+/// and `pinhole` on the current grid's centre spacing and kernel size, regridded to the current
+/// grid if the estimate's differs, with the current corrections: the re-estimated starts of
+/// `tone_curve` ([`linearised_estimate`]) and of the geometric candidates
+/// ([`super::registered::reestimate`]). `None` when the estimate fails.
+pub fn estimate_model(data: &Data, current: &Fit, open: &crate::image::Image, pinhole: &crate::image::Image) -> Option<Model> {
+    let g = &current.model.grid;
     let opts = crate::estimate::EstimateOptions {
         kernel_size: Some(g.kernel_size),
         tile: Some(data.open.width() / g.columns.max(1)),
@@ -706,7 +746,7 @@ fn linearised_estimate(data: &Data, current: &Fit, transfer: Transfer) -> Option
         saturation: f32::INFINITY,
         ..Default::default()
     };
-    let est = crate::estimate::estimate(&o, &p, &opts).ok()?;
+    let est = crate::estimate::estimate(open, pinhole, &opts).ok()?;
     let grid = if est.profile.grid.columns == g.columns && est.profile.grid.rows == g.rows {
         est.profile.grid
     } else {

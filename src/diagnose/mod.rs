@@ -46,6 +46,7 @@ pub mod model;
 pub mod noise;
 pub mod proof;
 pub mod prune;
+pub mod registered;
 pub mod report;
 pub mod session;
 pub mod simulate;
@@ -314,6 +315,7 @@ fn base_model(open: &Image, pinhole: &Image, base_profile: &Profile, opts: &Diag
     let mut lap = crate::estimate::stage_clock();
     let mut data = Data::new(open, pinhole, opts.pinhole_variance_scale);
     data.screen_pixels = opts.screen_pixels;
+    data.progress = opts.progress;
     let init = Model { corrections: model::Corrections::default(), grid: base_profile.grid.clone(), exposure: base_profile.meta.exposure_ratio.clone() };
     let (provisional_fit, probe, refit) = base_budget(screens(&data, opts), opts.base_fit);
     let mut provisional = fit::fit(&data, &init.corrections, &init, provisional_fit);

@@ -67,7 +67,9 @@ pub fn complete(data: &Data, current: &Fit, cand: Candidate) -> Candidate {
 /// with the kernels held fixed and the scalars refitted once ([`GATE`], one screening
 /// evaluation on the subset), against the current model evaluated the same way. A search runs
 /// only from a start that already lowers χ². The current model's figure is computed at the
-/// first use and kept for the round.
+/// first use and kept for the round. Where it refuses a geometric candidate whose map moves a
+/// corner by a pixel or more, that candidate's start is re-estimated under the map instead and
+/// compared like for like ([`super::registered`]).
 pub struct StartGate<'a> {
     data: &'a Data,
     current: &'a Fit,

@@ -20,7 +20,10 @@
 //!    subset's gain samples the whole image's with an error of its own) is refitted with the
 //!    null refit on every pixel and judged by the same rule there (`screened`,
 //!    `rescore_near_misses`). A parameter search runs only from a start
-//!    that already lowers χ² ([`candidates::StartGate`]); a search of many converged fits
+//!    that already lowers χ² ([`candidates::StartGate`]); where a geometric candidate's
+//!    start (the current kernels moved by its map) does not, and the map moves a corner by a
+//!    pixel or more, its start is re-estimated under the map, pre-fitted, and proposed only if
+//!    it beats the same start without the map ([`registered`], like for like); a search of many converged fits
 //!    (`pinhole_diffraction`'s Airy radius) is deferred until its provisional candidate's
 //!    screening shows it could decide the round (`in_contention`). The polished winner is
 //!    adopted only if it lowers the whole-pixel χ² by more than `3·√(2N)` (the stop rule of

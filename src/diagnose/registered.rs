@@ -114,7 +114,8 @@ impl<'a> RegisteredStarts<'a> {
         let without_map = self.without_map()?;
         let cmp = Comparison { with_map: f.chi2(), without_map, current: current_chi2 };
         if self.data.progress {
-            eprintln!("registered start ({}): {}: {}", corr.names().join("+"), cmp.text(), if cmp.wins() { "the map wins" } else { "refused" });
+            let map = super::model::reference_map(corr).map_or(String::from("none"), |m| format!("matrix {:?}, perspective {:?}", m.matrix, m.perspective));
+            eprintln!("registered start ({}; map {map}): {}: {}", corr.names().join("+"), cmp.text(), if cmp.wins() { "the map wins" } else { "refused" });
         }
         Some((f.model, cmp))
     }
@@ -131,18 +132,57 @@ fn prefit(data: &Data, current: &Fit, corr: &Corrections) -> Option<Fit> {
 /// fits on the current grid's spacing and kernel size) on the wide-open capture decoded with
 /// the current model's transfer and resampled onto the reference geometry by `corr`'s map
 /// ([`super::model::reference_map`]; not resampled without one), with `corr` as the model's
-/// corrections. `None` when the estimate fails.
+/// corrections. Pixels whose interpolation taps fall outside the wide-open frame (the mirrored
+/// border a map pulls in, up to the map's corner displacement wide) are left out of the
+/// estimate's data term ([`outside_frame`]; marked [`OUTSIDE`], above the estimate's
+/// saturation level), as the fit leaves them out of its scored set. `None` when the estimate
+/// fails.
 pub fn reestimate(data: &Data, current: &Fit, corr: &Corrections) -> Option<Model> {
     let transfer = current.transfer;
     let mut open_lin: Vec<crate::image::Plane> = data.open.planes.iter().map(|p| p.map(|v| transfer.decode(v))).collect();
     if let Some(inv) = super::model::reference_map(corr).and_then(|m| m.inverse()) {
-        open_lin = open_lin.iter().map(|p| super::model::resample_map(p, &inv).0).collect();
+        let outside = outside_frame(&inv, data.open.width(), data.open.height());
+        open_lin = open_lin
+            .iter()
+            .map(|p| {
+                let mut q = super::model::resample_map(p, &inv).0;
+                q.data.iter_mut().zip(&outside).filter(|(_, &o)| o).for_each(|(v, _)| *v = OUTSIDE);
+                q
+            })
+            .collect();
     }
     let open = Image { planes: open_lin, transfer: Transfer::Linear, ..data.open.clone() };
     let pinhole = Image { transfer, ..data.pinhole.clone() };
-    let mut m = super::candidates::estimate_model(data, current, &open, &pinhole)?;
+    let mut m = super::candidates::estimate_model(data, current, &open, &pinhole, OUTSIDE_LEVEL)?;
     m.corrections = corr.clone();
     Some(m)
+}
+
+/// The value given to resampled pixels outside the wide-open frame ([`reestimate`]).
+const OUTSIDE: f32 = 2.0;
+
+/// The estimate's saturation level in [`reestimate`]: above every decoded value (at most full
+/// scale, 1), below [`OUTSIDE`], so that only the marked pixels leave the data term.
+const OUTSIDE_LEVEL: f32 = 1.5;
+
+/// Interpolation taps of the resampling (Lanczos-4) beyond the sample point, with rounding.
+const TAPS_PX: f64 = 4.0;
+
+/// Per pixel `q` of a `w × h` plane, whether the resampling through `map` (about the centre,
+/// [`crate::image::resample::Projective`]) samples within [`TAPS_PX`] of the frame's edge or
+/// beyond it.
+pub fn outside_frame(map: &crate::image::resample::Projective, w: usize, h: usize) -> Vec<bool> {
+    let (cx, cy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
+    let [a, b, c, d] = map.matrix;
+    let [g, k] = map.perspective;
+    (0..w * h)
+        .map(|i| {
+            let (dx, dy) = ((i % w) as f64 - cx, (i / w) as f64 - cy);
+            let den = 1.0 + g * dx + k * dy;
+            let (sx, sy) = ((a * dx + b * dy + map.shift[0]) / den + cx, (c * dx + d * dy + map.shift[1]) / den + cy);
+            sx < TAPS_PX || sy < TAPS_PX || sx > w as f64 - 1.0 - TAPS_PX || sy > h as f64 - 1.0 - TAPS_PX
+        })
+        .collect()
 }
 
 #[cfg(test)]
@@ -208,5 +248,35 @@ mod tests {
         let p = centroid_similarity(&current).expect("determined");
         let (cmp, _) = chi2_of(&data, &current, p);
         assert!(cmp.wins(), "{}", cmp.text());
+    }
+
+    /// The target-tilt case of the proof suite (seed 13): the start re-estimated under the
+    /// centroids' keystone wins like for like.
+    #[test]
+    fn a_keystone_start_wins_on_a_tilted_target() {
+        let (data, current) = small_case(Some("target_tilt"), 13);
+        let k = super::super::tilt::centroid_keystone(&current).expect("determined");
+        let corr = Corrections { target_tilt: Some(super::super::model::TiltCorrection { g: k[0], h: k[1] }), ..current.model.corrections.clone() };
+        let gate = super::super::candidates::StartGate::new(&data, &current);
+        let (_, cmp) = RegisteredStarts::new(&data, &current).start(&corr, gate.base()).expect("estimates");
+        eprintln!("keystone {k:?}: {}", cmp.text());
+        assert!(cmp.wins(), "{}", cmp.text());
+    }
+
+    /// Only the pixels a map pulls in from beyond the frame (or within the taps of its edge)
+    /// are outside.
+    #[test]
+    fn outside_frame_is_the_border_the_map_pulls_in() {
+        use crate::image::resample::Projective;
+        let (w, h) = (64usize, 48usize);
+        let id = Projective { matrix: [1.0, 0.0, 0.0, 1.0], shift: [0.0, 0.0], perspective: [0.0, 0.0] };
+        let out = outside_frame(&id, w, h);
+        // identity: the taps' border only (x < 4 or x > 59; y < 4 or y > 43)
+        assert_eq!(out.iter().filter(|&&o| o).count(), w * h - (w - 8) * (h - 8));
+        // a magnification of 10 % about the centre pulls in 2 columns and a row more on each side
+        let zoom = Projective { matrix: [1.1, 0.0, 0.0, 1.1], ..id };
+        let n = outside_frame(&zoom, w, h).iter().filter(|&&o| o).count();
+        assert!(n > w * h - (w - 8) * (h - 8) + 200, "{n}");
+        assert!(!outside_frame(&zoom, w, h)[(h / 2) * w + w / 2]);
     }
 }

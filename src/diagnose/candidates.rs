@@ -731,7 +731,7 @@ fn linearised_estimate(data: &Data, current: &Fit, transfer: Transfer) -> Option
     let (mut o, mut p) = (data.open.clone(), data.pinhole.clone());
     o.transfer = transfer;
     p.transfer = transfer;
-    estimate_model(data, current, &o, &p, f32::INFINITY)
+    estimate_model(data, current, &o, &p, f32::INFINITY, crate::estimate::register::RegistrationModel::Translation)
 }
 
 /// Kernels and exposure ratios estimated ([`crate::estimate`], window fits only) from `open`
@@ -739,14 +739,16 @@ fn linearised_estimate(data: &Data, current: &Fit, transfer: Transfer) -> Option
 /// grid if the estimate's differs, with the current corrections: the re-estimated starts of
 /// `tone_curve` ([`linearised_estimate`]) and of the geometric candidates
 /// ([`super::registered::reestimate`]); stored values at or above `saturation` leave the
-/// estimate's data term. `None` when the estimate fails.
-pub fn estimate_model(data: &Data, current: &Fit, open: &crate::image::Image, pinhole: &crate::image::Image, saturation: f32) -> Option<Model> {
+/// estimate's data term; `registration` is the estimate's registration model. `None` when the
+/// estimate fails.
+pub fn estimate_model(data: &Data, current: &Fit, open: &crate::image::Image, pinhole: &crate::image::Image, saturation: f32, registration: crate::estimate::register::RegistrationModel) -> Option<Model> {
     let g = &current.model.grid;
     let opts = crate::estimate::EstimateOptions {
         kernel_size: Some(g.kernel_size),
         tile: Some(data.open.width() / g.columns.max(1)),
         joint_iterations: 0,
         saturation,
+        registration,
         ..Default::default()
     };
     let est = crate::estimate::estimate(open, pinhole, &opts).ok()?;

@@ -131,8 +131,9 @@ fn prefit(data: &Data, current: &Fit, corr: &Corrections) -> Option<Fit> {
 /// Kernels and exposure ratios re-estimated ([`crate::estimate`], the base estimate's window
 /// fits on the current grid's spacing and kernel size) on the wide-open capture decoded with
 /// the current model's transfer and resampled onto the reference geometry by `corr`'s map
-/// ([`super::model::reference_map`]; not resampled without one), with `corr` as the model's
-/// corrections. Pixels whose interpolation taps fall outside the wide-open frame (the mirrored
+/// ([`super::model::reference_map`]; not resampled without one), against the reference shifted
+/// by the base registration as the fit shifts it ([`super::model::reference_planes`]; no
+/// registration of its own), with `corr` as the model's corrections. Pixels whose interpolation taps fall outside the wide-open frame (the mirrored
 /// border a map pulls in, up to the map's corner displacement wide) are left out of the
 /// estimate's data term ([`outside_frame`]; marked [`OUTSIDE`], above the estimate's
 /// saturation level), as the fit leaves them out of its scored set. `None` when the estimate
@@ -152,8 +153,12 @@ pub fn reestimate(data: &Data, current: &Fit, corr: &Corrections) -> Option<Mode
             .collect();
     }
     let open = Image { planes: open_lin, transfer: Transfer::Linear, ..data.open.clone() };
-    let pinhole = Image { transfer, ..data.pinhole.clone() };
-    let mut m = super::candidates::estimate_model(data, current, &open, &pinhole, OUTSIDE_LEVEL)?;
+    // the reference as the fit sees it: shifted by the base registration's integer translation;
+    // the estimate does not register again (under a keystone its own registration would take
+    // up the map's mean displacement, ≈ 1.8 px at 1024×768 seed 41, and the kernels would sit
+    // that far from where the fit's reference needs them)
+    let pinhole = Image { planes: super::model::reference_planes(&data.pinhole, transfer, &data.base_registration), transfer: Transfer::Linear, ..data.pinhole.clone() };
+    let mut m = super::candidates::estimate_model(data, current, &open, &pinhole, OUTSIDE_LEVEL, crate::estimate::register::RegistrationModel::None)?;
     m.corrections = corr.clone();
     Some(m)
 }

@@ -545,7 +545,8 @@ pub fn fit_masked(data: &Data, corrections: &Corrections, init: &Model, settings
 }
 
 /// [`fit`] with the data term on a spread subset of about `data_pixels` pixels (every n-th
-/// block of the kernel operator in a staggered pattern, so every tile keeps data): the
+/// block of the kernel operator in a staggered pattern, denser where that would leave a tile
+/// without data, [`KernelOperator::covering`]): the
 /// screening fit of the effect search. The figures (χ², residual maps) cover only the subset's
 /// evaluation pixels (no whole-image operator is built); [`Fit::chi2`] and [`Fit::n`] scale
 /// them to the whole evaluation set ([`Fit::share`]). Fits with the same grid keep the same
@@ -859,7 +860,8 @@ struct Figures {
 
 impl<'a> Setup<'a> {
     /// `data_pixels`: the kernel operators keep about this many pixels (every n-th block,
-    /// [`KernelOperator::new`]); the data term is restricted to them.
+    /// [`KernelOperator::covering`]: more where that share would leave a kernel without data);
+    /// the data term is restricted to them.
     fn new(data: &'a Data, corr: &Corrections, init: &Model, keep: &dyn Fn(usize, usize) -> bool, data_pixels: usize) -> Self {
         let transfer = model_transfer(corr, data.open.transfer);
         let (w, h) = (data.open.width(), data.open.height());
@@ -874,7 +876,7 @@ impl<'a> Setup<'a> {
             Some(f) if f.columns != init.grid.columns || f.rows != init.grid.rows => regrid(&init.grid, w, h, f.columns, f.rows),
             _ => init.grid.clone(),
         };
-        let ops: Vec<KernelOperator> = reference.iter().map(|p| KernelOperator::new(p, &grid0, data_pixels)).collect();
+        let ops: Vec<KernelOperator> = reference.iter().map(|p| KernelOperator::covering(p, &grid0, data_pixels)).collect();
         let covered = ops.first().map(|o| o.covered().to_vec()).unwrap_or_default();
         let kept = |x: usize, y: usize| keep(x, y) && covered.get(y * w + x).copied().unwrap_or(true);
         let masks = Masks::new(data, corr, &registration, grid0.kernel_size / 2, &kept);

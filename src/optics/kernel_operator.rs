@@ -251,11 +251,39 @@ fn block_kept(i: usize, nbx: usize, keep_every: usize) -> bool {
     (i % nbx + 2 * (i / nbx)) % keep_every == 0
 }
 
+/// Whether every one of `tiles` tiles is active on some block that the pattern
+/// ([`block_kept`]) keeps at one in `keep_every`.
+fn covers_every_tile(specs: &[BlockSpec], nbx: usize, keep_every: usize, tiles: usize) -> bool {
+    let mut seen = vec![false; tiles];
+    for b in specs.iter().filter(|b| block_kept(b.0, nbx, keep_every)) {
+        for &t in &b.5 {
+            seen[t] = true;
+        }
+    }
+    seen.iter().all(|&s| s)
+}
+
 impl KernelOperator {
     /// Prepares the operator for `sharp` and the tiling of `grid` (its kernels are not used).
     /// When the image has more than `max_pixels` pixels, only every n-th block is kept (in a
     /// staggered pattern, so every tile keeps data) to bring the data to about `max_pixels`.
     pub fn new(sharp: &Plane, grid: &PsfGrid, max_pixels: usize) -> Self {
+        Self::build(sharp, grid, max_pixels, false)
+    }
+
+    /// [`KernelOperator::new`], except that the kept share is raised where the staggered
+    /// pattern at about `max_pixels` would leave a tile without data: `keep_every` is lowered
+    /// one step at a time from `⌈layout pixels / max_pixels⌉` until every tile touches a kept
+    /// block. Where the pattern already keeps data in every tile the operator is `new`'s, bit
+    /// for bit. The pattern `(ix + 2·iy) mod n = 0` only spreads over the field while `n` is
+    /// below about the blocks per row: at 4000×3000 with a 15×11 grid of 45-px kernels and
+    /// 150 000 pixels it keeps 21 blocks on one diagonal line (docs/diagnosis.md, "Session 21:
+    /// the first 4000×3000 run"), and most kernels get no data at all.
+    pub fn covering(sharp: &Plane, grid: &PsfGrid, max_pixels: usize) -> Self {
+        Self::build(sharp, grid, max_pixels, true)
+    }
+
+    fn build(sharp: &Plane, grid: &PsfGrid, max_pixels: usize, cover: bool) -> Self {
         let (w, h) = (sharp.width, sharp.height);
         let k = grid.kernel_size;
         let r = k / 2;
@@ -273,8 +301,13 @@ impl KernelOperator {
             }
         }
         let layout_pixels: usize = specs.iter().map(|b| b.3 * b.4).sum();
-        let keep_every = layout_pixels.div_ceil(max_pixels.max(1)).max(1);
         let nbx = bx.len();
+        let mut keep_every = layout_pixels.div_ceil(max_pixels.max(1)).max(1);
+        if cover {
+            while keep_every > 1 && !covers_every_tile(&specs, nbx, keep_every, grid.tile_count()) {
+                keep_every -= 1;
+            }
+        }
         let blocks: Vec<Block> = specs
             .into_par_iter()
             .filter(|b| block_kept(b.0, nbx, keep_every))
@@ -653,6 +686,31 @@ pub(crate) mod tests {
         for ((x, y), &c) in a.data.iter().zip(&b.data).zip(op.covered()) {
             let want = if c { *y } else { 0.0 };
             assert!((x - want).abs() < 1e-4, "{x} vs {want}");
+        }
+    }
+
+    /// The staggered pattern spreads over the field only while one in `n` is below about the
+    /// blocks per row. At the diagnosis's 4000×3000 case (15×11 grid of 45-px kernels, the
+    /// screening's 150 000 pixels) `new` keeps blocks on a diagonal line and leaves kernels
+    /// without data; `covering` keeps a denser share with data in every tile, still a subset.
+    /// At 1024×768 (7×5 grid) the pattern already covers every tile, and `covering` is `new`.
+    #[test]
+    fn covering_keeps_data_in_every_tile_where_the_pattern_would_not() {
+        let cases = [(4000, 3000, 15, 11, false), (1024, 768, 7, 5, true)];
+        for (w, h, cols, rows, pattern_covers) in cases {
+            let sharp = Plane::from_fn(w, h, |x, y| ((x * 7 + y * 13) % 17) as f32);
+            let g = grid(w, h, 45, cols, rows, 3);
+            let (plain, cover) = (KernelOperator::new(&sharp, &g, 150_000), KernelOperator::covering(&sharp, &g, 150_000));
+            let kept = |op: &KernelOperator| op.covered().iter().filter(|&&c| c).count();
+            assert_eq!(plain.every_tile_has_data(), pattern_covers, "{w}×{h}: {} of {} blocks", plain.block_count(), plain.blocks_per_row);
+            assert!(cover.every_tile_has_data(), "{w}×{h}");
+            assert!(kept(&cover) < w * h / 2, "{w}×{h}: still a subset ({} pixels)", kept(&cover));
+            if pattern_covers {
+                assert_eq!(plain.covered(), cover.covered(), "{w}×{h}: the same blocks");
+                assert_eq!(plain.keep_every, cover.keep_every);
+            } else {
+                assert!(cover.keep_every < plain.keep_every && kept(&cover) > kept(&plain), "{w}×{h}");
+            }
         }
     }
 

@@ -225,20 +225,25 @@ fn channel_list(data: &Data) -> String {
 /// The candidates for extending `current`, in catalogue order (each effect only while the
 /// current model lacks it; `psf_field_variation` while the grid can still grow), without the
 /// effects named in `excluded` (e.g. to show what the diagnosis says of an effect before the
-/// catalogue models it).
+/// catalogue models it). No progress on stderr ([`propose_timed`] has the switch).
 pub fn propose(data: &Data, current: &Fit, a: &Analysis, excluded: &[String]) -> Vec<Candidate> {
-    propose_timed(data, current, a, excluded).0
+    propose_timed(data, current, a, excluded, false).0
 }
 
 /// [`propose`], with the wall and CPU seconds each effect's proposal took (its parameter
-/// search: glare width, similarity, keystone, Airy radius, the tone curve's re-estimate).
-pub fn propose_timed(data: &Data, current: &Fit, a: &Analysis, excluded: &[String]) -> (Vec<Candidate>, Vec<crate::estimate::StageTime>) {
-    let (mut out, times) = propose_all(data, current, a, &|name| !excluded.iter().any(|e| e == name));
+/// search: glare width, similarity, keystone, Airy radius, the tone curve's re-estimate). With
+/// `progress`, the geometric candidates' registered starts print their comparisons on stderr
+/// ([`super::registered::RegisteredStarts::new`]).
+pub fn propose_timed(data: &Data, current: &Fit, a: &Analysis, excluded: &[String], progress: bool) -> (Vec<Candidate>, Vec<crate::estimate::StageTime>) {
+    let (mut out, times) = propose_all(data, current, a, &|name| !excluded.iter().any(|e| e == name), progress);
     out.retain(|c| !excluded.iter().any(|e| e == c.name));
     (out, times)
 }
 
-fn propose_all(data: &Data, current: &Fit, a: &Analysis, wanted: &dyn Fn(&str) -> bool) -> (Vec<Candidate>, Vec<crate::estimate::StageTime>) {
+/// [`propose_timed`] before the excluded candidates are dropped: each effect's proposal in
+/// catalogue order, timed; `wanted` says whether `target_tilt` is proposed at all; `progress`
+/// as in [`propose_timed`].
+fn propose_all(data: &Data, current: &Fit, a: &Analysis, wanted: &dyn Fn(&str) -> bool, progress: bool) -> (Vec<Candidate>, Vec<crate::estimate::StageTime>) {
     let c0 = &current.model.corrections;
     let mut out = Vec::new();
     let (mut lap, mut times) = (crate::estimate::stage_clock(), Vec::new());
@@ -256,7 +261,7 @@ fn propose_all(data: &Data, current: &Fit, a: &Analysis, wanted: &dyn Fn(&str) -
         add("black_level", Some(black_level_candidate(data, c0, a)), &mut out);
     }
     let gate = StartGate::new(data, current);
-    let registered = super::registered::RegisteredStarts::new(data, current);
+    let registered = super::registered::RegisteredStarts::new(data, current, progress);
     if c0.tone_curve.is_none() && data.open.transfer == Transfer::Linear {
         add("tone_curve", Some(tone_candidate(data, current, a)), &mut out);
     }
@@ -394,41 +399,32 @@ fn glare_sigma(data: &Data, current: &Fit) -> Option<f64> {
 /// pixel. Where the gate refuses and the similarity moves the corners by at least
 /// [`super::registered::MIN_CORNER_PX`], the start is re-estimated under the similarity and
 /// pre-fitted, and proposed where it beats the same start without the similarity
-/// ([`super::registered`]). The label says which path stopped it or proposed it.
+/// ([`super::registered::geometric_candidate`]); that similarity is not refined (its rotation
+/// is the centroids', free of the lens's coma; the scale carries the coma's share, docs
+/// "Session 20"). The label says which path stopped it or proposed it.
 fn misregistration_candidate(data: &Data, current: &Fit, a: &Analysis, gate: &StartGate, registered: &super::registered::RegisteredStarts) -> (Option<Candidate>, &'static str) {
     let Some(p0) = centroid_similarity(current) else { return (None, "misregistration") };
     let (info0, init0, corner0) = similarity_model(current, &data.base_registration, p0);
     let corr0 = Corrections { misregistration: Some(info0), ..current.model.corrections.clone() };
-    if gate.passes(&corr0, &init0) {
-        return (similarity_candidate(data, current, a, p0), "misregistration");
-    }
-    if corner0 < super::registered::MIN_CORNER_PX {
-        return (None, "misregistration (gated: no χ² gain at the centroids' similarity)");
-    }
-    match registered.start(&corr0, gate.base()) {
-        Some((start, cmp)) if cmp.wins() => (Some(registered_similarity_candidate(data, a, p0, corner0, start, &cmp)), "misregistration (re-estimated start)"),
-        _ => (None, "misregistration (gated: re-estimated start, no gain over the same start without the map)"),
-    }
-}
-
-/// The `misregistration` candidate from a start re-estimated under the centroids' similarity
-/// `p` ([`super::registered`]); the similarity is not refined (its rotation is the centroids',
-/// free of the lens's coma; the scale carries the coma's share, docs "Session 20").
-fn registered_similarity_candidate(data: &Data, a: &Analysis, p: [f64; 2], corner: f64, start: Model, cmp: &super::registered::Comparison) -> Candidate {
-    let rot = p[1].atan2(1.0 + p[0]).to_degrees();
-    let scale = ((1.0 + p[0]).powi(2) + p[1] * p[1]).sqrt() - 1.0;
-    Candidate {
+    let c = super::registered::MapCandidate {
         name: "misregistration",
-        evidence: format!(
-            "the fitted kernels' centroids follow a similarity across the field: rotation {rot:+.3}°, scale {scale:+.5}, i.e. {corner:.2} px at the corners, which tile-wise kernels follow only at the tile centres; kernels {}; residual against position in tile: {}",
+        gated: "misregistration (gated: no χ² gain at the centroids' similarity)",
+        registered: "misregistration (re-estimated start)",
+        refused: "misregistration (gated: re-estimated start, no gain over the same start without the map)",
+        corrections: &corr0,
+        moved: &init0,
+        corner_px: corner0,
+    };
+    super::registered::geometric_candidate(gate, registered, &c, || similarity_candidate(data, current, a, p0), |_, cmp| {
+        let rot = p0[1].atan2(1.0 + p0[0]).to_degrees();
+        let scale = ((1.0 + p0[0]).powi(2) + p0[1] * p0[1]).sqrt() - 1.0;
+        let evidence = format!(
+            "the fitted kernels' centroids follow a similarity across the field: rotation {rot:+.3}°, scale {scale:+.5}, i.e. {corner0:.2} px at the corners, which tile-wise kernels follow only at the tile centres; kernels {}; residual against position in tile: {}",
             cmp.text(),
             curve_text(a, "position_in_tile")
-        ),
-        corrections: start.corrections.clone(),
-        location: location(data, a, "growing towards the corners"),
-        init: Some(start),
-        deferred: None,
-    }
+        );
+        (evidence, location(data, a, "growing towards the corners"))
+    })
 }
 
 /// [`misregistration_candidate`] after its gate: the refined similarity, when it moves the

@@ -66,8 +66,6 @@ pub struct Data {
     /// pixels per channel in their data term (every pixel by default; the diagnosis sets
     /// [`super::DiagnoseOptions::screen_pixels`]).
     pub screen_pixels: usize,
-    /// Progress on stderr from the candidates' proposals ([`super::DiagnoseOptions::progress`]).
-    pub progress: bool,
 }
 
 impl Data {
@@ -78,7 +76,7 @@ impl Data {
         let lin = |img: &Image| -> Vec<Plane> { img.planes.iter().map(|p| p.map(|v| img.transfer.decode(v))).collect() };
         let model = crate::estimate::register::RegistrationModel::Translation;
         let base_registration = crate::estimate::register::register(&Plane::sum_of(&lin(open)), &Plane::sum_of(&lin(pinhole)), model).info;
-        Data { open: open.clone(), pinhole: pinhole.clone(), curves, base_registration, pinhole_variance_scale, screen_pixels: usize::MAX, progress: false }
+        Data { open: open.clone(), pinhole: pinhole.clone(), curves, base_registration, pinhole_variance_scale, screen_pixels: usize::MAX }
     }
 }
 

@@ -318,7 +318,6 @@ fn base_model(open: &Image, pinhole: &Image, base_profile: &Profile, opts: &Diag
     let mut lap = crate::estimate::stage_clock();
     let mut data = Data::new(open, pinhole, opts.pinhole_variance_scale);
     data.screen_pixels = opts.screen_pixels;
-    data.progress = opts.progress;
     let init = Model { corrections: model::Corrections::default(), grid: base_profile.grid.clone(), exposure: base_profile.meta.exposure_ratio.clone() };
     let (provisional_fit, probe, refit) = base_budget(screens(&data, opts), opts.base_fit);
     let mut provisional = fit::fit(&data, &init.corrections, &init, provisional_fit);
@@ -661,7 +660,7 @@ pub fn low_band_of(power: f64, floor: f64, [w, h, nch]: [usize; 3], evaluated: f
 /// BIC and removes at least `min_gain` of its χ² (the acceptance rule, [`screened`]): on the
 /// screening subset, or, for a near miss there, on every pixel ([`rescore_near_misses`]).
 fn search_round(data: &Data, current: &Fit, analysis: &Analysis, opts: &DiagnoseOptions) -> (Vec<CandidateScore>, Option<(candidates::Candidate, Fit, f64)>) {
-    let (proposed, times) = candidates::propose_timed(data, current, analysis, &opts.excluded);
+    let (proposed, times) = candidates::propose_timed(data, current, analysis, &opts.excluded, opts.progress);
     for t in times {
         progress_lap_as(opts, "proposal of ", t);
     }

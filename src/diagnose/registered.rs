@@ -23,8 +23,10 @@
 //!    start without the map by [`MARGIN`] of χ² and also the current model at the gate's budget.
 //!
 //! The start without the map is computed once per round and shared by both candidates
-//! ([`RegisteredStarts`]).
+//! ([`RegisteredStarts`]). Both candidates take the path above through [`geometric_candidate`]
+//! and keep only their map, their parameters and their texts.
 
+use super::candidates::{Candidate, StartGate};
 use super::fit::{fit_subset, Data, Fit, FitSettings, Model};
 use super::model::Corrections;
 use crate::image::{Image, Transfer};
@@ -92,12 +94,16 @@ impl Comparison {
 pub struct RegisteredStarts<'a> {
     data: &'a Data,
     current: &'a Fit,
+    /// Each comparison on stderr ([`super::DiagnoseOptions::progress`]).
+    progress: bool,
     without_map: std::cell::OnceCell<Option<f64>>,
 }
 
 impl<'a> RegisteredStarts<'a> {
-    pub fn new(data: &'a Data, current: &'a Fit) -> Self {
-        Self { data, current, without_map: std::cell::OnceCell::new() }
+    /// The round's starts from `current` on `data`; with `progress`, [`Self::start`] prints
+    /// each comparison on stderr.
+    pub fn new(data: &'a Data, current: &'a Fit, progress: bool) -> Self {
+        Self { data, current, progress, without_map: std::cell::OnceCell::new() }
     }
 
     /// χ² of the start without a new map: re-estimated under the current model's geometry and
@@ -108,16 +114,70 @@ impl<'a> RegisteredStarts<'a> {
 
     /// The start under `corr`'s geometry (re-estimated and pre-fitted), with its like-for-like
     /// comparison; `current_chi2` is the current model's χ² at the gate's budget
-    /// ([`super::candidates::StartGate::base`]). `None` when an estimate fails.
+    /// ([`super::candidates::StartGate::base`]). `None` when an estimate fails. With progress
+    /// on ([`Self::new`]), the comparison goes to stderr.
     pub fn start(&self, corr: &Corrections, current_chi2: f64) -> Option<(Model, Comparison)> {
         let f = prefit(self.data, self.current, corr)?;
         let without_map = self.without_map()?;
         let cmp = Comparison { with_map: f.chi2(), without_map, current: current_chi2 };
-        if self.data.progress {
+        if self.progress {
             let map = super::model::reference_map(corr).map_or(String::from("none"), |m| format!("matrix {:?}, perspective {:?}", m.matrix, m.perspective));
             eprintln!("registered start ({}; map {map}): {}: {}", corr.names().join("+"), cmp.text(), if cmp.wins() { "the map wins" } else { "refused" });
         }
         Some((f.model, cmp))
+    }
+}
+
+/// A geometric candidate at the map its kernels' centroids follow, as [`geometric_candidate`]
+/// tries it: its name, the labels of the paths that stop or propose it (the names of its
+/// proposal's timing, [`super::candidates::propose_timed`]) and the start at the map.
+pub struct MapCandidate<'m> {
+    /// The candidate's name; also the label where the gate passes.
+    pub name: &'static str,
+    /// The label where the gate refuses and the map moves no corner by [`MIN_CORNER_PX`].
+    pub gated: &'static str,
+    /// The label where the start re-estimated under the map wins like for like.
+    pub registered: &'static str,
+    /// The label where it does not (or an estimate fails).
+    pub refused: &'static str,
+    /// The current model's corrections with the map.
+    pub corrections: &'m Corrections,
+    /// The gate's start: the current kernels moved back by the map's displacement at their tile
+    /// centres ([`super::candidates::moved_kernels`]).
+    pub moved: &'m Model,
+    /// The map's largest displacement at the image corners (pixels).
+    pub corner_px: f64,
+}
+
+/// The proposal of a geometric candidate (module docs), with the label of the path that
+/// stopped or proposed it:
+/// - `c`'s moved start passes the `gate` ([`StartGate::passes`]): what `gate_passed` (the
+///   candidate's own parameter search) returns, labelled `c.name`;
+/// - the gate refuses and the map moves no corner by [`MIN_CORNER_PX`]: none, `c.gated`;
+/// - the start re-estimated under the map ([`RegisteredStarts::start`]) wins like for like
+///   ([`Comparison::wins`]): the candidate `c.name` from that start (its corrections, its
+///   model as the start; the map not refined), with the evidence and location `texts` gives for
+///   the start and its comparison, labelled `c.registered`;
+/// - otherwise (it loses, or an estimate fails): none, `c.refused`.
+pub fn geometric_candidate(
+    gate: &StartGate,
+    registered: &RegisteredStarts,
+    c: &MapCandidate,
+    gate_passed: impl FnOnce() -> Option<Candidate>,
+    texts: impl FnOnce(&Model, &Comparison) -> (String, String),
+) -> (Option<Candidate>, &'static str) {
+    if gate.passes(c.corrections, c.moved) {
+        return (gate_passed(), c.name);
+    }
+    if c.corner_px < MIN_CORNER_PX {
+        return (None, c.gated);
+    }
+    match registered.start(c.corrections, gate.base()) {
+        Some((start, cmp)) if cmp.wins() => {
+            let (evidence, location) = texts(&start, &cmp);
+            (Some(Candidate { name: c.name, corrections: start.corrections.clone(), evidence, location, init: Some(start), deferred: None }), c.registered)
+        }
+        _ => (None, c.refused),
     }
 }
 
@@ -236,7 +296,7 @@ mod tests {
             let (info, _, corner) = similarity_model(current, &data.base_registration, p);
             let corr = Corrections { misregistration: Some(info), ..current.model.corrections.clone() };
             let gate = StartGate::new(data, current);
-            let (m, cmp) = RegisteredStarts::new(data, current).start(&corr, gate.base()).expect("estimates");
+            let (m, cmp) = RegisteredStarts::new(data, current, false).start(&corr, gate.base()).expect("estimates");
             assert!(m.corrections.misregistration.is_some());
             eprintln!("similarity {p:?}, {corner:.2} px at the corners: {}", cmp.text());
             (cmp, corner)
@@ -263,7 +323,7 @@ mod tests {
         let k = super::super::tilt::centroid_keystone(&current).expect("determined");
         let corr = Corrections { target_tilt: Some(super::super::model::TiltCorrection { g: k[0], h: k[1] }), ..current.model.corrections.clone() };
         let gate = super::super::candidates::StartGate::new(&data, &current);
-        let (_, cmp) = RegisteredStarts::new(&data, &current).start(&corr, gate.base()).expect("estimates");
+        let (_, cmp) = RegisteredStarts::new(&data, &current, false).start(&corr, gate.base()).expect("estimates");
         eprintln!("keystone {k:?}: {}", cmp.text());
         assert!(cmp.wins(), "{}", cmp.text());
     }

@@ -96,8 +96,8 @@ fn refine(data: &Data, current: &Fit, k0: [f64; 2]) -> Model {
 /// moved by minus the keystone). Where the gate refuses and the keystone moves a corner by at
 /// least [`super::registered::MIN_CORNER_PX`], the start is re-estimated under the keystone and
 /// pre-fitted, and proposed where it beats the same start without the keystone
-/// ([`super::registered`]; the keystone is not refined then). The label says which path
-/// stopped or proposed it.
+/// ([`super::registered::geometric_candidate`]; the keystone is not refined then). The label
+/// says which path stopped or proposed it.
 pub fn tilt_candidate(data: &Data, current: &Fit, a: &Analysis, gate: &super::candidates::StartGate, registered: &super::registered::RegisteredStarts) -> (Option<super::candidates::Candidate>, &'static str) {
     if current.model.corrections.target_tilt.is_some() {
         return (None, "target_tilt");
@@ -109,36 +109,26 @@ pub fn tilt_candidate(data: &Data, current: &Fit, a: &Analysis, gate: &super::ca
         return (None, "target_tilt");
     }
     let start = tilt_model(current, k0);
-    if gate.passes(&start.corrections, &start) {
-        return (keystone_candidate(data, current, a, k0, corner0), "target_tilt");
-    }
-    if corner0 < super::registered::MIN_CORNER_PX {
-        return (None, "target_tilt (gated: no χ² gain at the centroids' keystone)");
-    }
-    match registered.start(&start.corrections, gate.base()) {
-        Some((m, cmp)) if cmp.wins() => (Some(registered_keystone_candidate(a, corner0, m, &cmp)), "target_tilt (re-estimated start)"),
-        _ => (None, "target_tilt (gated: re-estimated start, no gain over the same start without the keystone)"),
-    }
-}
-
-/// The `target_tilt` candidate from a start re-estimated under the centroids' keystone
-/// ([`super::registered`]).
-fn registered_keystone_candidate(a: &Analysis, corner: f64, start: Model, cmp: &super::registered::Comparison) -> super::candidates::Candidate {
-    let t = start.corrections.target_tilt.unwrap_or(TiltCorrection { g: 0.0, h: 0.0 });
-    let axis = t.h.atan2(t.g).to_degrees();
-    super::candidates::Candidate {
+    let c = super::registered::MapCandidate {
         name: "target_tilt",
-        corrections: start.corrections.clone(),
-        evidence: format!(
-            "the fitted kernels' centroids follow a keystone, a displacement growing with the square of the distance from the centre (perspective row g {:+.2e}, h {:+.2e} per px: {corner:.2} px at the corners), which neither a similarity nor tile-wise kernels follow; kernels {}",
+        gated: "target_tilt (gated: no χ² gain at the centroids' keystone)",
+        registered: "target_tilt (re-estimated start)",
+        refused: "target_tilt (gated: re-estimated start, no gain over the same start without the keystone)",
+        corrections: &start.corrections,
+        moved: &start,
+        corner_px: corner0,
+    };
+    super::registered::geometric_candidate(gate, registered, &c, || keystone_candidate(data, current, a, k0, corner0), |m, cmp| {
+        let t = m.corrections.target_tilt.unwrap_or(TiltCorrection { g: 0.0, h: 0.0 });
+        let axis = t.h.atan2(t.g).to_degrees();
+        let evidence = format!(
+            "the fitted kernels' centroids follow a keystone, a displacement growing with the square of the distance from the centre (perspective row g {:+.2e}, h {:+.2e} per px: {corner0:.2} px at the corners), which neither a similarity nor tile-wise kernels follow; kernels {}",
             t.g,
             t.h,
             cmp.text()
-        ),
-        location: format!("growing quadratically towards the edges across an axis at {axis:.0}° (tilt axis at {:.0}°); {}", axis + 90.0, where_text(a)),
-        init: Some(start),
-        deferred: None,
-    }
+        );
+        (evidence, format!("growing quadratically towards the edges across an axis at {axis:.0}° (tilt axis at {:.0}°); {}", axis + 90.0, where_text(a)))
+    })
 }
 
 /// [`tilt_candidate`] after its gate: the keystone refined from `k0` ([`refine`]).

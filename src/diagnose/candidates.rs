@@ -416,8 +416,7 @@ fn misregistration_candidate(data: &Data, current: &Fit, a: &Analysis, gate: &St
         corner_px: corner0,
     };
     super::registered::geometric_candidate(gate, registered, &c, || similarity_candidate(data, current, a, p0), |_, cmp| {
-        let rot = p0[1].atan2(1.0 + p0[0]).to_degrees();
-        let scale = ((1.0 + p0[0]).powi(2) + p0[1] * p0[1]).sqrt() - 1.0;
+        let (rot, scale) = rotation_and_scale(1.0 + p0[0], p0[1]);
         let evidence = format!(
             "the fitted kernels' centroids follow a similarity across the field: rotation {rot:+.3}°, scale {scale:+.5}, i.e. {corner0:.2} px at the corners, which tile-wise kernels follow only at the tile centres; kernels {}; residual against position in tile: {}",
             cmp.text(),
@@ -427,13 +426,17 @@ fn misregistration_candidate(data: &Data, current: &Fit, a: &Analysis, gate: &St
     })
 }
 
+/// The rotation (degrees) and scale change of the similarity whose first column is
+/// `(a11, a21)` (`[a11, −a21; a21, a11]`): the evidence texts of both misregistration paths.
+fn rotation_and_scale(a11: f64, a21: f64) -> (f64, f64) {
+    (a21.atan2(a11).to_degrees(), (a11 * a11 + a21 * a21).sqrt() - 1.0)
+}
+
 /// [`misregistration_candidate`] after its gate: the refined similarity, when it moves the
 /// corners by at least a quarter pixel.
 fn similarity_candidate(data: &Data, current: &Fit, a: &Analysis, p0: [f64; 2]) -> Option<Candidate> {
     let (info, init, corner) = similarity_model(current, &data.base_registration, refine_similarity(data, current, p0));
-    let (a11, a21) = (info.matrix[0], info.matrix[2]);
-    let rot = a21.atan2(a11).to_degrees();
-    let scale = (a11 * a11 + a21 * a21).sqrt() - 1.0;
+    let (rot, scale) = rotation_and_scale(info.matrix[0], info.matrix[2]);
     if corner < 0.25 {
         return None;
     }

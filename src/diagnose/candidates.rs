@@ -113,26 +113,71 @@ pub fn similarity_from_kernels(current: &Fit, base: &crate::profile::Registratio
 
 /// `[p0, p1]` of the similarity the kernels' centroids follow (least squares over the tiles).
 pub fn centroid_similarity(current: &Fit) -> Option<[f64; 2]> {
-    let g = &current.model.grid;
-    let (w, h) = (current.normalized[0].width as f64, current.normalized[0].height as f64);
+    centroid_similarity_fit(current).map(|f| f.p)
+}
+
+/// The similarity the kernels' centroids follow, with the standard errors of its terms.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CentroidSimilarity {
+    /// `[p0, p1]`: `A − I = [[p0, −p1], [p1, p0]]` (scale − 1 and rotation in radians, to first order).
+    pub p: [f64; 2],
+    /// Standard errors of `p` from the scatter of the centroids about the fitted similarity
+    /// (`σ̂² (MᵀM)⁻¹`, `σ̂²` the residual's mean square over `2n − 4` degrees of freedom). A lens's
+    /// own centroid pattern (distortion, lateral colour) that a similarity does not follow counts
+    /// as scatter, so the error is conservative where the lens is not rotationally symmetric.
+    pub se: [f64; 2],
+    /// Displacement of the similarity's rotation alone at the image corners (pixels).
+    pub rotation_corner_px: f64,
+}
+
+impl CentroidSimilarity {
+    /// The rotation over its standard error (0 when the error is 0).
+    pub fn rotation_t(&self) -> f64 {
+        if self.se[1] > 0.0 {
+            self.p[1] / self.se[1]
+        } else {
+            0.0
+        }
+    }
+}
+
+/// The similarity the current kernels' centroids follow ([`mean_centroid`](crate::optics::psf_grid::PsfGrid::mean_centroid),
+/// channel-averaged), by least squares over the tiles: `d = [[p0, −p1], [p1, p0]]·(x, y) + (tx, ty)`
+/// about the image centre; `None` with fewer than three tiles or a degenerate layout.
+pub fn centroid_similarity_fit(current: &Fit) -> Option<CentroidSimilarity> {
+    centroid_similarity_of(&current.model.grid, current.normalized[0].width, current.normalized[0].height)
+}
+
+/// [`centroid_similarity_fit`] of the kernels of `g` on a `w × h` image.
+pub fn centroid_similarity_of(g: &crate::optics::psf_grid::PsfGrid, w: usize, h: usize) -> Option<CentroidSimilarity> {
+    let (w, h) = (w as f64, h as f64);
     let (cx, cy) = ((w - 1.0) / 2.0, (h - 1.0) / 2.0);
-    // d = [[p, −q], [q, p]]·(x, y) + (tx, ty): unknowns p, q, tx, ty
-    let mut ata = vec![vec![0.0f64; 4]; 4];
-    let mut atb = vec![0.0f64; 4];
+    let mut rows: Vec<([f64; 4], f64)> = Vec::with_capacity(2 * g.tile_count());
     for t in 0..g.tile_count() {
         let (dx, dy) = g.mean_centroid(t);
         let (x, y) = (g.centers[t][0] - cx, g.centers[t][1] - cy);
-        for (row, d) in [([x, -y, 1.0, 0.0], dx), ([y, x, 0.0, 1.0], dy)] {
-            for i in 0..4 {
-                atb[i] += row[i] * d;
-                for j in 0..4 {
-                    ata[i][j] += row[i] * row[j];
-                }
+        rows.push(([x, -y, 1.0, 0.0], dx));
+        rows.push(([y, x, 0.0, 1.0], dy));
+    }
+    if rows.len() < 6 {
+        return None;
+    }
+    let mut ata = vec![vec![0.0f64; 4]; 4];
+    let mut atb = vec![0.0f64; 4];
+    for (row, d) in &rows {
+        for i in 0..4 {
+            atb[i] += row[i] * d;
+            for j in 0..4 {
+                ata[i][j] += row[i] * row[j];
             }
         }
     }
-    let p = crate::solve::dense::solve(ata, atb, 1e-300)?;
-    Some([p[0], p[1]])
+    let sol = crate::solve::dense::solve(ata.clone(), atb, 1e-300)?;
+    let ss: f64 = rows.iter().map(|(row, d)| (d - (0..4).map(|i| row[i] * sol[i]).sum::<f64>()).powi(2)).sum();
+    let s2 = ss / (rows.len() - 4) as f64;
+    let inv_diag = |i: usize| crate::solve::dense::solve(ata.clone(), (0..4).map(|j| f64::from(u8::from(i == j))).collect(), 1e-300).map(|x| x[i]);
+    let se = [(s2 * inv_diag(0)?).max(0.0).sqrt(), (s2 * inv_diag(1)?).max(0.0).sqrt()];
+    Some(CentroidSimilarity { p: [sol[0], sol[1]], se, rotation_corner_px: 0.5 * (w * w + h * h).sqrt() * sol[1].abs() })
 }
 
 /// The registration with `A − I = [[p0, −p1], [p1, p0]]` and the current model's kernels moved
@@ -241,7 +286,7 @@ pub fn propose_timed(data: &Data, current: &Fit, a: &Analysis, excluded: &[Strin
 }
 
 /// [`propose_timed`] before the excluded candidates are dropped: each effect's proposal in
-/// catalogue order, timed; `wanted` says whether `target_tilt` is proposed at all; `progress`
+/// catalogue order, timed; `wanted` says whether an effect is proposed at all; `progress`
 /// as in [`propose_timed`].
 fn propose_all(data: &Data, current: &Fit, a: &Analysis, wanted: &dyn Fn(&str) -> bool, progress: bool) -> (Vec<Candidate>, Vec<crate::estimate::StageTime>) {
     let c0 = &current.model.corrections;
@@ -251,24 +296,24 @@ fn propose_all(data: &Data, current: &Fit, a: &Analysis, wanted: &dyn Fn(&str) -
         out.extend(c);
         times.push(lap(name));
     };
-    if c0.vignetting.is_none() {
+    if c0.vignetting.is_none() && wanted("vignetting") {
         add("vignetting", Some(vignetting_candidate(data, c0, a)), &mut out);
     }
-    if c0.illumination_gradient.is_none() {
+    if c0.illumination_gradient.is_none() && wanted("illumination_gradient") {
         add("illumination_gradient", Some(gradient_candidate(data, c0, a)), &mut out);
     }
-    if c0.black_level.is_none() {
+    if c0.black_level.is_none() && wanted("black_level") {
         add("black_level", Some(black_level_candidate(data, c0, a)), &mut out);
     }
     let gate = StartGate::new(data, current);
     let registered = super::registered::RegisteredStarts::new(data, current, progress);
-    if c0.tone_curve.is_none() && data.open.transfer == Transfer::Linear {
+    if c0.tone_curve.is_none() && data.open.transfer == Transfer::Linear && wanted("tone_curve") {
         add("tone_curve", Some(tone_candidate(data, current, a)), &mut out);
     }
-    if c0.veiling_glare.is_none() {
+    if c0.veiling_glare.is_none() && wanted("veiling_glare") {
         add("veiling_glare", glare_candidate(data, current, a), &mut out);
     }
-    if c0.misregistration.is_none() {
+    if c0.misregistration.is_none() && wanted("misregistration") {
         let (c, label) = misregistration_candidate(data, current, a, &gate, &registered);
         add(label, c, &mut out);
     }
@@ -276,13 +321,15 @@ fn propose_all(data: &Data, current: &Fit, a: &Analysis, wanted: &dyn Fn(&str) -
         let (c, label) = super::tilt::tilt_candidate(data, current, a, &gate, &registered);
         add(label, c, &mut out);
     }
-    if c0.saturation.is_none() {
+    if c0.saturation.is_none() && wanted("saturation") {
         add("saturation", saturation_candidate(data, current, a), &mut out);
     }
-    if c0.pinhole_diffraction.is_none() {
+    if c0.pinhole_diffraction.is_none() && wanted("pinhole_diffraction") {
         add("pinhole_diffraction", diffraction_candidate(data, current, a), &mut out);
     }
-    add("psf_field_variation", field_candidate(data, current, a), &mut out);
+    if wanted("psf_field_variation") {
+        add("psf_field_variation", field_candidate(data, current, a), &mut out);
+    }
     (out, times)
 }
 
@@ -757,4 +804,73 @@ pub fn estimate_model(data: &Data, current: &Fit, open: &crate::image::Image, pi
         super::fit::regrid(&est.profile.grid, data.open.width(), data.open.height(), g.columns, g.rows)
     };
     Some(Model { corrections: current.model.corrections.clone(), grid, exposure: est.profile.meta.exposure_ratio })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::image::Plane;
+    use crate::optics::psf_grid::PsfGrid;
+
+    /// A `cols × rows` grid of Gaussian kernels (σ 2 px, side 21) on a `w × h` image, each
+    /// centred at `disp(x, y)` from its kernel's centre (tile centre `(x, y)`), three channels.
+    fn grid(w: usize, h: usize, cols: usize, rows: usize, disp: &dyn Fn(f64, f64) -> (f64, f64)) -> PsfGrid {
+        let n = 21;
+        let mut centers = Vec::new();
+        for j in 0..rows {
+            for i in 0..cols {
+                centers.push([(i as f64 + 0.5) * w as f64 / cols as f64, (j as f64 + 0.5) * h as f64 / rows as f64]);
+            }
+        }
+        let kernel = |&[x, y]: &[f64; 2]| {
+            let (dx, dy) = disp(x, y);
+            let c = (n as f64 - 1.0) / 2.0;
+            Plane::from_fn(n, n, |u, v| (-((u as f64 - c - dx).powi(2) + (v as f64 - c - dy).powi(2)) / 8.0).exp() as f32)
+        };
+        let ks: Vec<Plane> = centers.iter().map(kernel).collect();
+        PsfGrid { kernel_size: n, columns: cols, rows, centers, channels: vec!["R".into(), "G".into(), "B".into()], kernels: vec![ks.clone(), ks.clone(), ks] }
+    }
+
+    /// A pseudo-random jitter in ±`a` px, fixed by the tile centre.
+    fn jitter(x: f64, y: f64, a: f64) -> (f64, f64) {
+        let h = |s: f64| ((s * 12.9898).sin() * 43758.5453).fract();
+        (a * (2.0 * h(x + 0.37 * y) - 1.0), a * (2.0 * h(0.61 * x + y + 7.0) - 1.0))
+    }
+
+    #[test]
+    fn the_centroids_rotation_is_recovered_and_significant() {
+        let (w, h) = (1024, 768);
+        let (cx, cy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
+        let th = 0.35f64.to_radians();
+        // a kernel at +d means open(p) ≈ pinhole(p − d): a rotation moves each kernel by
+        // (R − I)(p − c), plus a constant shift the fit does not read as rotation
+        let g = grid(w, h, 19, 14, &|x, y| {
+            let (u, v) = (x - cx, y - cy);
+            let (jx, jy) = jitter(x, y, 0.3);
+            ((th.cos() - 1.0) * u - th.sin() * v + 0.8 + jx, th.sin() * u + (th.cos() - 1.0) * v - 1.2 + jy)
+        });
+        let c = centroid_similarity_of(&g, w, h).unwrap();
+        assert!((c.p[1] - th).abs() < 3.0 * c.se[1] + 1e-4, "rotation {} vs {th} ± {}", c.p[1], c.se[1]);
+        assert!(c.rotation_t() > 30.0, "t {}", c.rotation_t());
+        assert!((c.rotation_corner_px - 640.0 * th).abs() < 0.2, "corner {}", c.rotation_corner_px);
+    }
+
+    #[test]
+    fn a_lens_radial_pattern_and_jitter_show_no_rotation() {
+        // a rotationally symmetric lens moves its kernels radially (distortion, r³): that reads
+        // as scale, never as rotation, and the jitter alone stays within a few standard errors
+        let (w, h) = (1024, 768);
+        let (cx, cy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
+        let g = grid(w, h, 19, 14, &|x, y| {
+            let (u, v) = ((x - cx) / 640.0, (y - cy) / 640.0);
+            let r2 = u * u + v * v;
+            let (jx, jy) = jitter(x, y, 0.3);
+            (3.0 * r2 * u + jx, 3.0 * r2 * v + jy)
+        });
+        let c = centroid_similarity_of(&g, w, h).unwrap();
+        assert!(c.rotation_t().abs() < 4.0, "t {}", c.rotation_t());
+        assert!(c.p[0] > 10.0 * c.se[0], "the radial pattern reads as scale: {} ± {}", c.p[0], c.se[0]);
+        // too few tiles for a fit with its error
+        assert!(centroid_similarity_of(&grid(w, h, 1, 2, &|_, _| (0.0, 0.0)), w, h).is_none());
+    }
 }

@@ -32,6 +32,13 @@
 //!    adoption or where it is not yet consistent with the noise (`needs_final_polish`); its
 //!    whole-pixel rounds run while a round still lowers χ² by more than `3·√(2N)`, at most six
 //!    (`final_polish_rule`).
+//!
+//!    A consistent fit whose kernels' centroids follow a rotation about the image centre
+//!    ([`kernel_rotation`]: at least [`ROTATION_T`] standard errors, a pixel at the corners) has
+//!    taken up a misregistration in its kernels, which no lens does: a round screens
+//!    misregistration alone (`Round::Rotation`), and its winner is adopted where it fits as well
+//!    (χ² not raised beyond `3·√(2N)`) and leaves kernels that no longer rotate
+//!    (`rotation_round_adopts`). A rotation that remains is stated in the verdict.
 //! 4. The final model's kernels and corrections form a profile ([`model`]); [`report`] writes
 //!    `report.json`, the predictions, residual maps and `index.html`.
 //!
@@ -359,6 +366,17 @@ fn progress_low_band(opts: &DiagnoseOptions, which: &str, f: &Fit, a: &Analysis)
     if let Some(b) = low_band(f, a, opts).filter(|_| opts.progress) {
         eprintln!("{which} model: residual's lowest band (≤ {:.3} cycles/px) {:.3}× white noise, floor {:.3}×, bound {:.3} ({:.0} samples): {}", b.top, b.power, b.floor, b.bound, b.samples, if b.within() { "within" } else { "above" });
     }
+    if let Some(c) = candidates::centroid_similarity_fit(f).filter(|_| opts.progress) {
+        eprintln!(
+            "{which} model: the kernels' centroids follow a rotation of {:.4}° ± {:.4}° (t = {:.1}; {:.2} px at the corners) and a scale of {:+.5} ± {:.5}",
+            c.p[1].to_degrees(),
+            c.se[1].to_degrees(),
+            c.rotation_t(),
+            c.rotation_corner_px,
+            c.p[0],
+            c.se[0]
+        );
+    }
 }
 
 /// A sub-stage's wall and CPU seconds on stderr, with progress on.
@@ -405,14 +423,18 @@ struct Search {
     polished: bool,
 }
 
-/// Adds catalogue effects while the fit is not consistent with noise (module docs, step 3),
+/// Adds catalogue effects while the fit is not consistent with noise, or misregistration alone
+/// while a consistent fit's kernels rotate ([`next_round`]; module docs, step 3),
 /// then polishes the final model with a larger budget where backward elimination changed it
 /// since the last adoption ([`needs_final_polish`]; an adopted winner is polished already).
 fn add_effects(data: &mut Data, base: Fit, base_analysis: Analysis, repeat_noise: bool, opts: &DiagnoseOptions) -> Search {
     let mut s = Search { current: base, analysis: base_analysis, effects: Vec::new(), rounds: Vec::new(), polished: false };
-    while s.effects.len() < opts.max_effects && !consistent(&s.current, opts) {
+    while let Some(round) = next_round(&s.current, opts).filter(|_| s.effects.len() < opts.max_effects) {
         let mut lap = crate::estimate::stage_clock();
-        let (scores, best) = search_round(data, &s.current, &s.analysis, opts);
+        if let (Round::Rotation, Some(c), true) = (round, kernel_rotation(&s.current), opts.progress) {
+            eprintln!("round {}: the fit is consistent, but the kernels' centroids rotate by {:.3}° about the centre (t = {:.0}): misregistration alone is screened", s.rounds.len() + 1, c.p[1].to_degrees(), c.rotation_t());
+        }
+        let (scores, best) = search_round(data, &s.current, &s.analysis, &round_options(round, opts));
         progress_lap(opts, lap("screening round"));
         s.rounds.push(scores);
         let Some((cand, f, dbic)) = best else {
@@ -424,7 +446,7 @@ fn add_effects(data: &mut Data, base: Fit, base_analysis: Analysis, repeat_noise
         if opts.progress {
             eprintln!("round {}: {} explains most (reduced χ² {:.3} → {:.3}, ΔBIC {:.0})", s.rounds.len(), cand.name, s.current.reduced_chi2(), f.reduced_chi2(), dbic);
         }
-        if !adopt(data, &mut s, cand, f, dbic, repeat_noise, opts) {
+        if !adopt(data, &mut s, (cand, f, dbic), repeat_noise, round, opts) {
             break;
         }
     }
@@ -473,8 +495,10 @@ fn screens(data: &Data, opts: &DiagnoseOptions) -> bool {
 ///
 /// The stop rule: the polished winner must lower the whole-pixel χ² (both models on the new
 /// curve) by more than χ²'s own noise allows, [`STOP_SIGMAS`]` · √(2N)`; otherwise the curve
-/// is restored, the current model kept, and `false` returned (the search ends).
-fn adopt(data: &mut Data, s: &mut Search, cand: candidates::Candidate, f: Fit, dbic: f64, repeat_noise: bool, opts: &DiagnoseOptions) -> bool {
+/// is restored, the current model kept, and `false` returned (the search ends). A
+/// [`Round::Rotation`] winner follows [`rotation_round_adopts`] instead (as good a fit, kernels
+/// that no longer rotate), and its evidence states the rotation before and after.
+fn adopt(data: &mut Data, s: &mut Search, (cand, f, dbic): (candidates::Candidate, Fit, f64), repeat_noise: bool, round: Round, opts: &DiagnoseOptions) -> bool {
     let mut lap = crate::estimate::stage_clock();
     let previous = s.current.clone();
     let f = polish_winner(data, &s.current, f, opts);
@@ -486,15 +510,41 @@ fn adopt(data: &mut Data, s: &mut Search, cand: candidates::Candidate, f: Fit, d
     }
     let (current, previous) = (rescore(data, &f), rescore(data, &previous));
     let noise = STOP_SIGMAS * (2.0 * current.n() as f64).sqrt();
-    if previous.chi2() - current.chi2() <= noise {
-        if opts.progress {
-            eprintln!("{} polished on every pixel lowers χ² by {:.0}, within χ²'s noise ({STOP_SIGMAS}·√(2N) = {noise:.0}): not adopted", cand.name, previous.chi2() - current.chi2());
+    let lowered = previous.chi2() - current.chi2();
+    let mut evidence = cand.evidence;
+    match round {
+        Round::Full if lowered <= noise => {
+            if opts.progress {
+                eprintln!("{} polished on every pixel lowers χ² by {lowered:.0}, within χ²'s noise ({STOP_SIGMAS}·√(2N) = {noise:.0}): not adopted", cand.name);
+            }
+            data.curves = old_curves;
+            return false;
         }
-        data.curves = old_curves;
-        return false;
+        Round::Full => {}
+        Round::Rotation => {
+            // the kernels took the map up, so χ² cannot prefer it: the map is adopted when it
+            // fits as well (χ² not raised beyond its noise) and leaves kernels that no longer rotate
+            let (was, now) = (kernel_rotation(&previous), candidates::centroid_similarity_fit(&current));
+            let text = |c: &candidates::CentroidSimilarity| format!("{:.3}° (t = {:.1})", c.p[1].to_degrees(), c.rotation_t());
+            let (was_text, now_text) = (was.as_ref().map_or("–".into(), text), now.as_ref().map_or("–".into(), text));
+            let kept = rotation_round_adopts(lowered, noise, now.as_ref());
+            if opts.progress {
+                eprintln!(
+                    "{} polished on every pixel changes χ² by {:+.0} (χ²'s noise {STOP_SIGMAS}·√(2N) = {noise:.0}); the kernels' centroids rotate by {now_text}, {was_text} before: {}",
+                    cand.name,
+                    -lowered,
+                    if kept { "adopted (as good a fit, with kernels that no longer rotate)" } else { "not adopted" }
+                );
+            }
+            if !kept {
+                data.curves = old_curves;
+                return false;
+            }
+            evidence = format!("{evidence}; the fit's kernels rotated by {was_text} about the image centre, which a lens's kernels do not; under the map they rotate by {now_text} at a χ² {:+.0} (noise {noise:.0})", -lowered);
+        }
     }
     let (before, after) = (Figures::of(&previous), Figures::of(&current));
-    s.effects.push(FoundEffect { name: cand.name.to_string(), evidence: cand.evidence, location: cand.location, parameters, before, after, delta_bic: dbic });
+    s.effects.push(FoundEffect { name: cand.name.to_string(), evidence, location: cand.location, parameters, before, after, delta_bic: dbic });
     s.current = fit::fit_from(data, &f.model.corrections, &f.model, FitSettings { rounds: 1, kernel_iterations: opts.candidate_fit.kernel_iterations }, &f.warm);
     s.current.inherit_dof(&current);
     s.polished = true;
@@ -594,6 +644,77 @@ fn rescore(data: &Data, f: &Fit) -> Fit {
 /// (docs/diagnosis.md, "Screening on the subset alone, and the low-band test").
 fn consistent(f: &Fit, opts: &DiagnoseOptions) -> bool {
     f.reduced_chi2() <= opts.consistent && f.noise_misfit <= opts.consistent_noise
+}
+
+/// How many standard errors the rotation the kernels' centroids follow
+/// ([`candidates::centroid_similarity_fit`]) must reach before the search screens
+/// misregistration although the fit is [`consistent`] ([`next_round`]). A rotation about the
+/// image centre is what a rotationally symmetric lens cannot put into its kernels, and what
+/// per-tile kernels of 45–63 px take up from a misregistration of a few pixels, leaving χ² at
+/// the floor. At 1024×768 RGB, seed 41: clean data through the sf11 singlet t = 0.5, through the
+/// achromat 0.2; a 0.39° misregistration through the sf11 singlet t = −101 (docs/diagnosis.md,
+/// "Session 23").
+pub const ROTATION_T: f64 = 10.0;
+
+/// The rotation of the kernels' centroids ([`candidates::centroid_similarity_fit`]) when it is
+/// significant: at least [`ROTATION_T`] standard errors and a displacement of at least
+/// [`registered::MIN_CORNER_PX`] at the corners; `None` otherwise.
+pub fn kernel_rotation(f: &Fit) -> Option<candidates::CentroidSimilarity> {
+    candidates::centroid_similarity_fit(f).filter(rotation_significant)
+}
+
+/// At least [`ROTATION_T`] standard errors and [`registered::MIN_CORNER_PX`] at the corners.
+fn rotation_significant(c: &candidates::CentroidSimilarity) -> bool {
+    c.rotation_t().abs() >= ROTATION_T && c.rotation_corner_px >= registered::MIN_CORNER_PX
+}
+
+/// The adoption rule of a [`Round::Rotation`] winner: the kernels took the map up, so χ² cannot
+/// prefer it; it is adopted when it fits as well (`lowered`, the χ² it removes on every pixel,
+/// not below minus χ²'s `noise`) and its kernels no longer rotate (`after`, their centroids'
+/// similarity, not significant).
+fn rotation_round_adopts(lowered: f64, noise: f64, after: Option<&candidates::CentroidSimilarity>) -> bool {
+    lowered > -noise && !after.is_some_and(rotation_significant)
+}
+
+/// What the search screens next ([`next_round`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Round {
+    /// Every catalogue effect not in the model: the fit is not [`consistent`].
+    Full,
+    /// Misregistration alone: the fit is consistent, but the kernels' centroids follow a
+    /// significant rotation ([`kernel_rotation`]), which no other catalogue effect produces.
+    Rotation,
+}
+
+/// The next round of the search, `None` when it stops: [`Round::Full`] while the fit is not
+/// [`consistent`]; [`Round::Rotation`] when it is, misregistration is neither in the model nor
+/// excluded, and the kernels rotate ([`kernel_rotation`]).
+fn next_round(f: &Fit, opts: &DiagnoseOptions) -> Option<Round> {
+    let open = f.model.corrections.misregistration.is_none() && !opts.excluded.iter().any(|e| e == "misregistration");
+    next_round_of(consistent(f, opts), open, || kernel_rotation(f).is_some())
+}
+
+/// [`next_round`] of a fit that is `consistent` or not, with misregistration `open` (neither in
+/// the model nor excluded) or not; `rotates` is asked only where it decides.
+fn next_round_of(consistent: bool, open: bool, rotates: impl FnOnce() -> bool) -> Option<Round> {
+    if !consistent {
+        Some(Round::Full)
+    } else {
+        (open && rotates()).then_some(Round::Rotation)
+    }
+}
+
+/// The options of a round: [`Round::Rotation`] excludes every catalogue effect but
+/// misregistration.
+fn round_options(round: Round, opts: &DiagnoseOptions) -> std::borrow::Cow<'_, DiagnoseOptions> {
+    match round {
+        Round::Full => std::borrow::Cow::Borrowed(opts),
+        Round::Rotation => {
+            let mut o = opts.clone();
+            o.excluded.extend(proof::CONCEALED.iter().filter(|&&n| n != "misregistration").map(|n| n.to_string()));
+            std::borrow::Cow::Owned(o)
+        }
+    }
 }
 
 /// The residual's lowest band against the noise floor there (docs/diagnosis.md, "Screening on
@@ -853,7 +974,12 @@ pub fn band_text(b: &LowBand) -> String {
 
 /// The verdict's class (see [`verdict`]).
 fn verdict_class(effects: &[FoundEffect], current: &Fit, final_analysis: &Analysis, opts: &DiagnoseOptions) -> String {
+    // kernels that still rotate about the centre carry a misregistration they took up
+    let rotation = kernel_rotation(current).filter(|_| !effects.iter().any(|e| e.name == "misregistration")).map(|c| rotation_text(&c));
     if effects.is_empty() && current.reduced_chi2() <= opts.consistent {
+        if let Some(r) = rotation {
+            return format!("unexplained: the base model fits to the noise floor (reduced χ² {:.3}), but {r}", current.reduced_chi2());
+        }
         // the image model fits to the noise floor and no catalogue effect improved it; a noise
         // curve that departs from the Poisson–Gaussian law is reported, not called a mismatch
         let mut v = "no mismatch: the base model fits to the noise floor".to_string();
@@ -862,7 +988,8 @@ fn verdict_class(effects: &[FoundEffect], current: &Fit, final_analysis: &Analys
         }
         v
     } else if consistent(current, opts) {
-        format!("explained: {} bring the fit to the noise floor", effects.iter().map(|e| e.name.as_str()).collect::<Vec<_>>().join(", "))
+        let v = format!("explained: {} bring the fit to the noise floor", effects.iter().map(|e| e.name.as_str()).collect::<Vec<_>>().join(", "));
+        rotation.map_or(v.clone(), |r| format!("{v}; but {r}"))
     } else {
         let curvebits: Vec<String> = final_analysis
             .curves
@@ -883,6 +1010,17 @@ fn verdict_class(effects: &[FoundEffect], current: &Fit, final_analysis: &Analys
             final_analysis.excess_kurtosis
         )
     }
+}
+
+/// The verdict's sentence on kernels that rotate ([`kernel_rotation`]) in a model without
+/// misregistration.
+fn rotation_text(c: &candidates::CentroidSimilarity) -> String {
+    format!(
+        "its kernels' centroids rotate by {:.3}° about the image centre (t = {:.0}; {:.1} px at the corners), which a lens's kernels do not: a misregistration the kernels take up, which a fit under the map did not confirm",
+        c.p[1].to_degrees(),
+        c.rotation_t(),
+        c.rotation_corner_px
+    )
 }
 
 /// What keeps a fit from being consistent with noise ([`consistent`]): the reduced χ² above its
@@ -970,6 +1108,33 @@ mod tests {
 
     /// An inconsistent fit whose χ² is within bounds names the noise law's misfit, not a χ²
     /// that "remains"; one above the bound names the χ².
+    #[test]
+    fn a_consistent_fit_screens_misregistration_only_where_its_kernels_rotate() {
+        assert_eq!(next_round_of(false, true, || false), Some(Round::Full));
+        assert_eq!(next_round_of(false, false, || true), Some(Round::Full));
+        assert_eq!(next_round_of(true, true, || true), Some(Round::Rotation));
+        assert_eq!(next_round_of(true, true, || false), None);
+        // misregistration in the model or excluded: the rotation is not even measured
+        assert_eq!(next_round_of(true, false, || panic!("asked")), None);
+        let defaults = DiagnoseOptions::default();
+        let opts = round_options(Round::Rotation, &defaults);
+        assert!(proof::CONCEALED.iter().all(|n| opts.excluded.iter().any(|e| e == n) == (*n != "misregistration")));
+        assert!(round_options(Round::Full, &defaults).excluded.is_empty());
+    }
+
+    #[test]
+    fn a_rotation_round_adopts_an_equal_fit_whose_kernels_stop_rotating() {
+        let sim = |rot_deg: f64, se_deg: f64| candidates::CentroidSimilarity { p: [0.004, rot_deg.to_radians()], se: [1e-4, se_deg.to_radians()], rotation_corner_px: 640.0 * rot_deg.to_radians().abs() };
+        let (still, stopped, tiny) = (sim(-0.37, 0.004), sim(0.001, 0.002), sim(0.05, 0.001));
+        assert!(rotation_significant(&still) && !rotation_significant(&stopped));
+        // t = 50 but 0.56 px at the corners: below the map's least displacement
+        assert!(!rotation_significant(&tiny));
+        assert!(rotation_round_adopts(-2000.0, 6000.0, Some(&stopped)), "as good a fit within noise");
+        assert!(rotation_round_adopts(2000.0, 6000.0, None), "no similarity to measure: nothing rotates");
+        assert!(!rotation_round_adopts(-7000.0, 6000.0, Some(&stopped)), "a worse fit");
+        assert!(!rotation_round_adopts(50_000.0, 6000.0, Some(&still)), "kernels still rotate");
+    }
+
     #[test]
     fn what_remains_names_the_failed_test() {
         let o = DiagnoseOptions::default();

@@ -193,7 +193,8 @@ fn prefit(data: &Data, current: &Fit, corr: &Corrections) -> Option<Fit> {
 /// the current model's transfer and resampled onto the reference geometry by `corr`'s map
 /// ([`super::model::reference_map`]; not resampled without one), against the reference shifted
 /// by the base registration as the fit shifts it ([`super::model::reference_planes`]; no
-/// registration of its own), with `corr` as the model's corrections. Pixels whose interpolation taps fall outside the wide-open frame (the mirrored
+/// registration of its own; restored under `corr`'s `pinhole_diffraction`, as the fit restores
+/// it), with `corr` as the model's corrections. Pixels whose interpolation taps fall outside the wide-open frame (the mirrored
 /// border a map pulls in, up to the map's corner displacement wide) are left out of the
 /// estimate's data term ([`outside_frame`]; marked [`OUTSIDE`], above the estimate's
 /// saturation level), as the fit leaves them out of its scored set. `None` when the estimate
@@ -217,7 +218,13 @@ pub fn reestimate(data: &Data, current: &Fit, corr: &Corrections) -> Option<Mode
     // the estimate does not register again (under a keystone its own registration would take
     // up the map's mean displacement, ≈ 1.8 px at 1024×768 seed 41, and the kernels would sit
     // that far from where the fit's reference needs them)
-    let pinhole = Image { planes: super::model::reference_planes(&data.pinhole, transfer, &data.base_registration), transfer: Transfer::Linear, ..data.pinhole.clone() };
+    let mut reference = super::model::reference_planes(&data.pinhole, transfer, &data.base_registration);
+    // under `pinhole_diffraction` the fit's reference is restored ([`super::model::DiffractionCorrection::restore`]);
+    // kernels estimated against the unrestored one would be `K * D⁻¹`-like, not the fit's `K`
+    if let Some(d) = &corr.pinhole_diffraction {
+        reference = reference.iter().enumerate().map(|(c, p)| d.restore(c, p)).collect();
+    }
+    let pinhole = Image { planes: reference, transfer: Transfer::Linear, ..data.pinhole.clone() };
     let mut m = super::candidates::estimate_model(data, current, &open, &pinhole, OUTSIDE_LEVEL, crate::estimate::register::RegistrationModel::None)?;
     m.corrections = corr.clone();
     Some(m)

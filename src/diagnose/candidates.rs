@@ -272,15 +272,15 @@ fn channel_list(data: &Data) -> String {
 /// effects named in `excluded` (e.g. to show what the diagnosis says of an effect before the
 /// catalogue models it). No progress on stderr ([`propose_timed`] has the switch).
 pub fn propose(data: &Data, current: &Fit, a: &Analysis, excluded: &[String]) -> Vec<Candidate> {
-    propose_timed(data, current, a, excluded, false).0
+    propose_timed(data, current, a, excluded, super::registered::StartRule::LikeForLike, false).0
 }
 
 /// [`propose`], with the wall and CPU seconds each effect's proposal took (its parameter
 /// search: glare width, similarity, keystone, Airy radius, the tone curve's re-estimate). With
 /// `progress`, the geometric candidates' registered starts print their comparisons on stderr
-/// ([`super::registered::RegisteredStarts::new`]).
-pub fn propose_timed(data: &Data, current: &Fit, a: &Analysis, excluded: &[String], progress: bool) -> (Vec<Candidate>, Vec<crate::estimate::StageTime>) {
-    let (mut out, times) = propose_all(data, current, a, &|name| !excluded.iter().any(|e| e == name), progress);
+/// ([`super::registered::RegisteredStarts::new`]); `rule` is what those starts must beat.
+pub fn propose_timed(data: &Data, current: &Fit, a: &Analysis, excluded: &[String], rule: super::registered::StartRule, progress: bool) -> (Vec<Candidate>, Vec<crate::estimate::StageTime>) {
+    let (mut out, times) = propose_all(data, current, a, &|name| !excluded.iter().any(|e| e == name), rule, progress);
     out.retain(|c| !excluded.iter().any(|e| e == c.name));
     (out, times)
 }
@@ -288,7 +288,7 @@ pub fn propose_timed(data: &Data, current: &Fit, a: &Analysis, excluded: &[Strin
 /// [`propose_timed`] before the excluded candidates are dropped: each effect's proposal in
 /// catalogue order, timed; `wanted` says whether an effect is proposed at all; `progress`
 /// as in [`propose_timed`].
-fn propose_all(data: &Data, current: &Fit, a: &Analysis, wanted: &dyn Fn(&str) -> bool, progress: bool) -> (Vec<Candidate>, Vec<crate::estimate::StageTime>) {
+fn propose_all(data: &Data, current: &Fit, a: &Analysis, wanted: &dyn Fn(&str) -> bool, rule: super::registered::StartRule, progress: bool) -> (Vec<Candidate>, Vec<crate::estimate::StageTime>) {
     let c0 = &current.model.corrections;
     let mut out = Vec::new();
     let (mut lap, mut times) = (crate::estimate::stage_clock(), Vec::new());
@@ -306,7 +306,7 @@ fn propose_all(data: &Data, current: &Fit, a: &Analysis, wanted: &dyn Fn(&str) -
         add("black_level", Some(black_level_candidate(data, c0, a)), &mut out);
     }
     let gate = StartGate::new(data, current);
-    let registered = super::registered::RegisteredStarts::new(data, current, progress);
+    let registered = super::registered::RegisteredStarts::new(data, current, rule, progress);
     if c0.tone_curve.is_none() && data.open.transfer == Transfer::Linear && wanted("tone_curve") {
         add("tone_curve", Some(tone_candidate(data, current, a)), &mut out);
     }

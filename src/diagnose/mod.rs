@@ -434,7 +434,7 @@ fn add_effects(data: &mut Data, base: Fit, base_analysis: Analysis, repeat_noise
         if let (Round::Rotation, Some(c), true) = (round, kernel_rotation(&s.current), opts.progress) {
             eprintln!("round {}: the fit is consistent, but the kernels' centroids rotate by {:.3}° about the centre (t = {:.0}): misregistration alone is screened", s.rounds.len() + 1, c.p[1].to_degrees(), c.rotation_t());
         }
-        let (scores, best) = search_round(data, &s.current, &s.analysis, &round_options(round, opts));
+        let (scores, best) = search_round(data, &s.current, &s.analysis, round, opts);
         progress_lap(opts, lap("screening round"));
         s.rounds.push(scores);
         let Some((cand, f, dbic)) = best else {
@@ -648,7 +648,7 @@ fn consistent(f: &Fit, opts: &DiagnoseOptions) -> bool {
 
 /// How many standard errors the rotation the kernels' centroids follow
 /// ([`candidates::centroid_similarity_fit`]) must reach before the search screens
-/// misregistration although the fit is [`consistent`] ([`next_round`]). A rotation about the
+/// misregistration although the fit is consistent (`next_round`). A rotation about the
 /// image centre is what a rotationally symmetric lens cannot put into its kernels, and what
 /// per-tile kernels of 45–63 px take up from a misregistration of a few pixels, leaving χ² at
 /// the floor. At 1024×768 RGB, seed 41: clean data through the sf11 singlet t = 0.5, through the
@@ -704,15 +704,23 @@ fn next_round_of(consistent: bool, open: bool, rotates: impl FnOnce() -> bool) -
     }
 }
 
-/// The options of a round: [`Round::Rotation`] excludes every catalogue effect but
-/// misregistration.
-fn round_options(round: Round, opts: &DiagnoseOptions) -> std::borrow::Cow<'_, DiagnoseOptions> {
-    match round {
-        Round::Full => std::borrow::Cow::Borrowed(opts),
-        Round::Rotation => {
-            let mut o = opts.clone();
-            o.excluded.extend(proof::CONCEALED.iter().filter(|&&n| n != "misregistration").map(|n| n.to_string()));
-            std::borrow::Cow::Owned(o)
+impl Round {
+    /// The effects the round does not propose: the options' exclusions, and in a
+    /// [`Round::Rotation`] every catalogue effect but misregistration.
+    fn excluded(self, opts: &DiagnoseOptions) -> Vec<String> {
+        let mut out = opts.excluded.clone();
+        if self == Round::Rotation {
+            out.extend(proof::CONCEALED.iter().filter(|&&n| n != "misregistration").map(|n| n.to_string()));
+        }
+        out
+    }
+
+    /// What the round's registered starts must beat: in a [`Round::Rotation`] the current
+    /// model alone ([`registered::StartRule::BeatsCurrent`]).
+    fn start_rule(self) -> registered::StartRule {
+        match self {
+            Round::Full => registered::StartRule::LikeForLike,
+            Round::Rotation => registered::StartRule::BeatsCurrent,
         }
     }
 }
@@ -776,12 +784,13 @@ pub fn low_band_of(power: f64, floor: f64, [w, h, nch]: [usize; 3], evaluated: f
     Some(LowBand { top: analysis::LOW_BAND_TOP, power, floor, samples, bound })
 }
 
-/// One round: the null refit, then every proposed effect refitted from the current model;
+/// One round: the null refit, then every effect `round` proposes ([`Round::excluded`],
+/// [`Round::start_rule`]) refitted from the current model;
 /// returns every score (the null refit first) and the best effect that beats the null refit's
 /// BIC and removes at least `min_gain` of its χ² (the acceptance rule, [`screened`]): on the
 /// screening subset, or, for a near miss there, on every pixel ([`rescore_near_misses`]).
-fn search_round(data: &Data, current: &Fit, analysis: &Analysis, opts: &DiagnoseOptions) -> (Vec<CandidateScore>, Option<(candidates::Candidate, Fit, f64)>) {
-    let (proposed, times) = candidates::propose_timed(data, current, analysis, &opts.excluded, opts.progress);
+fn search_round(data: &Data, current: &Fit, analysis: &Analysis, round: Round, opts: &DiagnoseOptions) -> (Vec<CandidateScore>, Option<(candidates::Candidate, Fit, f64)>) {
+    let (proposed, times) = candidates::propose_timed(data, current, analysis, &round.excluded(opts), round.start_rule(), opts.progress);
     for t in times {
         progress_lap_as(opts, "proposal of ", t);
     }
@@ -1116,10 +1125,11 @@ mod tests {
         assert_eq!(next_round_of(true, true, || false), None);
         // misregistration in the model or excluded: the rotation is not even measured
         assert_eq!(next_round_of(true, false, || panic!("asked")), None);
-        let defaults = DiagnoseOptions::default();
-        let opts = round_options(Round::Rotation, &defaults);
-        assert!(proof::CONCEALED.iter().all(|n| opts.excluded.iter().any(|e| e == n) == (*n != "misregistration")));
-        assert!(round_options(Round::Full, &defaults).excluded.is_empty());
+        let opts = DiagnoseOptions { excluded: vec!["target_tilt".into()], ..DiagnoseOptions::default() };
+        let excluded = Round::Rotation.excluded(&opts);
+        assert!(proof::CONCEALED.iter().all(|n| excluded.iter().any(|e| e == n) == (*n != "misregistration")));
+        assert_eq!(Round::Full.excluded(&opts), ["target_tilt"]);
+        assert_eq!((Round::Full.start_rule(), Round::Rotation.start_rule()), (registered::StartRule::LikeForLike, registered::StartRule::BeatsCurrent));
     }
 
     #[test]

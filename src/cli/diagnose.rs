@@ -176,6 +176,7 @@ fn run_session(a: &DiagnoseArgs, session: &Path, out: &Path) -> Result<()> {
 /// every candidate of every round.
 fn print_details(truth: &serde_json::Value, d: &Diagnosis) {
     eprintln!("truth {truth}");
+    eprintln!("verdict: {}", d.verdict);
     for (name, f) in [("base", &d.base), ("final", &d.final_fit)] {
         eprintln!("{name}: {} pixels, {} parameters, {:.0} effective; χ²/N {:.3}, χ²/(N − p) {:.3}, χ²/(N − p_eff) {:.3}", f.n(), f.params, f.effective_params(), f.chi2() / f.n().max(1) as f64, f.chi2() / (f.n() as f64 - f.params as f64).max(1.0), f.reduced_chi2());
     }

@@ -280,14 +280,12 @@ pub fn propose(data: &Data, current: &Fit, a: &Analysis, excluded: &[String]) ->
 /// `progress`, the geometric candidates' registered starts print their comparisons on stderr
 /// ([`super::registered::RegisteredStarts::new`]); `rule` is what those starts must beat.
 pub fn propose_timed(data: &Data, current: &Fit, a: &Analysis, excluded: &[String], rule: super::registered::StartRule, progress: bool) -> (Vec<Candidate>, Vec<crate::estimate::StageTime>) {
-    let (mut out, times) = propose_all(data, current, a, &|name| !excluded.iter().any(|e| e == name), rule, progress);
-    out.retain(|c| !excluded.iter().any(|e| e == c.name));
-    (out, times)
+    propose_all(data, current, a, &|name| !excluded.iter().any(|e| e == name), rule, progress)
 }
 
-/// [`propose_timed`] before the excluded candidates are dropped: each effect's proposal in
-/// catalogue order, timed; `wanted` says whether an effect is proposed at all; `progress`
-/// as in [`propose_timed`].
+/// [`propose_timed`] with the exclusions as a predicate: each wanted effect's proposal in
+/// catalogue order, timed; an unwanted effect is not proposed at all (no parameter search);
+/// `progress` as in [`propose_timed`].
 fn propose_all(data: &Data, current: &Fit, a: &Analysis, wanted: &dyn Fn(&str) -> bool, rule: super::registered::StartRule, progress: bool) -> (Vec<Candidate>, Vec<crate::estimate::StageTime>) {
     let c0 = &current.model.corrections;
     let mut out = Vec::new();

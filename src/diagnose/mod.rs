@@ -282,11 +282,11 @@ pub fn diagnose(open: &Image, pinhole: &Image, profile: Option<&Profile>, opts: 
     if opts.progress {
         eprintln!("base model: reduced χ² {:.3} (noise floor {:.3e} RMS; {} pixels, {} parameters, {:.0} effective)", base.reduced_chi2(), base.noise_rms(), base.n(), base.params, base.effective_params());
     }
-    progress_low_band(opts, "base", &base, &base_analysis);
+    progress_residual_checks(opts, "base", &base, &base_analysis);
     let search = add_effects(&mut data, base.clone(), base_analysis.clone(), repeat_noise, opts);
     stage_seconds.push(lap("effect search"));
     let (current, final_analysis, effects, rounds) = (search.current, search.analysis, search.effects, search.rounds);
-    progress_low_band(opts, "final", &current, &final_analysis);
+    progress_residual_checks(opts, "final", &current, &final_analysis);
     let verdict = verdict(&effects, &current, &final_analysis, opts);
     let cross_validation = cross_validate(&data, &current, opts.candidate_fit, opts.screen_pixels);
     stage_seconds.push(lap("cross-validation"));
@@ -361,8 +361,9 @@ fn base_budget(screens: bool, base_fit: FitSettings) -> (FitSettings, FitSetting
     (provisional, provisional, refit)
 }
 
-/// The low-band test ([`low_band`]) of a model on stderr, with progress on.
-fn progress_low_band(opts: &DiagnoseOptions, which: &str, f: &Fit, a: &Analysis) {
+/// The low-band test ([`low_band`]) and the rotation the kernels' centroids follow
+/// ([`candidates::centroid_similarity_fit`]) of a model on stderr, with progress on.
+fn progress_residual_checks(opts: &DiagnoseOptions, which: &str, f: &Fit, a: &Analysis) {
     if let Some(b) = low_band(f, a, opts).filter(|_| opts.progress) {
         eprintln!("{which} model: residual's lowest band (≤ {:.3} cycles/px) {:.3}× white noise, floor {:.3}×, bound {:.3} ({:.0} samples): {}", b.top, b.power, b.floor, b.bound, b.samples, if b.within() { "within" } else { "above" });
     }

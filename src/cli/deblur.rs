@@ -76,13 +76,13 @@ pub struct DeblurArgs {
     /// Weight each pixel of the data term by the inverse of the noise law, `V_ref / V(x)`
     /// (Poisson–Gaussian likelihood, Gaussian approximation). Opt-in: it lifts low-light and
     /// smooth shot-noise-limited photographs and loses on bright star fields
-    /// (docs/deconvolution.md, "Issue-12, m16"). No effect under a white noise law.
+    /// (docs/notes/deblur-history.md, "Issue-12, m16"). No effect under a white noise law.
     #[arg(long)]
     pub law_weighted_data: bool,
     /// Return texture after the denoising stage: the part of the data residual whose power
     /// exceeds the noise law's floor, Wiener-deconvolved and added back. Opt-in: +0.0 to +0.16 dB
     /// on the low-light and textured matrix cells, no tuning-subset loss, and no held-out cell
-    /// crossed +1.5 dB over the best peer (docs/deconvolution.md, "Issue-12, m17"). The residual
+    /// crossed +1.5 dB over the best peer (docs/notes/deblur-history.md, "Issue-12, m17"). The residual
     /// is taken against each tile's centre kernel: on a PSF grid much finer than 50 px it can
     /// return model mismatch as texture (−0.04 to −0.74 dB on a 32-px grid).
     #[arg(long)]

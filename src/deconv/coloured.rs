@@ -29,7 +29,7 @@
 //! Optionally ([`sure_scale`], `DeconvOptions::coloured_sure`, off by default) each window's
 //! variances are scaled by `s²`, `s ∈ {½, 1, 2, 4, 8, 16}` chosen by Stein's unbiased risk
 //! estimate of the re-blurred, denoised window. It gains on smooth scenes behind a mild blur
-//! and loses on textured ones (docs/deconvolution.md "Issue-12, m14").
+//! and loses on textured ones (docs/notes/deblur-history.md "Issue-12, m14").
 //!
 //! # Units
 //! Linear full-scale values squared; `k = 8u + v` (row-major, `u` the vertical frequency).

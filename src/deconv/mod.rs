@@ -115,11 +115,11 @@
 //!    ([`problem::ChannelProblem::lower_bound`]).
 //!
 //!    With [`DeconvOptions::law_data_weight`] (off by default: mixed on the issue-12 matrix,
-//!    docs/deconvolution.md "Issue-12, m16") the data term is weighted per pixel by the inverse
+//!    docs/notes/deblur-history.md "Issue-12, m16") the data term is weighted per pixel by the inverse
 //!    of the noise law, `Σ_k w_k (Bx − j)_k²`, `w_k = V_ref / V(G_1 * j)_k` ([`DataWeight`]).
 //!
 //!    With [`DeconvOptions::texture_return`] (off by default: +0.0 to +0.16 dB on the low-light
-//!    cells, no held-out cell crossed +1.5 dB, docs/deconvolution.md "Issue-12, m17") the part of
+//!    cells, no held-out cell crossed +1.5 dB, docs/notes/deblur-history.md "Issue-12, m17") the part of
 //!    each tile's residual `j − B x̂` whose power exceeds the law's noise floor is Wiener-deconvolved
 //!    and added back after the denoiser ([`texture`]).
 //!
@@ -287,7 +287,7 @@ pub struct DeconvOptions {
     /// How the coloured-noise windows read the solver's noise ([`coloured::Response`]):
     /// `Forward(1)` (default) restores the window with extra noise on top of its own, `Pilot`
     /// restores the re-blurred window restoration under two fresh noise draws (one more window
-    /// solve; docs/deconvolution.md "Issue-12, m20"). With [`Self::coloured_sure`] the forward
+    /// solve; docs/notes/deblur-history.md "Issue-12, m20"). With [`Self::coloured_sure`] the forward
     /// response is used (the risk estimate needs `restore(j)` and `restore(j + n)`).
     pub coloured_response: coloured::Response,
     /// Positivity ([`problem::ChannelProblem::lower_bound`]): the ADMM solve keeps the restored
@@ -300,13 +300,13 @@ pub struct DeconvOptions {
     /// noise law, each block's noise level follows the law at the input's local level instead of
     /// the image mean's. No effect without a law or with a white one.
     pub local_noise: bool,
-    /// Variance-weighted data term ([`DataWeight`], docs/deconvolution.md "Issue-12, m16"): with a
+    /// Variance-weighted data term ([`DataWeight`], docs/notes/deblur-history.md "Issue-12, m16"): with a
     /// signal-dependent noise law, each data pixel is weighted by `V_ref / V(j̃_k)`, the inverse
     /// of the law's variance at the (lightly smoothed) input, relative to the level `λ` was set
     /// at; `Σ_k (B x − j)_k² / V(j̃_k)` is the Gaussian approximation of the Poisson–Gaussian
     /// likelihood. No effect without a law or with a white one.
     pub law_data_weight: bool,
-    /// Texture return ([`texture`], docs/deconvolution.md "Issue-12, m17"): after the denoising
+    /// Texture return ([`texture`], docs/notes/deblur-history.md "Issue-12, m17"): after the denoising
     /// stage, the part of each tile's data residual `j − B x̂` whose power exceeds the noise
     /// law's floor is deconvolved by a Wiener filter and added back.
     pub texture_return: bool,
@@ -839,7 +839,7 @@ pub struct TileSetup<'a> {
     pub data_weight: Option<DataWeight<'a>>,
 }
 
-/// Variance-weighted data term (docs/deconvolution.md "Issue-12, m16"): data pixel `k` of
+/// Variance-weighted data term (docs/notes/deblur-history.md "Issue-12, m16"): data pixel `k` of
 /// channel `c` gets the weight
 ///
 /// ```text

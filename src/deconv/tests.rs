@@ -655,7 +655,7 @@ fn kept_tile_operators_are_the_kernel_spectrum_and_the_boundary_mask() {
     }
 }
 
-/// One window of the coloured-scale study (docs/deconvolution.md "Issue-12, m20"): the blurred
+/// One window of the coloured-scale study (docs/notes/deblur-history.md "Issue-12, m20"): the blurred
 /// clean data `blurred` (full image, the lens `grid`), a `side²` window centred at `at`, the
 /// matrix's noise (`pg` = (full well, read noise) e⁻, else white σ = 0.005, clipped to [0, 1]).
 /// Returns the noise the solve leaves on the window — half the opponent block variance of the
@@ -724,7 +724,7 @@ fn coloured_band(v: &[f32; 64], band: usize) -> f32 {
         .sum()
 }
 
-/// The coloured field's scale (docs/deconvolution.md "Issue-12, m20"): on m19's noisy textured
+/// The coloured field's scale (docs/notes/deblur-history.md "Issue-12, m20"): on m19's noisy textured
 /// scene (128², synthetic 21-px lens, σ = 0.005), the pilot response
 /// ([`coloured::Response::Pilot`]) predicts the noise the solve leaves (two noise
 /// realisations) within 40 % in every opponent plane and DCT band (measured: 1.11–1.34×), where
@@ -747,7 +747,7 @@ fn pilot_response_matches_the_noise_the_solve_leaves() {
     }
 }
 
-/// Diagnostic for the coloured field's scale (docs/deconvolution.md "Issue-12, m20"; ignored,
+/// Diagnostic for the coloured field's scale (docs/notes/deblur-history.md "Issue-12, m20"; ignored,
 /// `cargo test --release --lib deconv::tests::coloured_scale_probe -- --ignored --nocapture`):
 /// on windows whose clean data are known, the noise the solve leaves (half the block variance of
 /// the difference of two restorations of independent noise draws) against the estimators that

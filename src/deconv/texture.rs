@@ -1,4 +1,4 @@
-//! Texture return (docs/deconvolution.md "Issue-12, m17"): the part of the data residual that
+//! Texture return (docs/notes/deblur-history.md "Issue-12, m17"): the part of the data residual that
 //! the noise law says is signal, deconvolved by a Wiener filter and added back.
 //!
 //! # Model

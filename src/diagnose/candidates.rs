@@ -34,8 +34,8 @@ pub struct Candidate {
 }
 
 /// The part of a candidate's parameter search left until the round's screening shows that
-/// the candidate could win it (docs/diagnosis.md, "Session 19"): a search that costs many
-/// converged fits is worth its cost only there.
+/// the candidate could win it (docs/notes/diagnosis-history.md, "Session 19"): a search that costs
+/// many converged fits is worth its cost only there.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Deferred {
     /// `pinhole_diffraction` at the radius screen's best green Airy radius (px) with `σ_a = 0`;
@@ -62,11 +62,11 @@ pub fn complete(data: &Data, current: &Fit, cand: Candidate) -> Candidate {
     }
 }
 
-/// The χ² gate of a candidate's parameter search (docs/diagnosis.md, "Gated proposals"): a
-/// candidate's start (its corrections and starting model, before any search) is evaluated once
-/// with the kernels held fixed and the scalars refitted once ([`GATE`], one screening
-/// evaluation on the subset), against the current model evaluated the same way. A search runs
-/// only from a start that already lowers χ². The current model's figure is computed at the
+/// The χ² gate of a candidate's parameter search (docs/notes/diagnosis-history.md, "Gated
+/// proposals"): a candidate's start (its corrections and starting model, before any search) is
+/// evaluated once with the kernels held fixed and the scalars refitted once ([`GATE`], one
+/// screening evaluation on the subset), against the current model evaluated the same way. A search
+/// runs only from a start that already lowers χ². The current model's figure is computed at the
 /// first use and kept for the round. Where it refuses a geometric candidate whose map moves a
 /// corner by a pixel or more, that candidate's start is re-estimated under the map instead and
 /// compared like for like ([`super::registered`]).
@@ -445,8 +445,9 @@ fn glare_sigma(data: &Data, current: &Fit) -> Option<f64> {
 /// [`super::registered::MIN_CORNER_PX`], the start is re-estimated under the similarity and
 /// pre-fitted, and proposed where it beats the same start without the similarity
 /// ([`super::registered::geometric_candidate`]); that similarity is not refined (its rotation
-/// is the centroids', free of the lens's coma; the scale carries the coma's share, docs
-/// "Session 20"). The label says which path stopped it or proposed it.
+/// is the centroids', free of the lens's coma; the scale carries the coma's share,
+/// docs/notes/diagnosis-history.md "Session 20"). The label says which path stopped it or
+/// proposed it.
 fn misregistration_candidate(data: &Data, current: &Fit, a: &Analysis, gate: &StartGate, registered: &super::registered::RegisteredStarts) -> (Option<Candidate>, &'static str) {
     let Some(p0) = centroid_similarity(current) else { return (None, "misregistration") };
     let (info0, init0, corner0) = similarity_model(current, &data.base_registration, p0);

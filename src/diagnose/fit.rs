@@ -170,9 +170,9 @@ pub struct Fit {
 ///
 /// A later fit that starts from the fitted model continues the momentum instead of starting
 /// from `z = x, t = 1` (the offsets rescaled by the ratio of the common sums, as between the
-/// rounds of one fit; docs/diagnosis.md, "Session 20 (d20)"). The norm's vector is kept only
-/// when the later fit runs on the same pixel budget (the same operator); across a subset and
-/// every pixel it is estimated cold. Where the momentum points uphill for the new problem (a
+/// rounds of one fit; docs/notes/diagnosis-history.md, "Session 20 (d20)"). The norm's vector is
+/// kept only when the later fit runs on the same pixel budget (the same operator); across a subset
+/// and every pixel it is estimated cold. Where the momentum points uphill for the new problem (a
 /// new effect's parameters, new weights), adaptive restart drops it after one iteration.
 #[derive(Clone, Debug, Default)]
 pub struct Warm {

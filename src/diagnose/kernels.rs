@@ -16,17 +16,17 @@
 //!
 //! # Algorithm
 //! FISTA ([`crate::solve::fista`], no stall rule: a fixed number of iterations; a stop on
-//! χ²'s decrease was measured never to act at 45 px, docs/diagnosis.md "Session 18") with a step
-//! `1/L` from power iteration, and the exact Euclidean projection onto `{U ≥ 0, ΣU = S}` (the
-//! scaled simplex). Two steps ([`KernelStep`]): `L = 1.05 ‖AᵀWA‖` on the whole space, no
-//! restart (the former step), or `L = 1.05 ‖P AᵀWA P‖` with adaptive restart (what the
-//! diagnosis uses, [`super::fit::KERNEL_STEP`]), where `P` removes each kernel's mean. The
+//! χ²'s decrease was measured never to act at 45 px, docs/notes/diagnosis-history.md "Session 18")
+//! with a step `1/L` from power iteration, and the exact Euclidean projection onto
+//! `{U ≥ 0, ΣU = S}` (the scaled simplex). Two steps ([`KernelStep`]): `L = 1.05 ‖AᵀWA‖` on the
+//! whole space, no restart (the former step), or `L = 1.05 ‖P AᵀWA P‖` with adaptive restart (what
+//! the diagnosis uses, [`super::fit::KERNEL_STEP`]), where `P` removes each kernel's mean. The
 //! iterates stay on the simplices' affine hull, where the projection discards the gradient's
-//! per-kernel flat component, so only the Hessian on the tangent space (zero-sum kernels)
-//! bounds the step, as in [`crate::estimate::joint`]. The whole-space norm is set by the flat
-//! mode, whose eigenvalue grows with `k²` (`≈ k²·mean(P)²` per pixel of weight): with it,
-//! 31–45-px kernels take a step many times too small and stall far above the noise floor in
-//! the diagnosis' budgets (docs/diagnosis.md, "Realistic size").
+//! per-kernel flat component, so only the Hessian on the tangent space (zero-sum kernels) bounds
+//! the step, as in [`crate::estimate::joint`]. The whole-space norm is set by the flat mode, whose
+//! eigenvalue grows with `k²` (`≈ k²·mean(P)²` per pixel of weight): with it, 31–45-px kernels take
+//! a step many times too small and stall far above the noise floor in the diagnosis' budgets
+//! (docs/notes/diagnosis-history.md, "Realistic size").
 //!
 //! With the tangent step the momentum is carried from one solve to the next on the same
 //! operator ([`KernelWarm`], [`crate::solve::fista::fista_resume`]): the next round of a fit
@@ -34,10 +34,9 @@
 //! continue FISTA's extrapolation `z − x` and its `t` (the offsets scaled with the common
 //! sum) instead of starting again from `z = x, t = 1`; adaptive restart drops the momentum
 //! where it no longer points downhill. At 45 px a fresh start spends the first 20–30 of a
-//! round's 80 iterations rebuilding the momentum (docs/diagnosis.md, "Session 18").
-//! `A` and `Aᵀ` are the blocked kernel operator
-//! [`crate::optics::kernel_operator::KernelOperator`] (mirrored at the image edges like
-//! [`crate::optics::forward::blur_channel`]).
+//! round's 80 iterations rebuilding the momentum (docs/notes/diagnosis-history.md, "Session 18").
+//! `A` and `Aᵀ` are the blocked kernel operator [`crate::optics::kernel_operator::KernelOperator`]
+//! (mirrored at the image edges like [`crate::optics::forward::blur_channel`]).
 
 use crate::image::Plane;
 use crate::optics::kernel_operator::KernelOperator;
@@ -63,7 +62,8 @@ pub enum KernelStep {
     /// diagnosis' budgets and thresholds were tuned with.
     WholeSpace,
     /// on the simplices' tangent space (zero-sum kernels), with adaptive restart: reaches the
-    /// noise floor in the base budget at 31–45 px (docs/diagnosis.md, "Realistic size").
+    /// noise floor in the base budget at 31–45 px
+    /// (docs/notes/diagnosis-history.md, "Realistic size").
     Tangent,
 }
 
@@ -502,7 +502,7 @@ mod tests {
     /// the momentum as left continues (`t` grows) and ends lower than a fresh start. The first
     /// iteration's step is still taken from the extrapolated point: the χ² after 20 more
     /// iterations is printed for a reversed momentum at its own size and at 50 times it
-    /// (docs/diagnosis.md, "Session 20 (d20)": ×50 ends above a fresh start).
+    /// (docs/notes/diagnosis-history.md, "Session 20 (d20)": ×50 ends above a fresh start).
     #[test]
     fn an_uphill_carried_momentum_is_dropped_at_the_first_iteration() {
         let LowPass { op, y, wt, k, floor } = LowPass::new();

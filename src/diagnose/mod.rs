@@ -350,8 +350,8 @@ fn base_model(open: &Image, pinhole: &Image, base_profile: &Profile, opts: &Diag
 /// fit's kernel momentum ([`fit::fit_from`]); where the screening subset thins the data
 /// ([`screens`]) the provisional fit therefore runs one round fewer than the base budget and
 /// the refit is in effect its last round: `(rounds − 1) × iterations`, the probe with the same
-/// budget, then `1 × iterations` (docs/diagnosis.md, "Session 20 (d20)"). Elsewhere the base
-/// budget for the fit and the probe, then one round.
+/// budget, then `1 × iterations` (docs/notes/diagnosis-history.md, "Session 20 (d20)"). Elsewhere
+/// the base budget for the fit and the probe, then one round.
 fn base_budget(screens: bool, base_fit: FitSettings) -> (FitSettings, FitSettings, FitSettings) {
     let refit = FitSettings { rounds: 1, kernel_iterations: base_fit.kernel_iterations };
     if !screens {
@@ -644,7 +644,7 @@ fn rescore(data: &Data, f: &Fit) -> Fit {
 /// A fit consistent with noise: reduced χ² and the noise law's misfit within the options'
 /// bounds. The low-band test ([`low_band`]) is reported beside it, not part of it: on clean
 /// 1024×768 data the base model's lowest band is above its statistical bound
-/// (docs/diagnosis.md, "Screening on the subset alone, and the low-band test").
+/// (docs/notes/diagnosis-history.md, "Screening on the subset alone, and the low-band test").
 fn consistent(f: &Fit, opts: &DiagnoseOptions) -> bool {
     f.reduced_chi2() <= opts.consistent && f.noise_misfit <= opts.consistent_noise
 }
@@ -655,8 +655,8 @@ fn consistent(f: &Fit, opts: &DiagnoseOptions) -> bool {
 /// image centre is what a rotationally symmetric lens cannot put into its kernels, and what
 /// per-tile kernels of 45–63 px take up from a misregistration of a few pixels, leaving χ² at
 /// the floor. At 1024×768 RGB, seed 41: clean data through the sf11 singlet t = 0.5, through the
-/// achromat 0.2; a 0.39° misregistration through the sf11 singlet t = −101 (docs/diagnosis.md,
-/// "Session 23").
+/// achromat 0.2; a 0.39° misregistration through the sf11 singlet t = −101
+/// (docs/notes/diagnosis-history.md, "Session 23").
 pub const ROTATION_T: f64 = 10.0;
 
 /// The rotation of the kernels' centroids ([`candidates::centroid_similarity_fit`]) when it is
@@ -738,9 +738,9 @@ impl Round {
     }
 }
 
-/// The residual's lowest band against the noise floor there (docs/diagnosis.md, "Screening on
-/// the subset alone, and the low-band test"): one χ² over millions of pixels averages away a
-/// smooth misfit (a halo hiding partly in the kernels) that holds several times the floor's
+/// The residual's lowest band against the noise floor there (docs/notes/diagnosis-history.md,
+/// "Screening on the subset alone, and the low-band test"): one χ² over millions of pixels averages
+/// away a smooth misfit (a halo hiding partly in the kernels) that holds several times the floor's
 /// power at the lowest frequencies.
 #[derive(Clone, Debug, Serialize)]
 pub struct LowBand {
@@ -884,8 +884,8 @@ fn search_round(data: &Data, current: &Fit, analysis: &Analysis, round: Round, o
 /// (`best` `None`) or its ΔBIC reaches [`CONTENTION`] of the best one's (both negative). The
 /// search refines a start the screen already located (the radius within a factor 1.5, the
 /// aberration blur added): on `pinhole_diffraction` at 1024×768 (seed 41) it took ΔBIC from
-/// −2 263 714 to −4 107 681, a factor 1.8 (docs/diagnosis.md, "Session 19"); a candidate
-/// below a quarter of the best would need more than twice that.
+/// −2 263 714 to −4 107 681, a factor 1.8 (docs/notes/diagnosis-history.md, "Session 19"); a
+/// candidate below a quarter of the best would need more than twice that.
 fn in_contention(provisional: Screened, dbic: f64, best: Option<f64>) -> bool {
     provisional != Screened::Rejected && best.map_or(true, |b| dbic < CONTENTION * b)
 }
@@ -915,7 +915,8 @@ enum Screened {
 /// pixel. The subset's gain of an effect whose χ² gain sits in a few regions depends on which
 /// blocks the subset holds: `black_level` in the tone-curve case's second round (1024×768,
 /// seed 41) removes 1.20 % of χ² on every pixel, and 0.62 %, 1.19 % and 2.05 % on three
-/// block subsets (shares 0.17, 0.33, 0.09 of the pixels; docs/diagnosis.md, "Session 17").
+/// block subsets (shares 0.17, 0.33, 0.09 of the pixels;
+/// docs/notes/diagnosis-history.md, "Session 17").
 pub const NEAR_MISS: f64 = 1.0 / 3.0;
 
 /// The acceptance rule of a screened candidate, with `ΔBIC = BIC(candidate) − BIC(null refit)`

@@ -1,13 +1,14 @@
 //! Geometric starts re-estimated under the candidate's map and compared like for like
-//! (docs/diagnosis.md, "Session 21 (d21)").
+//! (docs/notes/diagnosis-history.md, "Session 21 (d21)").
 //!
 //! The geometric candidates (`misregistration`, `target_tilt`) first try the cheap start of
 //! [`super::candidates::StartGate`]: the current kernels moved back by the map's displacement
 //! at their tile centres ([`super::candidates::moved_kernels`]). At 1024×768 with 45-px kernels
 //! that move smooths the sharp kernels (a Keys bicubic sub-pixel shift) and costs +29 % of χ²
-//! even at the rendered map, so the gate refuses a true misregistration (docs, "Session 20: the
-//! catalogue at 1024×768"). Where it refuses and the evidence is strong (the map moves a corner
-//! by at least [`MIN_CORNER_PX`]), this module builds the start another way:
+//! even at the rendered map, so the gate refuses a true misregistration
+//! (docs/notes/diagnosis-history.md, "Session 20: the catalogue at 1024×768"). Where it refuses and
+//! the evidence is strong (the map moves a corner by at least [`MIN_CORNER_PX`]), this module
+//! builds the start another way:
 //!
 //! 1. **Re-estimate under the map** ([`reestimate`]): the base estimate's window fits
 //!    ([`crate::estimate`]) on the wide-open capture resampled onto the reference geometry by
@@ -33,21 +34,22 @@ use crate::image::{Image, Transfer};
 
 /// The registered path runs only where the candidate's map moves some image corner by at least
 /// this many pixels. At 1024×768, seed 41: the centroids' similarity moves the corners by
-/// 5.23 px on the misregistration case and by 0.05 px on the vignetting case (docs, "Session
-/// 20"), where the registered path would only cost (two estimates and two pre-fits, ≈ 80 CPU-s).
-/// A pixel is also where the moved-kernel start stops working: below it the move costs little.
+/// 5.23 px on the misregistration case and by 0.05 px on the vignetting case
+/// (docs/notes/diagnosis-history.md, "Session 20"), where the registered path would only cost (two
+/// estimates and two pre-fits, ≈ 80 CPU-s). A pixel is also where the moved-kernel start stops
+/// working: below it the move costs little.
 pub const MIN_CORNER_PX: f64 = 1.0;
 
 /// The pre-fit of both starts: the base stage's budget (`DiagnoseOptions::base_fit`, 3 × 80),
 /// so that the candidate's kernels have had what the current model's had before the screening
-/// compares them with the null refit (docs, "Session 20": at the screening budget, 2 × 40, the
-/// estimate's kernels stay behind the null refit's whatever the map).
+/// compares them with the null refit (docs/notes/diagnosis-history.md, "Session 20": at the
+/// screening budget, 2 × 40, the estimate's kernels stay behind the null refit's whatever the map).
 pub const PREFIT: FitSettings = FitSettings { rounds: 3, kernel_iterations: 80 };
 
 /// The share of χ² by which the start under the map must beat the start without it. Measured
-/// like for like at 1024×768 seed 41 (docs, "Session 20", 3 × 80 column): the centroids'
-/// similarity wins by 17.8 %, the rendered one by 20.1 %; 5 % leaves a factor 3.5 to the
-/// measured gain and is five times the acceptance rule's `min_gain` (1 %).
+/// like for like at 1024×768 seed 41 (docs/notes/diagnosis-history.md, "Session 20", 3 × 80
+/// column): the centroids' similarity wins by 17.8 %, the rendered one by 20.1 %; 5 % leaves a
+/// factor 3.5 to the measured gain and is five times the acceptance rule's `min_gain` (1 %).
 pub const MARGIN: f64 = 0.05;
 
 /// The like-for-like decision: the start under the map (`with_map`, χ² after [`PREFIT`]) must
@@ -286,8 +288,8 @@ mod tests {
     /// accepted; a start that loses to the current model is refused whatever the map.
     #[test]
     fn the_map_must_win_like_for_like() {
-        // vignetting seed 41 (docs, "Session 20"): the pre-fitted start 6 928 755 against the
-        // current model's 8 509 889; without the map it would be as low
+        // vignetting seed 41 (docs/notes/diagnosis-history.md, "Session 20"): the pre-fitted start
+        // 6 928 755 against the current model's 8 509 889; without the map it would be as low
         assert!(!map_wins(6_928_755.0, 6_930_000.0, 8_509_889.0));
         assert!(!map_wins(6_928_755.0, 1.02 * 6_928_755.0, 8_509_889.0));
         // misregistration seed 41: 2 304 942 under the centroids' similarity, 2 804 942 without
@@ -298,8 +300,9 @@ mod tests {
 
     #[test]
     fn where_the_kernels_took_the_map_up_the_start_need_only_beat_the_current_model() {
-        // misregistration + pinhole_diffraction seed 41, round 2 (docs, "Session 23"): the start
-        // under the map 1 945 438, without it 1 882 682 (+3.3 %), the current model 2 144 460
+        // misregistration + pinhole_diffraction seed 41, round 2 (docs/notes/diagnosis-history.md,
+        // "Session 23"): the start under the map 1 945 438, without it 1 882 682 (+3.3 %), the
+        // current model 2 144 460
         let cmp = |rule| Comparison { with_map: 1_945_438.0, without_map: 1_882_682.0, current: 2_144_460.0, rule };
         assert!(!cmp(StartRule::LikeForLike).wins());
         assert!(cmp(StartRule::BeatsCurrent).wins());
@@ -322,11 +325,11 @@ mod tests {
     }
 
     /// The whole like-for-like path on small synthetic data. On clean data a similarity of
-    /// 0.08 px at the corners (as the vignetting case's 0.05 px at 1024×768, docs "Session 20")
-    /// gives a re-estimated, pre-fitted start that beats the current model by its extra
-    /// iterations alone, but not the same start without the map: refused; a wrong similarity
-    /// of 1.4 px at the corners loses to both: refused. On a misregistered pair the centroids'
-    /// similarity wins like for like: accepted.
+    /// 0.08 px at the corners (as the vignetting case's 0.05 px at 1024×768,
+    /// docs/notes/diagnosis-history.md "Session 20") gives a re-estimated, pre-fitted start that
+    /// beats the current model by its extra iterations alone, but not the same start without the
+    /// map: refused; a wrong similarity of 1.4 px at the corners loses to both: refused. On a
+    /// misregistered pair the centroids' similarity wins like for like: accepted.
     #[test]
     fn a_registered_start_is_accepted_only_where_its_map_wins() {
         use super::super::candidates::{centroid_similarity, similarity_model, StartGate};

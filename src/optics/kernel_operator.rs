@@ -277,8 +277,8 @@ impl KernelOperator {
     /// block. Where the pattern already keeps data in every tile the operator is `new`'s, bit
     /// for bit. The pattern `(ix + 2·iy) mod n = 0` only spreads over the field while `n` is
     /// below about the blocks per row: at 4000×3000 with a 15×11 grid of 45-px kernels and
-    /// 150 000 pixels it keeps 21 blocks on one diagonal line (docs/diagnosis.md, "Session 21:
-    /// the first 4000×3000 run"), and most kernels get no data at all.
+    /// 150 000 pixels it keeps 21 blocks on one diagonal line (docs/notes/diagnosis-history.md,
+    /// "Session 21: the first 4000×3000 run"), and most kernels get no data at all.
     pub fn covering(sharp: &Plane, grid: &PsfGrid, max_pixels: usize) -> Self {
         Self::build(sharp, grid, max_pixels, true)
     }

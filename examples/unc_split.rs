@@ -1,5 +1,6 @@
 //! What the bootstrap cannot see: the split of a test-bed lens's kernel error against the truth
-//! (issue 16, branch e15u; docs/estimation.md "Uncertainty", *Model error*).
+//! (issue 16, branch e15u; docs/notes/estimation-history.md "Re-measured on the present code, and
+//! what the achromat's missing error is (issue 16, branch e15u)").
 //!
 //! `cargo run --release --example unc_split -- /work/shared/data/lenses/achromat-f4 [steps]`
 //!

@@ -543,7 +543,7 @@ pub struct ChannelFit {
 
 /// Chunks of the convergence tail ([`continue_fit`]). 16 (80 iterations, about twice the fit's
 /// own): with 4 the extrapolation found half to two thirds of the distance to a 400-iteration
-/// continuation on lac9 (docs/estimation.md "lac9 green (issue 16, branch e17u)").
+/// continuation on lac9 (docs/notes/estimation-history.md "lac9 green (issue 16, branch e17u)").
 pub const TAIL_CHUNKS: usize = 16;
 
 /// FISTA iterations per chunk of the convergence tail (momentum restarted at each chunk).

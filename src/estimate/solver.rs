@@ -76,7 +76,7 @@ pub struct TileSettings {
 
 /// Power iterations for a window's step size ([`KernelProblem::lipschitz`], safety factor
 /// 1.3). 4 (8 until branch e18): the window fits and the test bed's figures of all five lenses
-/// are those of 8 to the table's precision (docs/estimation.md "Session 18: speed (e18)").
+/// are those of 8 to the table's precision (docs/notes/estimation-history.md "Session 18: speed (e18)").
 pub const WINDOW_POWER_ITERATIONS: usize = 4;
 
 /// Iterations of phase 1 (the provisional `λ`).

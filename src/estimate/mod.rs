@@ -695,8 +695,9 @@ pub struct FieldProbe {
 #[cfg(test)]
 /// Picks the kernel size from probe estimates (docs/estimation.md "Kernel size"): a generous
 /// probe kernel on five spots (centre and the four corners) of every channel, in parallel; each
-/// probe's main-lobe support ([`support_radius`]); the largest over channels and spots, with
-/// margin ([`SUPPORT_MARGIN`]), clamped to `[7, probe]`.
+/// probe's main-lobe support ([`support_radius`]), a probe far wider than its channel's other
+/// spots checked with a smaller kernel ([`suspect_probes`], [`checked_radius`]); the largest over
+/// channels and spots, with margin ([`SUPPORT_MARGIN`]), clamped to `[7, probe]`.
 fn choose_kernel_size(open: &[Plane], pin: &[Plane], opts: &EstimateOptions) -> Result<usize, EstimateError> {
     probe_field(open, pin, None, opts).map(|p| p.kernel)
 }
@@ -713,16 +714,23 @@ fn probe_field(open: &[Plane], pin: &[Plane], fixed: Option<usize>, opts: &Estim
     let spots = [((w - tsz) / 2, (h - tsz) / 2), (0, 0), (w - tsz, 0), (0, h - tsz), (w - tsz, h - tsz)];
     let jobs: Vec<(usize, (usize, usize))> = (0..open.len()).flat_map(|c| spots.iter().map(move |&s| (c, s))).collect();
     let ratio: Vec<f32> = open.iter().zip(pin).map(|(o, p)| (o.sum() / p.sum().max(1e-30)) as f32).collect();
-    let probes: Vec<Plane> = jobs
-        .par_iter()
-        .map(|&(c, (x0, y0))| {
-            let data = tile_data(&open[c], &pin[c], &all, ratio[c], (x0, x0 + tsz, y0, y0 + tsz), probe_k);
-            let st = TileSettings { kernel_size: probe_k, lambda: None, lambda_scale: opts.lambda_scale as f32, noise_sigma: None, mu_relative: 1.0, max_iterations: 150, tolerance: 1e-3 };
-            solve_tile(&data, &st, |_, _| true).kernel
-        })
-        .collect();
+    let probe = |c: usize, (x0, y0): (usize, usize), k: usize| -> Plane {
+        let data = tile_data(&open[c], &pin[c], &all, ratio[c], (x0, x0 + tsz, y0, y0 + tsz), k);
+        let st = TileSettings { kernel_size: k, lambda: None, lambda_scale: opts.lambda_scale as f32, noise_sigma: None, mu_relative: 1.0, max_iterations: 150, tolerance: 1e-3 };
+        solve_tile(&data, &st, |_, _| true).kernel
+    };
+    let mut probes: Vec<Plane> = jobs.par_iter().map(|&(c, s)| probe(c, s, probe_k)).collect();
     let kernel = fixed.unwrap_or_else(|| {
-        let radius = probes.iter().map(|p| support_radius(p, SUPPORT_ENERGY)).fold(1.0, f64::max);
+        let mut radii: Vec<f64> = probes.iter().map(|p| support_radius(p, SUPPORT_ENERGY)).collect();
+        // a probe far wider than its channel's other spots is fitted again with a smaller kernel
+        let checks: Vec<(usize, Plane)> = suspect_probes(&radii, spots.len(), probe_k).into_par_iter().map(|(i, k2)| (i, probe(jobs[i].0, jobs[i].1, k2))).collect();
+        for (i, p) in checks {
+            if let Some(r) = checked_radius(support_radius(&p, SUPPORT_ENERGY), p.width) {
+                radii[i] = r;
+                probes[i] = p;
+            }
+        }
+        let radius = radii.iter().copied().fold(1.0, f64::max);
         (2 * (SUPPORT_MARGIN * radius + 2.0).ceil() as usize + 1).clamp(7, probe_k)
     });
     let centres: Vec<[f64; 2]> = spots.iter().map(|&(x, y)| [x as f64 + tsz as f64 / 2.0, y as f64 + tsz as f64 / 2.0]).collect();
@@ -730,6 +738,51 @@ fn probe_field(open: &[Plane], pin: &[Plane], fixed: Option<usize>, opts: &Estim
     let variation = channel_variation.iter().copied().fold(0.0, f64::max);
     Ok(FieldProbe { kernel, variation, channel_variation })
 }
+
+/// The probes to fit again before their radius sets the kernel size (docs/estimation.md "Kernel
+/// size", *One wide probe*): `(index, k₂)` for every probe whose `r₉₉` exceeds
+/// [`PROBE_OUTLIER`] times the median of its channel's spots (`radii[c · spots + s]`), with the
+/// check kernel `k₂ = 2⌈2 · SUPPORT_MARGIN · r̃_c + 2⌉ + 1` (twice the support the typical spot
+/// needs, `r̃_c` that median), when `k₂` is smaller than the probe `probe_k`.
+///
+/// A 127-px probe on a 256-px window is barely determined (≈ 17 k data pixels for 16 k
+/// unknowns); where the target's content leaves a direction weakly constrained, TV lets a faint
+/// streak grow from the core and the 99 % radius counts it. The achromat on the deblur matrix's
+/// calibration pair (`examples/deblur_matrix.rs`) read `r₉₉` 32 / 39 / 42 px at its top-right
+/// corner in R / G / B against 2–11 at the other spots (true kernel 35 px), and 33 at the
+/// top-left of G under Poisson–Gaussian noise: the kernel became 81–103 px, the grid 6×4–7×5.
+pub fn suspect_probes(radii: &[f64], spots: usize, probe_k: usize) -> Vec<(usize, usize)> {
+    let mut out = Vec::new();
+    for (c, ch) in radii.chunks(spots.max(1)).enumerate() {
+        let mut sorted = ch.to_vec();
+        sorted.sort_by(f64::total_cmp);
+        let median = sorted[sorted.len() / 2].max(1.0);
+        let k2 = 2 * (2.0 * SUPPORT_MARGIN * median + 2.0).ceil() as usize + 1;
+        if k2 >= probe_k {
+            continue;
+        }
+        out.extend(ch.iter().enumerate().filter(|&(_, &r)| r > PROBE_OUTLIER * median).map(|(s, _)| (c * spots + s, k2)));
+    }
+    out
+}
+
+/// How many times its channel's median spot radius a probe's `r₉₉` may be before it is fitted
+/// again ([`suspect_probes`]). 2: a lens's PSF grows towards the corners, but rarely to twice
+/// the typical spot's support at once; the artefacts seen were 3–5×.
+pub const PROBE_OUTLIER: f64 = 2.0;
+
+/// The radius a check probe of side `k₂` gives a suspect spot, or `None` when the check reaches
+/// its own border (`r₉₉ ≥` [`PROBE_REACH`] `· (k₂ − 1)/2`): then the light really is that wide
+/// (a kernel too small to hold it pushes its energy to the edge) and the wide probe's radius
+/// stands; otherwise the wide probe's extra support was the artefact and the check's radius is
+/// the spot's.
+pub fn checked_radius(r2: f64, k2: usize) -> Option<f64> {
+    (r2 < PROBE_REACH * ((k2 - 1) / 2) as f64).then_some(r2)
+}
+
+/// The share of its half-width at which a check probe's radius counts as reaching its border
+/// ([`checked_radius`]).
+pub const PROBE_REACH: f64 = 0.75;
 
 /// Field variation rate of one channel from its probes (`probes[0]` at the centre spot, the
 /// rest at the corners, `centres` in pixels), each cropped to `k × k` about its centre:
@@ -827,6 +880,31 @@ pub fn median_max(errors: &[f64]) -> (f64, f64) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Which probes are checked: only those more than 2× their channel's median spot, each with a
+    /// check kernel twice the typical support (the achromat's measured radii on the deblur
+    /// matrix's calibration pair under Poisson–Gaussian noise: three top-right probes and one
+    /// top-left); a channel whose check kernel would not be smaller than the probe is left as it
+    /// is; a check that reaches its border keeps the wide radius, one that stays inside replaces it.
+    #[test]
+    fn wide_probes_are_checked_with_a_smaller_kernel() {
+        // R / G / B × centre, top-left, top-right, bottom-left, bottom-right
+        let achromat = [4.0, 9.0, 41.0, 9.0, 9.0, 2.0, 33.0, 32.0, 9.0, 9.0, 5.0, 8.0, 31.0, 9.0, 8.0];
+        let k2 = |r: f64| 2 * (2.0 * SUPPORT_MARGIN * r + 2.0).ceil() as usize + 1;
+        assert_eq!(suspect_probes(&achromat, 5, 127), vec![(2, k2(9.0)), (6, k2(9.0)), (7, k2(9.0)), (12, k2(8.0))]);
+        assert_eq!(k2(9.0), 47);
+        // a lens whose corners are all wide, and a graded field within 2×, are not checked
+        assert!(suspect_probes(&[10.0, 11.0, 12.0, 11.0, 12.0, 24.0, 26.0, 26.0, 28.0, 27.0], 5, 127).is_empty());
+        assert!(suspect_probes(&[5.0, 8.0, 17.0, 9.0, 9.0], 5, 127).is_empty());
+        // the check kernel must be smaller than the probe
+        assert!(suspect_probes(&[40.0, 41.0, 90.0, 40.0, 40.0], 5, 127).is_empty());
+        // the check's verdict: inside its border it replaces the radius, at its border the wide one stands
+        // (a 47-px check has half-width 23; its border begins at 0.75 · 23 = 17.25)
+        assert_eq!(checked_radius(9.0, 47), Some(9.0));
+        assert_eq!(checked_radius(17.0, 47), Some(17.0));
+        assert_eq!(checked_radius(18.0, 47), None);
+        assert_eq!(checked_radius(23.0, 47), None);
+    }
 
     /// A blank frame (constant, as with the lens cap on) is refused with a clear error naming
     /// the image, not turned into a delta-like profile; a textured pair passes the check.

@@ -745,15 +745,18 @@ fn probe_field(open: &[Plane], pin: &[Plane], fixed: Option<usize>, opts: &Estim
 /// check kernel `k₂ = 2⌈2 · SUPPORT_MARGIN · r̃_c + 2⌉ + 1` (twice the support the typical spot
 /// needs, `r̃_c` that median), when `k₂` is smaller than the probe `probe_k`.
 ///
-/// A 127-px probe on a 256-px window is barely determined (≈ 17 k data pixels for 16 k
-/// unknowns); where the target's content leaves a direction weakly constrained, TV lets a faint
-/// streak grow from the core and the 99 % radius counts it. The achromat on the deblur matrix's
+/// A 127-px probe has 16 k unknowns against ≈ 66 k data pixels (its 256-px window padded by the
+/// probe's radius), so a direction the target's content constrains weakly is left to TV, which
+/// lets a faint streak grow from the core, and the 99 % radius counts it. The achromat on the deblur matrix's
 /// calibration pair (`examples/deblur_matrix.rs`) read `r₉₉` 32 / 39 / 42 px at its top-right
 /// corner in R / G / B against 2–11 at the other spots (true kernel 35 px), and 33 at the
-/// top-left of G under Poisson–Gaussian noise: the kernel became 81–103 px, the grid 6×4–7×5.
+/// top-left of G under Poisson–Gaussian noise: the kernel became 79–103 px, the grid 6×4–7×5.
 pub fn suspect_probes(radii: &[f64], spots: usize, probe_k: usize) -> Vec<(usize, usize)> {
     let mut out = Vec::new();
-    for (c, ch) in radii.chunks(spots.max(1)).enumerate() {
+    if spots == 0 {
+        return out;
+    }
+    for (c, ch) in radii.chunks(spots).enumerate() {
         let mut sorted = ch.to_vec();
         sorted.sort_by(f64::total_cmp);
         let median = sorted[sorted.len() / 2].max(1.0);
@@ -772,17 +775,21 @@ pub fn suspect_probes(radii: &[f64], spots: usize, probe_k: usize) -> Vec<(usize
 pub const PROBE_OUTLIER: f64 = 2.0;
 
 /// The radius a check probe of side `k₂` gives a suspect spot, or `None` when the check reaches
-/// its own border (`r₉₉ ≥` [`PROBE_REACH`] `· (k₂ − 1)/2`): then the light really is that wide
-/// (a kernel too small to hold it pushes its energy to the edge) and the wide probe's radius
+/// towards its own border (`r₉₉ ≥` [`PROBE_REACH`] `· (k₂ − 1)/2`): then the light really is
+/// that wide (a kernel too small to hold it fills its outer rings) and the wide probe's radius
 /// stands; otherwise the wide probe's extra support was the artefact and the check's radius is
 /// the spot's.
 pub fn checked_radius(r2: f64, k2: usize) -> Option<f64> {
-    (r2 < PROBE_REACH * ((k2 - 1) / 2) as f64).then_some(r2)
+    (r2 < PROBE_REACH * (k2.saturating_sub(1) / 2) as f64).then_some(r2)
 }
 
 /// The share of its half-width at which a check probe's radius counts as reaching its border
-/// ([`checked_radius`]).
-pub const PROBE_REACH: f64 = 0.75;
+/// ([`checked_radius`]). 0.6, not ¾: [`support_radius`] takes the floor from a kernel's outer
+/// quarter, so light that really fills a too-small check kernel out to its edge is partly
+/// subtracted as floor and reads 0.65–0.75 of the half-width (a review's simulation of 47-px
+/// checks of Gaussians σ 8–12 and discs R 22–26 px: r₉₉ 15–17 of 23); the artefacts' checks read
+/// at most 11 of 23.
+pub const PROBE_REACH: f64 = 0.6;
 
 /// Field variation rate of one channel from its probes (`probes[0]` at the centre spot, the
 /// rest at the corners, `centres` in pixels), each cropped to `k × k` about its centre:
@@ -899,11 +906,14 @@ mod tests {
         // the check kernel must be smaller than the probe
         assert!(suspect_probes(&[40.0, 41.0, 90.0, 40.0, 40.0], 5, 127).is_empty());
         // the check's verdict: inside its border it replaces the radius, at its border the wide one stands
-        // (a 47-px check has half-width 23; its border begins at 0.75 · 23 = 17.25)
+        // (a 47-px check has half-width 23; it reaches its border from 0.6 · 23 = 13.8: light that
+        // really is wider reads 15–17 there, the artefacts' checks at most 11)
         assert_eq!(checked_radius(9.0, 47), Some(9.0));
-        assert_eq!(checked_radius(17.0, 47), Some(17.0));
-        assert_eq!(checked_radius(18.0, 47), None);
-        assert_eq!(checked_radius(23.0, 47), None);
+        assert_eq!(checked_radius(13.0, 47), Some(13.0));
+        assert_eq!(checked_radius(14.0, 47), None);
+        assert_eq!(checked_radius(17.0, 47), None);
+        assert_eq!(checked_radius(3.0, 0), None);
+        assert!(suspect_probes(&achromat, 0, 127).is_empty());
     }
 
     /// A blank frame (constant, as with the lens cap on) is refused with a clear error naming

@@ -206,7 +206,7 @@ fn split_axis(cuts: &[usize], s_max: usize) -> Splits {
 }
 
 /// The block layout: intervals along x and y and the FFT side `F` (a multiple of 8 of the form
-/// 2^a·3^b, [`fast_size`]: a power of 3 costs up to 2.5× as much per element).
+/// 2^a·3^b, [`fast_size`]: twice or four times a power of 3 costs 1.2–1.6× as much per element).
 ///
 /// The cost of one pass is `F² · (Σ_x a_x) · (Σ_y a_y)` with `a` the number of tiles active
 /// (non-zero weight) on an interval. Candidates: every axis split evenly into blocks of at most

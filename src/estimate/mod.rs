@@ -998,6 +998,25 @@ mod tests {
         assert!((25..=37).contains(&k), "kernel {k}");
     }
 
+    /// One corner that really is wide is not taken for a probe artefact: a sharp field (Gaussian
+    /// σ 1.2 px) with an 18-px-radius disc in the top-right corner only. That probe is more than
+    /// 2× its channel's median, so it is checked with a smaller kernel (25 px, half-width 12);
+    /// the disc fills the check to its border and the wide radius stands: the kernel is the wide
+    /// probe's (35 px: the probe's `r₉₉` undershoots the 18-px disc, as on the test bed), not the
+    /// check's (27 px when the check is believed, `PROBE_REACH` = 2).
+    #[test]
+    fn one_wide_corner_that_is_real_keeps_its_kernel() {
+        let (w, h) = (240, 240);
+        let mut r = crate::rng::Rng::new(5);
+        let cells: Vec<f32> = (0..(w / 2) * (h / 2)).map(|_| 0.2 + 0.6 * r.uniform() as f32).collect();
+        let sharp = Plane::from_fn(w, h, |x, y| cells[(y / 2) * (w / 2) + x / 2]);
+        let narrow = crate::solve::conv::convolve_direct(&sharp, &unit_kernel(13, |dx, dy| (-(dx * dx + dy * dy) / (2.0 * 1.2 * 1.2)).exp()));
+        let disc = crate::solve::conv::convolve_direct(&sharp, &unit_kernel(37, |dx, dy| if dx * dx + dy * dy <= 324.0 { 1.0 } else { 0.0 }));
+        let open = Plane::from_fn(w, h, |x, y| if x >= 150 && y < 90 { disc.get(x, y) } else { narrow.get(x, y) } + 0.002 * r.normal() as f32);
+        let k = choose_kernel_size(&[open], &[sharp], &EstimateOptions::default()).expect("kernel size");
+        assert!((33..=41).contains(&k), "kernel {k}");
+    }
+
     /// The variation rate is the mean relative change centre → corner per pixel: identical
     /// probes give 0; corners whose kernel differs by a known relative L2 amount give that
     /// amount over the distance; the probes are cropped to `k` first.

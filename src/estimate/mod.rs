@@ -731,7 +731,7 @@ fn probe_field(open: &[Plane], pin: &[Plane], fixed: Option<usize>, opts: &Estim
             }
         }
         let radius = radii.iter().copied().fold(1.0, f64::max);
-        (2 * (SUPPORT_MARGIN * radius + 2.0).ceil() as usize + 1).clamp(7, probe_k)
+        kernel_for_radius(radius).clamp(7, probe_k)
     });
     let centres: Vec<[f64; 2]> = spots.iter().map(|&(x, y)| [x as f64 + tsz as f64 / 2.0, y as f64 + tsz as f64 / 2.0]).collect();
     let channel_variation: Vec<f64> = probes.chunks(spots.len()).map(|p| variation_rate(p, &centres, kernel)).collect();
@@ -760,13 +760,19 @@ pub fn suspect_probes(radii: &[f64], spots: usize, probe_k: usize) -> Vec<(usize
         let mut sorted = ch.to_vec();
         sorted.sort_by(f64::total_cmp);
         let median = sorted[sorted.len() / 2].max(1.0);
-        let k2 = 2 * (2.0 * SUPPORT_MARGIN * median + 2.0).ceil() as usize + 1;
+        let k2 = kernel_for_radius(2.0 * median);
         if k2 >= probe_k {
             continue;
         }
         out.extend(ch.iter().enumerate().filter(|&(_, &r)| r > PROBE_OUTLIER * median).map(|(s, _)| (c * spots + s, k2)));
     }
     out
+}
+
+/// The kernel side that holds a support radius `r` with margin: `2⌈SUPPORT_MARGIN · r + 2⌉ + 1`
+/// (odd, unclamped).
+fn kernel_for_radius(r: f64) -> usize {
+    2 * (SUPPORT_MARGIN * r + 2.0).ceil() as usize + 1
 }
 
 /// How many times its channel's median spot radius a probe's `r₉₉` may be before it is fitted
@@ -982,8 +988,7 @@ mod tests {
     fn kernel_size_covers_the_widest_channel() {
         let (w, h) = (240, 240);
         let mut r = crate::rng::Rng::new(3);
-        let cells: Vec<f32> = (0..(w / 2) * (h / 2)).map(|_| 0.2 + 0.6 * r.uniform() as f32).collect();
-        let sharp = Plane::from_fn(w, h, |x, y| cells[(y / 2) * (w / 2) + x / 2]);
+        let sharp = two_pixel_cells(w, h, &mut r);
         let gauss = |s: f32| unit_kernel(13, move |dx, dy| (-(dx * dx + dy * dy) / (2.0 * s * s)).exp());
         let kernels = [unit_kernel(25, |dx, dy| if dx * dx + dy * dy <= 144.0 { 1.0 } else { 0.0 }), gauss(1.2), gauss(1.6)];
         let open: Vec<Plane> = kernels
@@ -998,6 +1003,12 @@ mod tests {
         assert!((25..=37).contains(&k), "kernel {k}");
     }
 
+    /// A random target of 2 × 2-px cells, values uniform in [0.2, 0.8] (the kernel-size tests).
+    fn two_pixel_cells(w: usize, h: usize, r: &mut crate::rng::Rng) -> Plane {
+        let cells: Vec<f32> = (0..(w / 2) * (h / 2)).map(|_| 0.2 + 0.6 * r.uniform() as f32).collect();
+        Plane::from_fn(w, h, |x, y| cells[(y / 2) * (w / 2) + x / 2])
+    }
+
     /// One corner that really is wide is not taken for a probe artefact: a sharp field (Gaussian
     /// σ 1.2 px) with an 18-px-radius disc in the top-right corner only. That probe is more than
     /// 2× its channel's median, so it is checked with a smaller kernel (25 px, half-width 12);
@@ -1008,8 +1019,7 @@ mod tests {
     fn one_wide_corner_that_is_real_keeps_its_kernel() {
         let (w, h) = (240, 240);
         let mut r = crate::rng::Rng::new(5);
-        let cells: Vec<f32> = (0..(w / 2) * (h / 2)).map(|_| 0.2 + 0.6 * r.uniform() as f32).collect();
-        let sharp = Plane::from_fn(w, h, |x, y| cells[(y / 2) * (w / 2) + x / 2]);
+        let sharp = two_pixel_cells(w, h, &mut r);
         let narrow = crate::solve::conv::convolve_direct(&sharp, &unit_kernel(13, |dx, dy| (-(dx * dx + dy * dy) / (2.0 * 1.2 * 1.2)).exp()));
         let disc = crate::solve::conv::convolve_direct(&sharp, &unit_kernel(37, |dx, dy| if dx * dx + dy * dy <= 324.0 { 1.0 } else { 0.0 }));
         let open = Plane::from_fn(w, h, |x, y| if x >= 150 && y < 90 { disc.get(x, y) } else { narrow.get(x, y) } + 0.002 * r.normal() as f32);

@@ -355,6 +355,17 @@ pub(crate) mod tests {
         yes
     }
 
+    /// Whether `m` is of the form 2^a·3^b.
+    fn is_2a3b(mut m: usize) -> bool {
+        while m > 1 && m % 2 == 0 {
+            m /= 2;
+        }
+        while m > 1 && m % 3 == 0 {
+            m /= 3;
+        }
+        m == 1
+    }
+
     #[test]
     fn good_sizes() {
         assert_eq!(good_size(1), 2);
@@ -365,14 +376,7 @@ pub(crate) mod tests {
         for n in 2..600 {
             let g = good_size(n);
             assert!(g >= n && g % 2 == 0);
-            let mut m = g;
-            while m % 2 == 0 {
-                m /= 2;
-            }
-            while m % 3 == 0 {
-                m /= 3;
-            }
-            assert_eq!(m, 1);
+            assert!(is_2a3b(g));
         }
     }
 
@@ -385,16 +389,9 @@ pub(crate) mod tests {
         for n in 1..800 {
             let f = fast_size(n);
             assert!(f >= n && f % 8 == 0, "{n} -> {f}");
-            let mut m = f;
-            while m % 2 == 0 {
-                m /= 2;
-            }
-            while m % 3 == 0 {
-                m /= 3;
-            }
-            assert_eq!(m, 1, "{n} -> {f}");
+            assert!(is_2a3b(f), "{n} -> {f}");
             // the smallest such size
-            assert!((n..f).all(|g| g % 8 != 0 || { let mut q = g / 8; while q % 2 == 0 { q /= 2; } while q % 3 == 0 { q /= 3; } q != 1 }), "{n} -> {f}");
+            assert!((n..f).all(|g| g % 8 != 0 || !is_2a3b(g)), "{n} -> {f}");
         }
     }
 

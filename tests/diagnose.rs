@@ -302,7 +302,7 @@ fn true_noise_reduced_chi2(f: &lensrig::diagnose::fit::Fit, c: &lensrig::diagnos
     for ch in 0..f.eval.len() {
         for (i, &m) in f.eval[ch].iter().enumerate() {
             if m {
-                let r2 = (f.normalized[ch].data[i] as f64).powi(2) * f.variance[ch].data[i] as f64;
+                let r2 = (c.open.image.planes[ch].data[i] as f64 - f.predicted[ch].data[i] as f64).powi(2);
                 s += r2 / c.true_variance[ch].data[i] as f64;
             }
         }

@@ -158,30 +158,46 @@ pub fn band_gain(k: &Plane, bins: &[(f64, f64)]) -> f64 {
     total / bins.len() as f64
 }
 
-fn binned(name: &str, vals: &[(f32, f32)], bins: usize, quantile: bool) -> Curve {
-    let mut v: Vec<(f32, f32)> = vals.to_vec();
+/// The curve of `vals` (variable, z) in `bins` bins: equal counts (`quantile`, a stable sort by
+/// the variable) or equal widths; bins of fewer than 20 pixels are left out. Sorts `vals` in
+/// place and sums over slices of it (no copy: it is the analysis' largest buffer).
+fn binned(name: &str, mut vals: Vec<(f32, f32)>, bins: usize, quantile: bool) -> Curve {
     let (mut x, mut mean, mut msq) = (vec![], vec![], vec![]);
-    if v.is_empty() {
+    if vals.is_empty() {
         return Curve { name: name.into(), x, mean, msq };
     }
-    let groups: Vec<Vec<(f32, f32)>> = if quantile {
-        v.sort_by(|a, b| a.0.total_cmp(&b.0));
-        (0..bins).map(|b| v[b * v.len() / bins..(b + 1) * v.len() / bins].to_vec()).collect()
-    } else {
-        let lo = v.iter().map(|q| q.0).fold(f32::INFINITY, f32::min);
-        let hi = v.iter().map(|q| q.0).fold(f32::NEG_INFINITY, f32::max);
-        let mut g = vec![Vec::new(); bins];
-        for q in v {
-            let b = (((q.0 - lo) / (hi - lo).max(1e-12)) * bins as f32) as usize;
-            g[b.min(bins - 1)].push(q);
+    let mut push = |s: (f64, f64, f64), n: usize| {
+        if n >= 20 {
+            let n = n as f64;
+            x.push(s.0 / n);
+            mean.push(s.1 / n);
+            msq.push(s.2 / n);
         }
-        g
     };
-    for g in groups.iter().filter(|g| g.len() >= 20) {
-        let n = g.len() as f64;
-        x.push(g.iter().map(|q| q.0 as f64).sum::<f64>() / n);
-        mean.push(g.iter().map(|q| q.1 as f64).sum::<f64>() / n);
-        msq.push(g.iter().map(|q| (q.1 as f64).powi(2)).sum::<f64>() / n);
+    if quantile {
+        vals.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let len = vals.len();
+        for b in 0..bins {
+            let g = &vals[b * len / bins..(b + 1) * len / bins];
+            let sums = (g.iter().map(|q| q.0 as f64).sum::<f64>(), g.iter().map(|q| q.1 as f64).sum::<f64>(), g.iter().map(|q| (q.1 as f64).powi(2)).sum::<f64>());
+            push(sums, g.len());
+        }
+    } else {
+        let lo = vals.iter().map(|q| q.0).fold(f32::INFINITY, f32::min);
+        let hi = vals.iter().map(|q| q.0).fold(f32::NEG_INFINITY, f32::max);
+        // per bin, the sums in the pixels' order (as the groups' sums were)
+        let mut acc = vec![((0.0f64, 0.0f64, 0.0f64), 0usize); bins];
+        for q in &vals {
+            let b = (((q.0 - lo) / (hi - lo).max(1e-12)) * bins as f32) as usize;
+            let a = &mut acc[b.min(bins - 1)];
+            a.0 .0 += q.0 as f64;
+            a.0 .1 += q.1 as f64;
+            a.0 .2 += (q.1 as f64).powi(2);
+            a.1 += 1;
+        }
+        for (s, n) in acc {
+            push(s, n);
+        }
     }
     Curve { name: name.into(), x, mean, msq }
 }
@@ -197,12 +213,13 @@ struct Histogram {
 }
 
 impl Histogram {
-    fn of(all_z: &[f32]) -> Self {
+    /// `all_z` is iterated twice (the mean, then the central moments).
+    fn of<I: Iterator<Item = f32> + Clone>(all_z: I) -> Self {
         let edges: Vec<f64> = (0..=40).map(|i| -5.0 + 0.25 * i as f64).collect();
         let mut density = vec![0.0f64; 40];
-        let n = all_z.len().max(1) as f64;
+        let n = all_z.clone().count().max(1) as f64;
         let (mut m1, mut m2, mut m3, mut m4) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
-        for &z in all_z {
+        for z in all_z.clone() {
             let z = z as f64;
             m1 += z;
             if (-5.0..5.0).contains(&z) {
@@ -210,7 +227,7 @@ impl Histogram {
             }
         }
         m1 /= n;
-        for &z in all_z {
+        for z in all_z {
             let d = z as f64 - m1;
             m2 += d * d;
             m3 += d * d * d;
@@ -271,54 +288,67 @@ pub fn analyse(fit: &Fit) -> Analysis {
     let xs = grid.column_xs();
     let ys = grid.row_ys();
     let tile_half_diag = 0.5 * ((w as f64 / grid.columns as f64).powi(2) + (h as f64 / grid.rows as f64).powi(2)).sqrt();
+    // the evaluated interior pixels, channel by channel in row order: every pass below visits
+    // them in this order (the curves' quantile sort is stable, so ties keep it)
+    let evaluated = |c: usize| (1..h.saturating_sub(1)).flat_map(move |y| (1..w.saturating_sub(1)).map(move |x| (x, y, y * w + x))).filter(move |&(_, _, i)| fit.eval[c][i]);
+    let nearest = |v: &[f64], p: f64| v.iter().enumerate().min_by(|a, b| (a.1 - p).abs().total_cmp(&(b.1 - p).abs())).map_or(0, |q| q.0);
     let mut tiles = Vec::new();
-    let mut feats: [Vec<(f32, f32)>; 5] = Default::default();
-    let mut all_z = Vec::new();
+    let mut count = 0usize;
     let (mut ata, mut atb) = ([[0.0f64; 3]; 3], [0.0f64; 3]);
     for c in 0..nch {
         let z = &fit.normalized[c];
-        let pred = &fit.predicted[c];
-        let mut large = fit.reference[c].clone();
-        large = gaussian_blur_wide(&large, (2.0 * hd / 16.0).max(2.0));
         let mut tsum = vec![(0.0f64, 0.0f64, 0usize); grid.tile_count()];
-        for y in 1..h - 1 {
-            for x in 1..w - 1 {
-                let i = y * w + x;
-                if !fit.eval[c][i] {
-                    continue;
-                }
-                let zi = z.data[i];
-                all_z.push(zi);
-                let (dx, dy) = (x as f64 - cx, y as f64 - cy);
-                let r = (dx * dx + dy * dy).sqrt() / hd;
-                let col = xs.iter().enumerate().min_by(|a, b| (a.1 - x as f64).abs().total_cmp(&(b.1 - x as f64).abs())).map_or(0, |q| q.0);
-                let row = ys.iter().enumerate().min_by(|a, b| (a.1 - y as f64).abs().total_cmp(&(b.1 - y as f64).abs())).map_or(0, |q| q.0);
-                let d_in = ((x as f64 - xs[col]).powi(2) + (y as f64 - ys[row]).powi(2)).sqrt() / tile_half_diag;
-                let gx = pred.get(x + 1, y) - pred.get(x - 1, y);
-                let gy = pred.get(x, y + 1) - pred.get(x, y - 1);
-                feats[0].push((pred.data[i], zi));
-                feats[1].push((r as f32, zi));
-                feats[2].push((d_in as f32, zi));
-                feats[3].push(((0.5 * (gx * gx + gy * gy).sqrt()), zi));
-                feats[4].push((large.data[i], zi));
-                let t = &mut tsum[row * grid.columns + col];
-                t.0 += zi as f64;
-                t.1 += (zi as f64).powi(2);
-                t.2 += 1;
-                let row3 = [1.0, dx / cx.max(0.5), dy / cy.max(0.5)];
-                for a in 0..3 {
-                    atb[a] += row3[a] * zi as f64;
-                    for b in 0..3 {
-                        ata[a][b] += row3[a] * row3[b];
-                    }
+        for (x, y, i) in evaluated(c) {
+            let zi = z.data[i];
+            count += 1;
+            let (dx, dy) = (x as f64 - cx, y as f64 - cy);
+            let t = &mut tsum[nearest(&ys, y as f64) * grid.columns + nearest(&xs, x as f64)];
+            t.0 += zi as f64;
+            t.1 += (zi as f64).powi(2);
+            t.2 += 1;
+            let row3 = [1.0, dx / cx.max(0.5), dy / cy.max(0.5)];
+            for a in 0..3 {
+                atb[a] += row3[a] * zi as f64;
+                for b in 0..3 {
+                    ata[a][b] += row3[a] * row3[b];
                 }
             }
         }
         tiles.extend(tile_stats(grid, c, &tsum));
     }
+    // one feature at a time: its (value, z) pairs are the only per-pixel storage (8 bytes per
+    // evaluated pixel, not five features' at once)
     let names = ["intensity", "radius", "position_in_tile", "gradient", "large_scale_brightness"];
-    let curves = names.iter().enumerate().map(|(j, n)| binned(n, &feats[j], 10, j != 1 && j != 2)).collect();
-    let hist = Histogram::of(&all_z);
+    let curves = names
+        .iter()
+        .enumerate()
+        .map(|(j, n)| {
+            let mut pairs: Vec<(f32, f32)> = Vec::with_capacity(count);
+            for c in 0..nch {
+                let (z, pred) = (&fit.normalized[c], &fit.predicted[c]);
+                let large = (j == 4).then(|| gaussian_blur_wide(&fit.reference[c], (2.0 * hd / 16.0).max(2.0)));
+                pairs.extend(evaluated(c).map(|(x, y, i)| {
+                    let v = match j {
+                        0 => pred.data[i],
+                        1 => (((x as f64 - cx).powi(2) + (y as f64 - cy).powi(2)).sqrt() / hd) as f32,
+                        2 => {
+                            let (col, row) = (nearest(&xs, x as f64), nearest(&ys, y as f64));
+                            (((x as f64 - xs[col]).powi(2) + (y as f64 - ys[row]).powi(2)).sqrt() / tile_half_diag) as f32
+                        }
+                        3 => {
+                            let gx = pred.get(x + 1, y) - pred.get(x - 1, y);
+                            let gy = pred.get(x, y + 1) - pred.get(x, y - 1);
+                            0.5 * (gx * gx + gy * gy).sqrt()
+                        }
+                        _ => large.as_ref().map_or(0.0, |l| l.data[i]),
+                    };
+                    (v, z.data[i])
+                }));
+            }
+            binned(n, pairs, 10, j != 1 && j != 2)
+        })
+        .collect();
+    let hist = Histogram::of((0..nch).flat_map(|c| evaluated(c).map(move |(_, _, i)| fit.normalized[c].data[i])));
     let planar = gauss_jordan(ata, atb, 1e-12).unwrap_or([0.0; 3]);
     let spectrum = mean_spectrum(fit);
     let worst = tiles.iter().max_by(|a, b| a.reduced_chi2.total_cmp(&b.reduced_chi2)).cloned();

@@ -71,7 +71,7 @@ pub fn complete(data: &Data, current: &Fit, cand: Candidate) -> Candidate {
 /// corner by a pixel or more, that candidate's start is re-estimated under the map instead and
 /// compared like for like ([`super::registered`]).
 pub struct StartGate<'a> {
-    data: &'a Data,
+    data: &'a Data<'a>,
     current: &'a Fit,
     base: std::cell::OnceCell<f64>,
 }
@@ -648,7 +648,7 @@ fn worst_excess_detail(data: &Data, current: &Fit) -> (f64, f64) {
 /// The search for the reference's PSF (Airy radius `r` in green, aberration blur `σ_a`) of
 /// the `pinhole_diffraction` candidate.
 struct DiffractionSearch<'a> {
-    data: &'a Data,
+    data: &'a Data<'a>,
     current: &'a Fit,
 }
 

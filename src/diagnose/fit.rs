@@ -36,6 +36,7 @@ use crate::image::{Image, Plane, Transfer};
 use crate::image::filter::gaussian_blur_wide;
 use crate::optics::psf_grid::PsfGrid;
 use crate::profile::RegistrationInfo;
+use std::sync::Arc;
 
 /// The kernel step of every fit: [`KernelStep::Tangent`], which converges at 31–45 px where
 /// the whole-space step stalls (docs/diagnosis.md, "The kernel step on the tangent space");
@@ -51,9 +52,11 @@ const SCORED_MARGIN: usize = 6;
 pub const CLIP: f32 = 0.995;
 
 /// The measured pair and what is known before any model is fitted.
-pub struct Data {
-    pub open: Image,
-    pub pinhole: Image,
+///
+/// The captures are borrowed, not copied (at 4000×3000 RGB each is 144 MB).
+pub struct Data<'a> {
+    pub open: &'a Image,
+    pub pinhole: &'a Image,
     /// Per channel, the wide-open capture's noise curve.
     pub curves: Vec<NoiseCurve>,
     /// The base registration (translation, applied as an integer shift).
@@ -66,17 +69,40 @@ pub struct Data {
     /// pixels per channel in their data term (every pixel by default; the diagnosis sets
     /// [`super::DiagnoseOptions::screen_pixels`]).
     pub screen_pixels: usize,
+    /// The reference planes built ([`Setup::new`]), keyed by what they depend on
+    /// ([`reference_key`]): fits on the same reference geometry share one copy. Weak: the
+    /// planes live as long as a fit or setup holds them; dead entries are dropped.
+    reference_cache: std::sync::Mutex<Vec<(String, std::sync::Weak<Vec<Plane>>)>>,
 }
 
-impl Data {
+/// What the model's reference planes depend on: the transfer that decodes the pinhole capture,
+/// the registration whose integer translation shifts it and the diffraction restoration
+/// (`Debug` prints every float exactly, so equal keys mean equal inputs).
+fn reference_key(transfer: Transfer, registration: &RegistrationInfo, diffraction: Option<&super::model::DiffractionCorrection>) -> String {
+    format!("{transfer:?}|{registration:?}|{diffraction:?}")
+}
+
+impl<'a> Data<'a> {
+    /// The reference planes for `key`, built by `make` unless a live copy is cached.
+    fn reference(&self, key: String, make: impl FnOnce() -> Vec<Plane>) -> Arc<Vec<Plane>> {
+        let mut cache = self.reference_cache.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        cache.retain(|(_, w)| w.strong_count() > 0);
+        if let Some(planes) = cache.iter().find(|(k, _)| *k == key).and_then(|(_, w)| w.upgrade()) {
+            return planes;
+        }
+        let planes = Arc::new(make());
+        cache.push((key, Arc::downgrade(&planes)));
+        planes
+    }
+
     /// The pair with the wide-open capture's noise curves (`noise::measure`, 16 level bins) and
     /// the base registration: a translation of the channels' linear sum.
-    pub fn new(open: &Image, pinhole: &Image, pinhole_variance_scale: f64) -> Data {
+    pub fn new(open: &'a Image, pinhole: &'a Image, pinhole_variance_scale: f64) -> Data<'a> {
         let curves = open.planes.iter().map(|p| super::noise::measure(p, 16)).collect();
         let lin = |img: &Image| -> Vec<Plane> { img.planes.iter().map(|p| p.map(|v| img.transfer.decode(v))).collect() };
         let model = crate::estimate::register::RegistrationModel::Translation;
         let base_registration = crate::estimate::register::register(&Plane::sum_of(&lin(open)), &Plane::sum_of(&lin(pinhole)), model).info;
-        Data { open: open.clone(), pinhole: pinhole.clone(), curves, base_registration, pinhole_variance_scale, screen_pixels: usize::MAX }
+        Data { open, pinhole, curves, base_registration, pinhole_variance_scale, screen_pixels: usize::MAX, reference_cache: Default::default() }
     }
 }
 
@@ -103,18 +129,17 @@ impl Default for FitSettings {
     }
 }
 
-/// A fitted model and its figures.
+/// A fitted model and its figures. The per-pixel planes are shared (`Arc`): a clone costs no
+/// image memory, and fits on the same reference geometry share its planes ([`Data`]'s cache).
 #[derive(Clone)]
 pub struct Fit {
     pub model: Model,
     pub transfer: Transfer,
     /// Prediction on the stored axis (encoded, clipped under `saturation`).
-    pub predicted: Vec<Plane>,
+    pub predicted: Arc<Vec<Plane>>,
     /// `(stored − predicted)/σ` on the evaluation set, 0 elsewhere.
-    pub normalized: Vec<Plane>,
-    /// Stored-axis predicted variance.
-    pub variance: Vec<Plane>,
-    pub eval: Vec<Vec<bool>>,
+    pub normalized: Arc<Vec<Plane>>,
+    pub eval: Arc<Vec<Vec<bool>>>,
     pub chi2_channel: Vec<f64>,
     pub n_channel: Vec<usize>,
     /// Plain squared residual and variance sums per channel (stored axis).
@@ -139,13 +164,13 @@ pub struct Fit {
     pub noise_chi2: f64,
     pub noise_misfit: f64,
     /// The registered linear reference planes the model used.
-    pub reference: Vec<Plane>,
+    pub reference: Arc<Vec<Plane>>,
     /// Per channel, the variance that the reference's noise, propagated through the
     /// restoration and the kernels, contributes to the high-pass `d` of the residual
     /// ([`super::diffraction::propagated_energy`]), relative to the wide-open capture's own
     /// noise variance at that pixel: what [`super::noise::measure_residual`] must not count
     /// as the wide-open capture's noise.
-    pub reference_highpass: Vec<Plane>,
+    pub reference_highpass: Arc<Vec<Plane>>,
     /// The share of the evaluation set the figures cover: 1 when they cover every pixel; a
     /// screening fit on a subset ([`fit_subset`], [`screen`]) scores only the subset's pixels
     /// (`chi2_channel`, `n_channel`, `eval` are the subset's) and [`Fit::chi2`], [`Fit::n`]
@@ -464,7 +489,6 @@ fn gauss_newton_step(corr: &mut Corrections, open_lin: &[Plane], variance_lin: &
 struct ChannelScore {
     predicted: Plane,
     normalized: Plane,
-    variance: Plane,
     chi2: f64,
     n: usize,
     sq: f64,
@@ -480,7 +504,6 @@ fn score_channel(mlin: &Plane, vl: &Plane, transfer: Transfer, clip: Option<f32>
     let (w, h) = (mlin.width, mlin.height);
     let mut pred = Plane::new(w, h);
     let mut norm = Plane::new(w, h);
-    let mut var_s = Plane::new(w, h);
     let (mut chi2, mut n, mut sq, mut vs) = (0.0f64, 0usize, 0.0f64, 0.0f64);
     for i in 0..w * h {
         let m = mlin.data[i];
@@ -494,7 +517,6 @@ fn score_channel(mlin: &Plane, vl: &Plane, transfer: Transfer, clip: Option<f32>
             Transfer::Srgb => srgb_slope(m.max(1e-4)),
         };
         let v = vl.data[i] * slope * slope;
-        var_s.data[i] = v;
         if !interior[i] {
             continue;
         }
@@ -516,7 +538,7 @@ fn score_channel(mlin: &Plane, vl: &Plane, transfer: Transfer, clip: Option<f32>
         vs += v as f64;
         n += 1;
     }
-    ChannelScore { predicted: pred, normalized: norm, variance: var_s, chi2, n, sq, var_sum: vs }
+    ChannelScore { predicted: pred, normalized: norm, chi2, n, sq, var_sum: vs }
 }
 
 /// Fits `corrections` (their parameter values are starting points) to `data`, starting from
@@ -639,10 +661,9 @@ fn finish_scored(data: &Data, setup: Setup, mut corr: Corrections, mut p: Params
     Fit {
         model: Model { corrections: corr, grid, exposure },
         transfer: setup.transfer,
-        predicted: f.predicted,
-        normalized: f.normalized,
-        variance: f.variance,
-        eval: f.eval,
+        predicted: Arc::new(f.predicted),
+        normalized: Arc::new(f.normalized),
+        eval: Arc::new(f.eval),
         chi2_channel: f.chi2_channel,
         n_channel: f.n_channel,
         sq_channel: f.sq_channel,
@@ -654,7 +675,7 @@ fn finish_scored(data: &Data, setup: Setup, mut corr: Corrections, mut p: Params
         noise_chi2: laws.iter().map(|l| l.chi2).sum(),
         noise_misfit: laws.iter().map(|l| l.misfit).fold(0.0, f64::max),
         reference: setup.reference,
-        reference_highpass: f.reference_highpass,
+        reference_highpass: Arc::new(f.reference_highpass),
         share: f.share,
         low_band_floor: f.low_band_floor,
         warm: Warm { channels: setup.warm.into_iter().map(|m| m.into_inner().unwrap_or_else(std::sync::PoisonError::into_inner)).collect(), data_pixels: setup.data_pixels },
@@ -791,13 +812,13 @@ fn linear_open(data: &Data, corr: &Corrections, transfer: Transfer) -> (Vec<Plan
 
 /// What a fit holds fixed while its parameters move.
 struct Setup<'a> {
-    data: &'a Data,
+    data: &'a Data<'a>,
     transfer: Transfer,
     w: usize,
     h: usize,
     nch: usize,
     /// The registered linear reference planes (restored under `pinhole_diffraction`).
-    reference: Vec<Plane>,
+    reference: Arc<Vec<Plane>>,
     open_lin: Vec<Plane>,
     /// Under `misregistration`, the resampling's factor on the wide-open noise variance.
     noise_factor: Option<Plane>,
@@ -844,7 +865,6 @@ struct ChannelFigures {
 struct Figures {
     predicted: Vec<Plane>,
     normalized: Vec<Plane>,
-    variance: Vec<Plane>,
     eval: Vec<Vec<bool>>,
     chi2_channel: Vec<f64>,
     n_channel: Vec<usize>,
@@ -865,10 +885,13 @@ impl<'a> Setup<'a> {
         let (w, h) = (data.open.width(), data.open.height());
         let nch = data.open.channel_count();
         let registration = corr.misregistration.clone().unwrap_or_else(|| data.base_registration.clone());
-        let mut reference = reference_planes(&data.pinhole, transfer, &registration);
-        if let Some(d) = &corr.pinhole_diffraction {
-            reference = reference.iter().enumerate().map(|(c, p)| d.restore(c, p)).collect();
-        }
+        let reference = data.reference(reference_key(transfer, &registration, corr.pinhole_diffraction.as_ref()), || {
+            let planes = reference_planes(&data.pinhole, transfer, &registration);
+            match &corr.pinhole_diffraction {
+                Some(d) => planes.iter().enumerate().map(|(c, p)| d.restore(c, p)).collect(),
+                None => planes,
+            }
+        });
         let (open_lin, noise_factor) = linear_open(data, corr, transfer);
         let grid0 = match corr.psf_field_variation {
             Some(f) if f.columns != init.grid.columns || f.rows != init.grid.rows => regrid(&init.grid, w, h, f.columns, f.rows),
@@ -1128,7 +1151,6 @@ impl<'a> Setup<'a> {
             f.reference_highpass.push(cf.reference_highpass);
             f.predicted.push(sc.predicted);
             f.normalized.push(sc.normalized);
-            f.variance.push(sc.variance);
             f.eval.push(scored.clone());
             f.chi2_channel.push(sc.chi2);
             f.n_channel.push(sc.n);
@@ -1205,9 +1227,11 @@ mod tests {
 
     /// A small clean case (128×96, monochrome, 9-px kernels on 3×2 tiles) with its data and the
     /// model to start from: the rendered PSFs blurred (so that rounds still lower χ²).
-    fn small_case() -> (Data, Model) {
+    fn small_case() -> (Data<'static>, Model) {
         let spec = super::super::proof::CaseSpec { width: 128, height: 96, kernel_size: 9, ..Default::default() };
         let case = super::super::proof::render_case(None, 5, &spec).expect("a clean case renders");
+        // the data borrow the captures for the test's whole run
+        let case: &'static super::super::proof::Case = Box::leak(Box::new(case));
         let data = Data::new(&case.open.image, &case.pinhole.image, 1.0 / case.pinhole_frames as f64);
         let mut grid = case.open.psfs.clone().expect("rendered PSFs");
         for ks in grid.kernels.iter_mut() {

@@ -321,7 +321,7 @@ fn base_profile(open: &Image, pinhole: &Image, profile: Option<&Profile>, opts: 
 /// provisional fit's residual (module docs of `noise`) or from repeated frames, then the base
 /// model refitted with it; the curve stays fixed for every later model. Returns whether the
 /// curve came from repeated frames.
-fn base_model(open: &Image, pinhole: &Image, base_profile: &Profile, opts: &DiagnoseOptions) -> (Data, Fit, bool) {
+fn base_model<'a>(open: &'a Image, pinhole: &'a Image, base_profile: &Profile, opts: &DiagnoseOptions) -> (Data<'a>, Fit, bool) {
     let mut lap = crate::estimate::stage_clock();
     let mut data = Data::new(open, pinhole, opts.pinhole_variance_scale);
     data.screen_pixels = opts.screen_pixels;
@@ -501,7 +501,6 @@ fn screens(data: &Data, opts: &DiagnoseOptions) -> bool {
 /// that no longer rotate), and its evidence states the rotation before and after.
 fn adopt(data: &mut Data, s: &mut Search, (cand, f, dbic): (candidates::Candidate, Fit, f64), repeat_noise: bool, round: Round, opts: &DiagnoseOptions) -> bool {
     let mut lap = crate::estimate::stage_clock();
-    let previous = s.current.clone();
     let f = polish_winner(data, &s.current, f, opts);
     progress_lap(opts, lap("winner's polish"));
     let parameters = candidates::parameters_json(cand.name, &f.model.corrections);
@@ -509,7 +508,10 @@ fn adopt(data: &mut Data, s: &mut Search, (cand, f, dbic): (candidates::Candidat
     if !repeat_noise {
         data.curves = residual_curves(&data.open, &f);
     }
-    let (current, previous) = (rescore(data, &f), rescore(data, &previous));
+    let current = rescore(data, &f);
+    // the refit below needs only the winner's model and solver state: its planes go now
+    let fit::Fit { model, warm, .. } = f;
+    let previous = rescore(data, &s.current);
     let noise = STOP_SIGMAS * (2.0 * current.n() as f64).sqrt();
     let lowered = previous.chi2() - current.chi2();
     let mut evidence = cand.evidence;
@@ -548,8 +550,12 @@ fn adopt(data: &mut Data, s: &mut Search, (cand, f, dbic): (candidates::Candidat
     }
     let (before, after) = (Figures::of(&previous), Figures::of(&current));
     s.effects.push(FoundEffect { name: cand.name.to_string(), evidence, location: cand.location, parameters, before, after, delta_bic: dbic });
-    s.current = fit::fit_from(data, &f.model.corrections, &f.model, FitSettings { rounds: 1, kernel_iterations: opts.candidate_fit.kernel_iterations }, &f.warm);
-    s.current.inherit_dof(&current);
+    // the models no longer needed go before the refit (each holds whole-image planes)
+    drop(previous);
+    s.current = current;
+    let mut refit = fit::fit_from(data, &model.corrections, &model, FitSettings { rounds: 1, kernel_iterations: opts.candidate_fit.kernel_iterations }, &warm);
+    refit.inherit_dof(&s.current);
+    s.current = refit;
     s.polished = true;
     if changes_kernel_operator(cand.name) {
         measure_dof(data, &mut s.current, opts, s.rounds.len() as u64);
@@ -581,7 +587,14 @@ fn polish_winner(data: &Data, current: &Fit, f: Fit, opts: &DiagnoseOptions) -> 
     let budget = if screens(data, opts) { opts.screen_pixels } else { usize::MAX };
     let mut polished = fit::fit_subset_from(data, &f.model.corrections, &f.model, opts.base_fit, budget, &f.warm);
     polished.inherit_dof(current);
-    let f = if polished.chi2() <= f.chi2() { polished } else { f };
+    // the model not kept is dropped here, before the whole-pixel round
+    let f = if polished.chi2() <= f.chi2() {
+        drop(f);
+        polished
+    } else {
+        drop(polished);
+        f
+    };
     if !screens(data, opts) {
         return f;
     }

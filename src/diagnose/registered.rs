@@ -112,7 +112,7 @@ impl Comparison {
 /// The round's registered starts: the start without a new map is computed at the first use and
 /// kept (both geometric candidates compare with it).
 pub struct RegisteredStarts<'a> {
-    data: &'a Data,
+    data: &'a Data<'a>,
     current: &'a Fit,
     /// Each comparison on stderr ([`super::DiagnoseOptions::progress`]).
     progress: bool,
@@ -313,9 +313,11 @@ mod tests {
     /// A small case (256×192 mono, 15-px kernels, the proof suite's size) with its data and a
     /// current model: the base estimate refitted briefly (1 × 10), so that the pre-fit's extra
     /// iterations lower χ² whatever the map.
-    fn small_case(effect: Option<&str>, seed: u64) -> (Data, Fit) {
+    fn small_case(effect: Option<&str>, seed: u64) -> (Data<'static>, Fit) {
         let spec = super::super::proof::CaseSpec::default();
         let case = super::super::proof::render_case(effect, seed, &spec).expect("renders");
+        // the data borrow the captures for the test's whole run
+        let case: &'static super::super::proof::Case = Box::leak(Box::new(case));
         let data = Data::new(&case.open.image, &case.pinhole.image, 1.0 / case.pinhole_frames as f64);
         let eo = crate::estimate::EstimateOptions { saturation: f32::INFINITY, ..super::super::bench::proof_options(&spec).estimate };
         let est = crate::estimate::estimate(&case.open.image, &case.pinhole.image, &eo).expect("estimates");

@@ -79,8 +79,8 @@ pub fn write_report(d: &Diagnosis, dir: &Path, src: &Sources) -> Result<(), Repo
     let p = |n: &str| dir.join(n);
     // raw CFA planes are previewed as bilinear RGB (crate::image::raw::for_output)
     let preview = |img: Image, name: &str| crate::image::raw::for_output(&img, &p(name));
-    write_png16(&p("predicted_base.png"), &preview(stored_image(d, d.base.predicted.clone()), "predicted_base.png")?, Overwrite::Replace)?;
-    write_png16(&p("predicted_final.png"), &preview(stored_image(d, d.final_fit.predicted.clone()), "predicted_final.png")?, Overwrite::Replace)?;
+    write_png16(&p("predicted_base.png"), &preview(stored_image(d, d.base.predicted.to_vec()), "predicted_base.png")?, Overwrite::Replace)?;
+    write_png16(&p("predicted_final.png"), &preview(stored_image(d, d.final_fit.predicted.to_vec()), "predicted_final.png")?, Overwrite::Replace)?;
     for (name, fit) in [("residual_base.png", &d.base), ("residual_final.png", &d.final_fit)] {
         let mut img = Image::new(fit.normalized.iter().map(residual_image).collect());
         img.raw = d.open.raw.clone();

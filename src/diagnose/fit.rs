@@ -886,7 +886,7 @@ impl<'a> Setup<'a> {
         let nch = data.open.channel_count();
         let registration = corr.misregistration.clone().unwrap_or_else(|| data.base_registration.clone());
         let reference = data.reference(reference_key(transfer, &registration, corr.pinhole_diffraction.as_ref()), || {
-            let planes = reference_planes(&data.pinhole, transfer, &registration);
+            let planes = reference_planes(data.pinhole, transfer, &registration);
             match &corr.pinhole_diffraction {
                 Some(d) => planes.iter().enumerate().map(|(c, p)| d.restore(c, p)).collect(),
                 None => planes,

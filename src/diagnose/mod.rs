@@ -506,7 +506,7 @@ fn adopt(data: &mut Data, s: &mut Search, (cand, f, dbic): (candidates::Candidat
     let parameters = candidates::parameters_json(cand.name, &f.model.corrections);
     let old_curves = data.curves.clone();
     if !repeat_noise {
-        data.curves = residual_curves(&data.open, &f);
+        data.curves = residual_curves(data.open, &f);
     }
     let current = rescore(data, &f);
     // the refit below needs only the winner's model and solver state: its planes go now

@@ -240,7 +240,7 @@ pub fn reestimate(data: &Data, current: &Fit, corr: &Corrections) -> Option<Mode
     // the estimate does not register again (under a keystone its own registration would take
     // up the map's mean displacement, ≈ 1.8 px at 1024×768 seed 41, and the kernels would sit
     // that far from where the fit's reference needs them)
-    let mut reference = super::model::reference_planes(&data.pinhole, transfer, &data.base_registration);
+    let mut reference = super::model::reference_planes(data.pinhole, transfer, &data.base_registration);
     // under `pinhole_diffraction` the fit's reference is restored ([`super::model::DiffractionCorrection::restore`]);
     // kernels estimated against the unrestored one would be `K * D⁻¹`-like, not the fit's `K`
     if let Some(d) = &corr.pinhole_diffraction {

@@ -426,4 +426,49 @@ mod tests {
         let k2 = 1.0 / 81.0;
         assert!(g > 0.8 && g < 1.0 && g > 50.0 * k2, "box gain {g:.3} vs ΣK² {k2:.4}");
     }
+
+    /// The curves as equal-count or equal-width groups of the pixels, each group's sums in the
+    /// pixels' order: what [`binned`] computes without copying the groups (the analysis' former
+    /// implementation, kept here as the reference).
+    fn grouped(vals: &[(f32, f32)], bins: usize, quantile: bool) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+        let mut v = vals.to_vec();
+        let groups: Vec<Vec<(f32, f32)>> = if quantile {
+            v.sort_by(|a, b| a.0.total_cmp(&b.0));
+            (0..bins).map(|b| v[b * v.len() / bins..(b + 1) * v.len() / bins].to_vec()).collect()
+        } else {
+            let lo = v.iter().map(|q| q.0).fold(f32::INFINITY, f32::min);
+            let hi = v.iter().map(|q| q.0).fold(f32::NEG_INFINITY, f32::max);
+            let mut g = vec![Vec::new(); bins];
+            for q in v {
+                let b = (((q.0 - lo) / (hi - lo).max(1e-12)) * bins as f32) as usize;
+                g[b.min(bins - 1)].push(q);
+            }
+            g
+        };
+        let (mut x, mut mean, mut msq) = (vec![], vec![], vec![]);
+        for g in groups.iter().filter(|g| g.len() >= 20) {
+            let n = g.len() as f64;
+            x.push(g.iter().map(|q| q.0 as f64).sum::<f64>() / n);
+            mean.push(g.iter().map(|q| q.1 as f64).sum::<f64>() / n);
+            msq.push(g.iter().map(|q| (q.1 as f64).powi(2)).sum::<f64>() / n);
+        }
+        (x, mean, msq)
+    }
+
+    /// [`binned`] gives the grouped curves to the bit, with ties in the variable (a stable sort
+    /// keeps the pixels' order), skewed values whose equal-width bins fall below 20 pixels, and
+    /// too few pixels for any bin.
+    #[test]
+    fn binned_curves_equal_the_grouped_ones() {
+        let mut r = Rng::new(7);
+        for (n, quantile) in [(5000, true), (5000, false), (1234, true), (1234, false), (30, true), (30, false)] {
+            // quantised values give ties; the square skews the equal-width bins
+            let vals: Vec<(f32, f32)> = (0..n).map(|_| ((((r.uniform() * 40.0).floor() / 40.0) as f32).powi(2), r.normal() as f32)).collect();
+            let c = binned("v", vals.clone(), 10, quantile);
+            let (x, mean, msq) = grouped(&vals, 10, quantile);
+            assert_eq!((c.x.clone(), c.mean.clone(), c.msq.clone()), (x, mean, msq), "n {n}, quantile {quantile}");
+            assert!(n >= 1000 || c.x.len() < 10);
+        }
+        assert!(binned("v", Vec::new(), 10, true).x.is_empty());
+    }
 }

@@ -1243,6 +1243,27 @@ mod tests {
         (data, Model { corrections: Corrections::default(), grid, exposure })
     }
 
+    /// Fits on one reference geometry share one copy of the reference planes (the cache of
+    /// [`Data`]); another transfer builds its own, with other values; once no fit holds a
+    /// geometry's planes they are built again, equal to the first.
+    #[test]
+    fn fits_on_one_reference_geometry_share_its_planes() {
+        let (data, init) = small_case();
+        let none = FitSettings { rounds: 0, kernel_iterations: 0 };
+        let plain = Corrections::default();
+        let (a, b) = (fit(&data, &plain, &init, none), fit(&data, &plain, &init, none));
+        assert!(Arc::ptr_eq(&a.reference, &b.reference));
+        let tone = Corrections { tone_curve: Some(super::super::model::ToneCorrection { transfer: Transfer::Srgb }), ..Corrections::default() };
+        let t = fit(&data, &tone, &init, none);
+        assert!(!Arc::ptr_eq(&a.reference, &t.reference));
+        assert_ne!(a.reference[0].data, t.reference[0].data);
+        let kept = a.reference[0].data.clone();
+        drop((a, b));
+        let again = fit(&data, &plain, &init, none);
+        assert_eq!(again.reference[0].data, kept);
+        assert!(data.reference_cache.lock().unwrap().len() <= 2, "dead entries are dropped");
+    }
+
     /// A fit continued from another fit's solver state ([`fit_from`], [`Fit::warm`]) carries
     /// its momentum: one round after a two-round fit lands (nearly) where the three-round fit
     /// does, and nearer it than the same round started afresh from the two-round fit's model.

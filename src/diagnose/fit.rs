@@ -615,6 +615,8 @@ pub fn fit_converging(data: &Data, corrections: &Corrections, init: &Model, rule
     let mut scored = setup.whole_figures(&corr, &p);
     let mut trace = vec![Setup::chi2_of(&scored)];
     for _round in 0..rule.max_rounds {
+        // the last figures' χ² is in the trace: their planes go before the next are made
+        drop(std::mem::take(&mut scored));
         setup.round(&mut corr, &mut p, kset);
         scored = setup.whole_figures(&corr, &p);
         let chi2 = Setup::chi2_of(&scored);

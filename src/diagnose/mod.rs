@@ -620,8 +620,9 @@ fn needs_final_polish(effects: usize, polished: bool, consistent: bool) -> bool 
 fn final_polish(data: &Data, current: &Fit, opts: &DiagnoseOptions) -> Fit {
     let settings = FitSettings { rounds: 2, kernel_iterations: 2 * opts.base_fit.kernel_iterations };
     let mut polished = if screens(data, opts) {
-        let sub = fit::fit_subset_from(data, &current.model.corrections, &current.model, settings, opts.screen_pixels, &current.warm);
-        let (f, trace) = fit::fit_converging(data, &sub.model.corrections, &sub.model, final_polish_rule(current.n(), opts), Some(&sub.warm));
+        // only the subset fit's model and solver state go on (its planes are dropped here)
+        let fit::Fit { model, warm, .. } = fit::fit_subset_from(data, &current.model.corrections, &current.model, settings, opts.screen_pixels, &current.warm);
+        let (f, trace) = fit::fit_converging(data, &model.corrections, &model, final_polish_rule(current.n(), opts), Some(&warm));
         if opts.progress {
             let falls: Vec<String> = trace.windows(2).map(|w| format!("{:.0}", w[0] - w[1])).collect();
             eprintln!("final polish on every pixel: {} rounds, χ² {:.0} → {:.0} (falls {}; noise {:.0})", trace.len() - 1, trace[0], trace[trace.len() - 1], falls.join(", "), (2.0 * current.n() as f64).sqrt());

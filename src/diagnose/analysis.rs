@@ -291,7 +291,10 @@ pub fn analyse(fit: &Fit) -> Analysis {
     // the evaluated interior pixels, channel by channel in row order: every pass below visits
     // them in this order (the curves' quantile sort is stable, so ties keep it)
     let evaluated = |c: usize| (1..h.saturating_sub(1)).flat_map(move |y| (1..w.saturating_sub(1)).map(move |x| (x, y, y * w + x))).filter(move |&(_, _, i)| fit.eval[c][i]);
+    // the nearest PSF centre's column of each x and row of each y
     let nearest = |v: &[f64], p: f64| v.iter().enumerate().min_by(|a, b| (a.1 - p).abs().total_cmp(&(b.1 - p).abs())).map_or(0, |q| q.0);
+    let col_of: Vec<usize> = (0..w).map(|x| nearest(&xs, x as f64)).collect();
+    let row_of: Vec<usize> = (0..h).map(|y| nearest(&ys, y as f64)).collect();
     let mut tiles = Vec::new();
     let mut count = 0usize;
     let (mut ata, mut atb) = ([[0.0f64; 3]; 3], [0.0f64; 3]);
@@ -302,7 +305,7 @@ pub fn analyse(fit: &Fit) -> Analysis {
             let zi = z.data[i];
             count += 1;
             let (dx, dy) = (x as f64 - cx, y as f64 - cy);
-            let t = &mut tsum[nearest(&ys, y as f64) * grid.columns + nearest(&xs, x as f64)];
+            let t = &mut tsum[row_of[y] * grid.columns + col_of[x]];
             t.0 += zi as f64;
             t.1 += (zi as f64).powi(2);
             t.2 += 1;
@@ -332,7 +335,7 @@ pub fn analyse(fit: &Fit) -> Analysis {
                         0 => pred.data[i],
                         1 => (((x as f64 - cx).powi(2) + (y as f64 - cy).powi(2)).sqrt() / hd) as f32,
                         2 => {
-                            let (col, row) = (nearest(&xs, x as f64), nearest(&ys, y as f64));
+                            let (col, row) = (col_of[x], row_of[y]);
                             (((x as f64 - xs[col]).powi(2) + (y as f64 - ys[row]).powi(2)).sqrt() / tile_half_diag) as f32
                         }
                         3 => {

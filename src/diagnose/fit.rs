@@ -70,21 +70,23 @@ pub struct Data<'a> {
     /// [`super::DiagnoseOptions::screen_pixels`]).
     pub screen_pixels: usize,
     /// The reference planes built ([`Setup::new`]), keyed by what they depend on
-    /// ([`reference_key`]): fits on the same reference geometry share one copy. Weak: the
+    /// ([`ReferenceKey`]): fits on the same reference geometry share one copy. Weak: the
     /// planes live as long as a fit or setup holds them; dead entries are dropped.
-    reference_cache: std::sync::Mutex<Vec<(String, std::sync::Weak<Vec<Plane>>)>>,
+    reference_cache: std::sync::Mutex<Vec<(ReferenceKey, std::sync::Weak<Vec<Plane>>)>>,
 }
 
 /// What the model's reference planes depend on: the transfer that decodes the pinhole capture,
-/// the registration whose integer translation shifts it and the diffraction restoration
-/// (`Debug` prints every float exactly, so equal keys mean equal inputs).
-fn reference_key(transfer: Transfer, registration: &RegistrationInfo, diffraction: Option<&super::model::DiffractionCorrection>) -> String {
-    format!("{transfer:?}|{registration:?}|{diffraction:?}")
+/// the registration whose integer translation shifts it and the diffraction restoration.
+#[derive(Clone, Debug, PartialEq)]
+struct ReferenceKey {
+    transfer: Transfer,
+    registration: RegistrationInfo,
+    diffraction: Option<super::model::DiffractionCorrection>,
 }
 
 impl<'a> Data<'a> {
     /// The reference planes for `key`, built by `make` unless a live copy is cached.
-    fn reference(&self, key: String, make: impl FnOnce() -> Vec<Plane>) -> Arc<Vec<Plane>> {
+    fn reference(&self, key: ReferenceKey, make: impl FnOnce() -> Vec<Plane>) -> Arc<Vec<Plane>> {
         let mut cache = self.reference_cache.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
         cache.retain(|(_, w)| w.strong_count() > 0);
         if let Some(planes) = cache.iter().find(|(k, _)| *k == key).and_then(|(_, w)| w.upgrade()) {
@@ -887,7 +889,8 @@ impl<'a> Setup<'a> {
         let (w, h) = (data.open.width(), data.open.height());
         let nch = data.open.channel_count();
         let registration = corr.misregistration.clone().unwrap_or_else(|| data.base_registration.clone());
-        let reference = data.reference(reference_key(transfer, &registration, corr.pinhole_diffraction.as_ref()), || {
+        let key = ReferenceKey { transfer, registration: registration.clone(), diffraction: corr.pinhole_diffraction.clone() };
+        let reference = data.reference(key, || {
             let planes = reference_planes(data.pinhole, transfer, &registration);
             match &corr.pinhole_diffraction {
                 Some(d) => planes.iter().enumerate().map(|(c, p)| d.restore(c, p)).collect(),

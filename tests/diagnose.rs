@@ -370,6 +370,14 @@ fn report_profile_cli_and_browser() {
     let missing = dir.path().join("missing.png");
     let e = common::fails_one_line(&["diagnose", "--open", missing.to_str().unwrap(), "--pinhole", pin.to_str().unwrap(), "--out", out.to_str().unwrap(), "--kernel", &kernel, "--tile", "96", "--quiet"]);
     assert!(e.contains("missing.png"), "{e}");
+    // a directory holding another command's report is refused before any work, and kept
+    let foreign = dir.path().join("calibration");
+    std::fs::create_dir_all(&foreign).unwrap();
+    std::fs::write(foreign.join("index.html"), "calibration report").unwrap();
+    let e = common::fails_one_line(&["diagnose", "--open", open.to_str().unwrap(), "--pinhole", pin.to_str().unwrap(), "--out", foreign.to_str().unwrap(), "--kernel", &kernel, "--tile", "96", "--quiet"]);
+    assert!(e.contains("index.html") && e.contains("not a diagnosis report"), "{e}");
+    assert_eq!(std::fs::read_to_string(foreign.join("index.html")).unwrap(), "calibration report");
+    assert_eq!(std::fs::read_dir(&foreign).unwrap().count(), 1, "files were written into the foreign directory");
 
     // headless browser
     let browser = ["chromium", "chromium-browser", "google-chrome"].iter().find(|b| std::process::Command::new(b).arg("--version").output().is_ok_and(|o| o.status.success()));

@@ -9,7 +9,7 @@ use clap::Args;
 use lensrig::diagnose::analysis::Analysis;
 use lensrig::diagnose::bench::{bench_case, proof_options, BenchRow};
 use lensrig::diagnose::proof::{CaseSpec, CONCEALED};
-use lensrig::diagnose::report::{write_report, Sources};
+use lensrig::diagnose::report::{check_report_dir, write_report, Sources};
 use lensrig::diagnose::session::pair_inputs;
 use lensrig::diagnose::{diagnose, DiagnoseOptions, Diagnosis};
 use lensrig::estimate::session::load_finished;
@@ -38,7 +38,8 @@ pub struct DiagnoseArgs {
     /// Profile to diagnose; default: estimate a base profile from the pair.
     #[arg(long)]
     pub profile: Option<PathBuf>,
-    /// Report directory (created; files in it are replaced).
+    /// Report directory: created, or a previous diagnosis's (its files are replaced). A
+    /// directory holding anything else (a calibration run, captures) is refused.
     #[arg(long, required_unless_present = "bench_seeds")]
     pub out: Option<PathBuf>,
     /// How the files are declared to encode light (the diagnosis may find otherwise).
@@ -104,6 +105,7 @@ pub fn run(a: &DiagnoseArgs) -> Result<()> {
         bail!("--open, --pinhole and --out are required (or --session and --out)");
     };
     check_kernel(a.estimation.kernel, 3)?;
+    check_report_dir(out)?;
     let (mut o, mut p) = read_pair(open, pinhole)?;
     if let Some(note) = depth_note(open, &o, pinhole, &p) {
         eprintln!("lensrig: note: {note}");
@@ -154,6 +156,9 @@ fn diagnose_files(o: &Image, p: &Image, profile: Option<&Profile>, opts: &Diagno
 /// frames' sidecars).
 fn run_session(a: &DiagnoseArgs, session: &Path, out: &Path) -> Result<()> {
     let rec = load_finished(session)?;
+    for pair in &rec.pairs {
+        check_report_dir(&out.join(&pair.key)).with_context(|| format!("pair {}", pair.key))?;
+    }
     for pair in &rec.pairs {
         let (sp, opts) = pair_inputs(session, pair, &a.options())?;
         if !a.quiet {

@@ -70,11 +70,44 @@ impl Diagnosis {
     }
 }
 
-/// Writes every report file into `dir` (created if missing).
+/// Checks that `dir` may receive a diagnosis report: it is missing, empty, or holds a previous
+/// diagnosis (its `report.json` says `"format": "lensrig-diagnosis"`). Anything else (a
+/// calibration run's `index.html`, a profile, captures) is refused, so a report never
+/// replaces another command's files. Called before the diagnosis starts, so a wrong `--out`
+/// fails in a second rather than after the fit.
 ///
 /// # Errors
-/// I/O errors naming the file.
+/// [`ReportError::Foreign`] naming the first file found, or the I/O error listing `dir`.
+pub fn check_report_dir(dir: &Path) -> Result<(), ReportError> {
+    let entries = match std::fs::read_dir(dir) {
+        Ok(e) => e,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
+        Err(source) => return Err(ReportError::Io { path: dir.into(), source }),
+    };
+    let mut names: Vec<String> = entries.filter_map(|e| e.ok()).map(|e| e.file_name().to_string_lossy().into_owned()).collect();
+    if names.is_empty() {
+        return Ok(());
+    }
+    let is_diagnosis = std::fs::read_to_string(dir.join("report.json"))
+        .ok()
+        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+        .is_some_and(|v| v["format"] == "lensrig-diagnosis");
+    if is_diagnosis {
+        return Ok(());
+    }
+    names.sort();
+    let first = names.iter().find(|n| *n == "index.html").unwrap_or(&names[0]).clone();
+    let found = if names.len() == 1 { first } else { format!("{first} and {} other file(s)", names.len() - 1) };
+    Err(ReportError::Foreign { path: dir.into(), found, kind: "diagnosis report" })
+}
+
+/// Writes every report file into `dir` (created if missing; refused by [`check_report_dir`]
+/// when it holds anything but a previous diagnosis).
+///
+/// # Errors
+/// I/O errors naming the file; [`ReportError::Foreign`] for a directory of other files.
 pub fn write_report(d: &Diagnosis, dir: &Path, src: &Sources) -> Result<(), ReportError> {
+    check_report_dir(dir)?;
     std::fs::create_dir_all(dir).map_err(|source| ReportError::Io { path: dir.into(), source })?;
     let p = |n: &str| dir.join(n);
     // raw CFA planes are previewed as bilinear RGB (crate::image::raw::for_output)
@@ -246,4 +279,34 @@ fn html(d: &Diagnosis, src: &Sources) -> String {
     // lets a headless browser (and the tests) see whether every image loaded
     h.push_str("<script>window.addEventListener('load',()=>{const i=[...document.images];document.body.dataset.imagesLoaded=i.filter(x=>x.complete&&x.naturalWidth>0).length+'/'+i.length;});</script></body></html>");
     h
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_report_directory_is_missing_empty_or_a_previous_diagnosis() {
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path().join("rep");
+        check_report_dir(&d).unwrap();
+        std::fs::create_dir(&d).unwrap();
+        check_report_dir(&d).unwrap();
+        std::fs::write(d.join("report.json"), r#"{"format": "lensrig-diagnosis", "version": 1}"#).unwrap();
+        std::fs::write(d.join("index.html"), "old diagnosis").unwrap();
+        check_report_dir(&d).unwrap();
+        // a calibration run: index.html and summary.json, no diagnosis report.json
+        let cal = dir.path().join("cal");
+        std::fs::create_dir(&cal).unwrap();
+        std::fs::write(cal.join("index.html"), "calibration").unwrap();
+        std::fs::write(cal.join("summary.json"), "{}").unwrap();
+        let e = check_report_dir(&cal).unwrap_err().to_string();
+        assert!(e.contains("index.html and 1 other file(s)") && e.contains("not a diagnosis report"), "{e}");
+        // a report.json of another format does not pass either
+        std::fs::write(cal.join("report.json"), r#"{"format": "lensrig-calibration"}"#).unwrap();
+        assert!(matches!(check_report_dir(&cal), Err(ReportError::Foreign { .. })));
+        // a damaged report.json is not a diagnosis
+        std::fs::write(d.join("report.json"), "{ damaged").unwrap();
+        assert!(matches!(check_report_dir(&d), Err(ReportError::Foreign { .. })));
+    }
 }

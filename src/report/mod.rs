@@ -45,6 +45,10 @@ pub enum ReportError {
     Profile(#[from] crate::profile::ProfileError),
     #[error("cannot serialise the report: {0}")]
     Json(#[from] serde_json::Error),
+    /// The output directory holds files that are not this kind of report (another command's
+    /// report or a user's data): nothing is written into it.
+    #[error("{path} already holds {found}, which is not a {kind}; nothing was written (choose an empty directory or a previous {kind}'s)")]
+    Foreign { path: PathBuf, found: String, kind: &'static str },
 }
 
 /// Figures of one tile, per channel (index = channel).
@@ -401,8 +405,14 @@ pub const STYLE: &str = "body{font-family:sans-serif;margin:2em;max-width:1200px
 /// ([`crate::profile::uncertainty::load_uncertainty`]).
 ///
 /// # Errors
-/// A file that cannot be written.
+/// A file that cannot be written; [`ReportError::Foreign`] when `dir` holds another
+/// command's `index.html`.
 pub fn write_report(dir: &Path, p: &Profile, uncertainty: Option<&[Vec<Plane>]>, pitch_um: Option<f64>, title: &str) -> Result<ProfileReport, ReportError> {
+    // an index.html without this report's mtf50.csv beside it is another command's report (a
+    // calibration run's, a diagnosis's): it is kept, and nothing is written
+    if dir.join("index.html").exists() && !dir.join("mtf50.csv").exists() {
+        return Err(ReportError::Foreign { path: dir.into(), found: "index.html".into(), kind: "profile report" });
+    }
     std::fs::create_dir_all(dir).map_err(io(dir))?;
     let g = &p.grid;
     let mut r = analyse(g, p.meta.source.width, p.meta.source.height, pitch_um);
@@ -495,6 +505,30 @@ mod tests {
             assert!(html.contains(f), "{f}");
         }
         assert!(html.contains("no uncertainty (estimate with --bootstrap N)"));
+    }
+
+    /// The report replaces its own earlier files but never another command's `index.html`.
+    #[test]
+    fn report_refuses_a_directory_holding_another_report() {
+        use crate::image::{SampleFormat, Transfer};
+        use crate::profile::{PsfTable, SourceInfo};
+        let (w, h) = (96, 64);
+        let grid = LensModel::demo(w, h).psf_grid(4.0, 2, 2, 15);
+        let psf = PsfTable { kernel_size: 15, columns: 2, rows: 2, centers: grid.centers.clone(), tile_size: None, files: Default::default() };
+        let source = SourceInfo { width: w, height: h, channels: grid.channels.clone(), sample_format: SampleFormat::U16, transfer: Transfer::Linear, open: None, pinhole: None, black_level: vec![] };
+        let p = Profile { meta: Profile::new_meta(source, vec![1.0; grid.channels.len()], psf), grid };
+        let d = tempfile::tempdir().expect("tempdir");
+        let out = d.path().join("rep");
+        write_report(&out, &p, None, None, "first").expect("fresh directory");
+        write_report(&out, &p, None, None, "second").expect("its own report is replaced");
+        assert!(std::fs::read_to_string(out.join("index.html")).expect("html").contains("second"));
+        let cal = d.path().join("cal");
+        std::fs::create_dir(&cal).expect("dir");
+        std::fs::write(cal.join("index.html"), "calibration run").expect("write");
+        let e = write_report(&cal, &p, None, None, "x").expect_err("foreign index.html");
+        assert!(e.to_string().contains("not a profile report"), "{e}");
+        assert_eq!(std::fs::read_to_string(cal.join("index.html")).expect("html"), "calibration run");
+        assert_eq!(std::fs::read_dir(&cal).expect("ls").count(), 1);
     }
 
     /// With uncertainty maps, the report writes one field map per channel and a CSV whose values

@@ -131,6 +131,14 @@ pub struct CentroidSimilarity {
 }
 
 impl CentroidSimilarity {
+    /// The size `|p| = √(p0² + p1²)` of the similarity (its corner displacement over the half
+    /// diagonal) over its standard error `√((p0·se0)² + (p1·se1)²) / |p|` (∞ when the error is 0).
+    pub fn magnitude_t(&self) -> f64 {
+        let m = self.p[0].hypot(self.p[1]);
+        let se = (self.p[0] * self.se[0]).hypot(self.p[1] * self.se[1]) / m.max(1e-300);
+        if se > 0.0 { m / se } else { f64::INFINITY }
+    }
+
     /// The rotation over its standard error (0 when the error is 0).
     pub fn rotation_t(&self) -> f64 {
         if self.se[1] > 0.0 {
@@ -449,7 +457,8 @@ fn glare_sigma(data: &Data, current: &Fit) -> Option<f64> {
 /// docs/notes/diagnosis-history.md "Session 20"). The label says which path stopped it or
 /// proposed it.
 fn misregistration_candidate(data: &Data, current: &Fit, a: &Analysis, gate: &StartGate, registered: &super::registered::RegisteredStarts) -> (Option<Candidate>, &'static str) {
-    let Some(p0) = centroid_similarity(current) else { return (None, "misregistration") };
+    let Some(sim) = centroid_similarity_fit(current) else { return (None, "misregistration") };
+    let p0 = sim.p;
     let (info0, init0, corner0) = similarity_model(current, &data.base_registration, p0);
     let corr0 = Corrections { misregistration: Some(info0), ..current.model.corrections.clone() };
     let c = super::registered::MapCandidate {
@@ -460,6 +469,7 @@ fn misregistration_candidate(data: &Data, current: &Fit, a: &Analysis, gate: &St
         corrections: &corr0,
         moved: &init0,
         corner_px: corner0,
+        corner_t: sim.magnitude_t(),
     };
     super::registered::geometric_candidate(gate, registered, &c, || similarity_candidate(data, current, a, p0), |_, cmp| {
         let (rot, scale) = rotation_and_scale(1.0 + p0[0], p0[1]);

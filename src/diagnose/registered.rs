@@ -40,6 +40,14 @@ use crate::image::{Image, Transfer};
 /// working: below it the move costs little.
 pub const MIN_CORNER_PX: f64 = 1.0;
 
+/// …and only where that corner displacement is at least this many of its standard errors (the
+/// centroids' scatter about the map's least-squares fit). At 1024×768, seed 41, vignetting
+/// bends the base kernels' centroids into a keystone of 1.0 px at the corners that is no
+/// tilt (0.7 standard errors; the registered path cost 54 s there and refused it); the tilted
+/// and misregistered cases' maps stand at tens of standard errors
+/// (docs/notes/diagnosis-history.md, "Session 26").
+pub const MIN_CORNER_T: f64 = 3.0;
+
 /// The pre-fit of both starts: the base stage's budget (`DiagnoseOptions::base_fit`, 3 × 80),
 /// so that the candidate's kernels have had what the current model's had before the screening
 /// compares them with the null refit (docs/notes/diagnosis-history.md, "Session 20": at the
@@ -169,13 +177,16 @@ pub struct MapCandidate<'m> {
     pub moved: &'m Model,
     /// The map's largest displacement at the image corners (pixels).
     pub corner_px: f64,
+    /// That displacement over its standard error ([`MIN_CORNER_T`]).
+    pub corner_t: f64,
 }
 
 /// The proposal of a geometric candidate (module docs), with the label of the path that
 /// stopped or proposed it:
 /// - `c`'s moved start passes the `gate` ([`StartGate::passes`]): what `gate_passed` (the
 ///   candidate's own parameter search) returns, labelled `c.name`;
-/// - the gate refuses and the map moves no corner by [`MIN_CORNER_PX`]: none, `c.gated`;
+/// - the gate refuses and the map moves no corner by [`MIN_CORNER_PX`], or by fewer than
+///   [`MIN_CORNER_T`] standard errors: none, `c.gated`;
 /// - the start re-estimated under the map ([`RegisteredStarts::start`]) wins like for like
 ///   ([`Comparison::wins`]): the candidate `c.name` from that start (its corrections, its
 ///   model as the start; the map not refined), with the evidence and location `texts` gives for
@@ -191,7 +202,10 @@ pub fn geometric_candidate(
     if gate.passes(c.corrections, c.moved) {
         return (gate_passed(), c.name);
     }
-    if c.corner_px < MIN_CORNER_PX {
+    if registered.progress {
+        eprintln!("{}: the gate refuses; the map moves the corners by {:.2} px, {:.1} standard errors", c.name, c.corner_px, c.corner_t);
+    }
+    if c.corner_px < MIN_CORNER_PX || c.corner_t < MIN_CORNER_T {
         return (None, c.gated);
     }
     match registered.start(c.corrections, gate.base()) {

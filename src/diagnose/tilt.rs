@@ -26,6 +26,35 @@ pub fn centroid_keystone(current: &Fit) -> Option<[f64; 2]> {
 
 /// [`centroid_keystone`] of a kernel grid over a `w × h` image.
 pub fn keystone_of_grid(g: &crate::optics::psf_grid::PsfGrid, w: usize, h: usize) -> Option<[f64; 2]> {
+    keystone_fit_of_grid(g, w, h).map(|f| f.k)
+}
+
+/// The keystone the kernels' centroids follow with its uncertainty ([`keystone_fit_of_grid`]).
+#[derive(Clone, Copy, Debug)]
+pub struct KeystoneFit {
+    /// `[g, h]`, per pixel.
+    pub k: [f64; 2],
+    /// The covariance of `[g, h]`: `σ̂² (AᵀA)⁻¹` of the least squares, `σ̂²` the centroids'
+    /// mean square about the fit over `2n − 6` degrees of freedom (a lens's own centroid
+    /// pattern that the model does not follow counts as scatter, so the error is conservative).
+    pub cov: [[f64; 2]; 2],
+}
+
+impl KeystoneFit {
+    /// The largest corner displacement ([`corner_displacement`]) over its standard error at
+    /// that corner (∞ when the error is 0).
+    pub fn corner_t(&self, w: usize, h: usize) -> f64 {
+        let (hx, hy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
+        let worst = [(hx, hy), (hx, -hy), (-hx, hy), (-hx, -hy)].into_iter().max_by(|a, b| (self.k[0] * a.0 + self.k[1] * a.1).abs().total_cmp(&(self.k[0] * b.0 + self.k[1] * b.1).abs())).unwrap_or((hx, hy));
+        let (x, y) = worst;
+        let d = (self.k[0] * x + self.k[1] * y).abs();
+        let var = x * x * self.cov[0][0] + 2.0 * x * y * self.cov[0][1] + y * y * self.cov[1][1];
+        if var > 0.0 { d / var.sqrt() } else { f64::INFINITY }
+    }
+}
+
+/// [`keystone_of_grid`] with the covariance of the keystone ([`KeystoneFit`]).
+pub fn keystone_fit_of_grid(g: &crate::optics::psf_grid::PsfGrid, w: usize, h: usize) -> Option<KeystoneFit> {
     if g.tile_count() < 6 {
         return None;
     }
@@ -35,6 +64,7 @@ pub fn keystone_of_grid(g: &crate::optics::psf_grid::PsfGrid, w: usize, h: usize
     let unit = 0.5 * (w * w + h * h).sqrt();
     let mut ata = vec![vec![0.0f64; 6]; 6];
     let mut atb = vec![0.0f64; 6];
+    let mut rows: Vec<([f64; 6], f64)> = Vec::with_capacity(2 * g.tile_count());
     for t in 0..g.tile_count() {
         let (dx, dy) = g.mean_centroid(t);
         let (x, y) = ((g.centers[t][0] - cx) / unit, (g.centers[t][1] - cy) / unit);
@@ -45,10 +75,16 @@ pub fn keystone_of_grid(g: &crate::optics::psf_grid::PsfGrid, w: usize, h: usize
                     ata[i][j] += row[i] * row[j];
                 }
             }
+            rows.push((row, d));
         }
     }
-    let p = crate::solve::dense::solve(ata, atb, 1e-300)?;
-    Some([p[4] / (unit * unit), p[5] / (unit * unit)])
+    let p = crate::solve::dense::solve(ata.clone(), atb, 1e-300)?;
+    let ss: f64 = rows.iter().map(|(row, d)| (d - (0..6).map(|i| row[i] * p[i]).sum::<f64>()).powi(2)).sum();
+    let s2 = ss / (rows.len() - 6) as f64;
+    let col = |i: usize| crate::solve::dense::solve(ata.clone(), (0..6).map(|j| f64::from(u8::from(i == j))).collect(), 1e-300);
+    let (c4, c5) = (col(4)?, col(5)?);
+    let u4 = s2 / unit.powi(4);
+    Some(KeystoneFit { k: [p[4] / (unit * unit), p[5] / (unit * unit)], cov: [[u4 * c4[4], u4 * c4[5]], [u4 * c5[4], u4 * c5[5]]] })
 }
 
 /// The largest keystone displacement (pixels) at the image corners for `[g, h]`.
@@ -102,7 +138,8 @@ pub fn tilt_candidate(data: &Data, current: &Fit, a: &Analysis, gate: &super::ca
     if current.model.corrections.target_tilt.is_some() {
         return (None, "target_tilt");
     }
-    let Some(k0) = centroid_keystone(current) else { return (None, "target_tilt") };
+    let Some(kf) = keystone_fit_of_grid(&current.model.grid, current.normalized[0].width, current.normalized[0].height) else { return (None, "target_tilt") };
+    let k0 = kf.k;
     let (w, h) = (data.open.width(), data.open.height());
     let corner0 = corner_displacement(k0, w, h);
     if corner0 < MIN_CORNER_PX {
@@ -117,6 +154,7 @@ pub fn tilt_candidate(data: &Data, current: &Fit, a: &Analysis, gate: &super::ca
         corrections: &start.corrections,
         moved: &start,
         corner_px: corner0,
+        corner_t: kf.corner_t(w, h),
     };
     super::registered::geometric_candidate(gate, registered, &c, || keystone_candidate(data, current, a, k0, corner0), |m, cmp| {
         let t = m.corrections.target_tilt.unwrap_or(TiltCorrection { g: 0.0, h: 0.0 });
@@ -180,5 +218,42 @@ mod tests {
         let corner = corner_displacement(got, w, h);
         assert!(corner > MIN_CORNER_PX, "{corner}");
         assert_eq!(corner_displacement([0.0, 0.0], w, h), 0.0);
+    }
+
+    /// The keystone's standard error ([`KeystoneFit::corner_t`]): a keystone buried in centroid
+    /// scatter of its own size stands at a few standard errors at most, the same keystone on
+    /// centroids with a tenth of that scatter at ten times as many; the covariance matches the
+    /// spread of the fitted keystone over many scatter draws.
+    #[test]
+    fn keystone_standard_error_follows_the_centroids_scatter() {
+        let (w, h, k) = (1024usize, 768usize, 15usize);
+        let (g0, h0) = (1.5e-6, 0.5e-6);
+        let centers = PsfGrid::regular_centers(w, h, 7, 5);
+        let (cx, cy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
+        let grid_with = |scatter: f64, seed: u64| {
+            let mut r = crate::rng::Rng::new(seed);
+            let kernels = vec![centers
+                .iter()
+                .map(|c| {
+                    let (dx, dy) = (c[0] - cx, c[1] - cy);
+                    let s = g0 * dx + h0 * dy;
+                    let (sx, sy) = (dx * s + scatter * r.normal(), dy * s + scatter * r.normal());
+                    let m = (k as f64 - 1.0) / 2.0;
+                    crate::image::Plane::from_fn(k, k, |x, y| (-((x as f64 - m - sx).powi(2) + (y as f64 - m - sy).powi(2)) / (2.0 * 1.5 * 1.5)).exp() as f32)
+                })
+                .collect()];
+            PsfGrid { kernel_size: k, columns: 7, rows: 5, centers: centers.clone(), channels: vec!["Y".into()], kernels }
+        };
+        let corner = corner_displacement([g0, h0], w, h);
+        let noisy = keystone_fit_of_grid(&grid_with(corner, 3), w, h).expect("determined");
+        let quiet = keystone_fit_of_grid(&grid_with(0.1 * corner, 3), w, h).expect("determined");
+        let (tn, tq) = (noisy.corner_t(w, h), quiet.corner_t(w, h));
+        assert!(tn < 3.0 && tq > 10.0 && tq > 5.0 * tn, "t {tn:.2} with scatter at the keystone's size, {tq:.2} at a tenth");
+        // the predicted standard error of g against the spread over draws
+        let gs: Vec<f64> = (0..200).map(|seed| keystone_fit_of_grid(&grid_with(0.1 * corner, 100 + seed), w, h).expect("determined").k[0]).collect();
+        let mean = gs.iter().sum::<f64>() / gs.len() as f64;
+        let sd = (gs.iter().map(|g| (g - mean).powi(2)).sum::<f64>() / (gs.len() - 1) as f64).sqrt();
+        let predicted = quiet.cov[0][0].sqrt();
+        assert!((predicted / sd - 1.0).abs() < 0.35, "predicted se(g) {predicted:.3e}, measured {sd:.3e}");
     }
 }

@@ -1025,7 +1025,7 @@ fn verdict_class(effects: &[FoundEffect], current: &Fit, final_analysis: &Analys
         }
         v
     } else if consistent(current, opts) {
-        let v = format!("explained: {} bring the fit to the noise floor", effects.iter().map(|e| e.name.as_str()).collect::<Vec<_>>().join(", "));
+        let v = format!("explained: {} {} the fit to the noise floor", effects.iter().map(|e| e.name.as_str()).collect::<Vec<_>>().join(", "), if effects.len() == 1 { "brings" } else { "bring" });
         rotation.map_or(v.clone(), |r| format!("{v}; but {r}"))
     } else {
         let curvebits: Vec<String> = final_analysis

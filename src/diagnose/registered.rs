@@ -42,9 +42,9 @@ pub const MIN_CORNER_PX: f64 = 1.0;
 
 /// …and only where that corner displacement is at least this many of its standard errors (the
 /// centroids' scatter about the map's least-squares fit). At 1024×768, seed 41, vignetting
-/// bends the base kernels' centroids into a keystone of 1.0 px at the corners that is no
-/// tilt (0.7 standard errors; the registered path cost 54 s there and refused it); the tilted
-/// and misregistered cases' maps stand at tens of standard errors
+/// bends the base kernels' centroids into a keystone of 1.00 px at the corners that is no
+/// tilt (2.7 standard errors; the registered path cost 54 s there and refused it); the tilted
+/// and misregistered cases' maps stand at 337 and 545 standard errors
 /// (docs/notes/diagnosis-history.md, "Session 26").
 pub const MIN_CORNER_T: f64 = 3.0;
 

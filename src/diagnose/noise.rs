@@ -307,12 +307,22 @@ impl PoissonGaussian {
     /// Weighted least-squares fit with `a, b ≥ 0` to a curve's bins mapped to the linear axis
     /// by `transfer` (relative errors: weights `1/Var²`, which suits a law spanning decades).
     pub fn fit(curve: &NoiseCurve, transfer: Transfer) -> PoissonGaussian {
+        Self::fit_pedestal(curve, transfer, 0.0)
+    }
+
+    /// [`PoissonGaussian::fit`] of `Var = a·(L − β) + b` for a model whose wide-open capture
+    /// carries a `black_level` offset `β` (linear full scale): a pedestal adds no noise, so the
+    /// law's intercept on the stored level may reach `b − a·β`. Only a positive `β` shifts the
+    /// axis (an offset the reference carries, or ambient light, which brings its own shot noise,
+    /// are then `b ≥ a·β`: still within the law). `L` and `β` on the linear axis of `transfer`.
+    pub fn fit_pedestal(curve: &NoiseCurve, transfer: Transfer, beta: f64) -> PoissonGaussian {
+        let beta = if beta.is_finite() { beta.max(0.0) } else { 0.0 };
         let pts: Vec<(f64, f64)> = curve
             .bins
             .iter()
             .map(|&(m, _, _)| {
                 let l = transfer.decode(m as f32).max(0.0);
-                (l as f64, curve.linear_variance(l, transfer) as f64)
+                ((l as f64 - beta).max(0.0), curve.linear_variance(l, transfer) as f64)
             })
             .filter(|p| p.1 > 0.0)
             .collect();
@@ -443,6 +453,25 @@ mod tests {
         assert!(ratios.iter().all(|q| (q.1 - 1.0).abs() < 0.10), "{ratios:.3?}");
         let pg = PoissonGaussian::fit(&c, Transfer::Linear);
         assert!(pg.misfit < 0.06, "{pg:?}");
+    }
+
+    /// A wide-open capture with a noiseless pedestal `β` (a black-level mismatch): its curve
+    /// against the stored level has the intercept `b − a·β < 0`, which no law with `b ≥ 0`
+    /// follows. Told the model's `β`, the law fits and recovers `a`; an ordinary curve fits the
+    /// same whether or not its model has an offset.
+    #[test]
+    fn a_black_level_pedestal_shifts_the_laws_axis() {
+        let (a, b, beta) = (4e-5, 2e-7, 0.035);
+        let levels = [0.05, 0.06, 0.08, 0.12, 0.2, 0.3, 0.33, 0.36];
+        let pedestal = NoiseCurve { bins: levels.iter().map(|&m| (m, a * (m - beta) + b, 500)).collect() };
+        let plain = PoissonGaussian::fit(&pedestal, Transfer::Linear);
+        let told = PoissonGaussian::fit_pedestal(&pedestal, Transfer::Linear, beta);
+        assert!(plain.misfit > 0.10, "{plain:?}");
+        assert!(told.misfit < 0.01 && (told.a / a - 1.0).abs() < 0.02, "{told:?}");
+        let ordinary = NoiseCurve { bins: levels.iter().map(|&m| (m, a * m + b, 500)).collect() };
+        let with_offset = PoissonGaussian::fit_pedestal(&ordinary, Transfer::Linear, beta);
+        assert!(with_offset.misfit < 0.01 && (with_offset.a / a - 1.0).abs() < 0.02, "{with_offset:?}");
+        assert_eq!(PoissonGaussian::fit_pedestal(&ordinary, Transfer::Linear, -0.02), PoissonGaussian::fit(&ordinary, Transfer::Linear));
     }
 
     #[test]

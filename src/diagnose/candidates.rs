@@ -132,11 +132,18 @@ pub struct CentroidSimilarity {
 
 impl CentroidSimilarity {
     /// The size `|p| = √(p0² + p1²)` of the similarity (its corner displacement over the half
-    /// diagonal) over its standard error `√((p0·se0)² + (p1·se1)²) / |p|` (∞ when the error is 0).
+    /// diagonal) over its standard error `√((p0·se0)² + (p1·se1)²) / |p|` (0 for no similarity, ∞
+    /// when the error is 0).
     pub fn magnitude_t(&self) -> f64 {
         let m = self.p[0].hypot(self.p[1]);
-        let se = (self.p[0] * self.se[0]).hypot(self.p[1] * self.se[1]) / m.max(1e-300);
-        if se > 0.0 { m / se } else { f64::INFINITY }
+        let se = (self.p[0] * self.se[0]).hypot(self.p[1] * self.se[1]) / m;
+        if m == 0.0 {
+            0.0
+        } else if se > 0.0 {
+            m / se
+        } else {
+            f64::INFINITY
+        }
     }
 
     /// The rotation over its standard error (0 when the error is 0).
@@ -170,22 +177,10 @@ pub fn centroid_similarity_of(g: &crate::optics::psf_grid::PsfGrid, w: usize, h:
     if rows.len() < 6 {
         return None;
     }
-    let mut ata = vec![vec![0.0f64; 4]; 4];
-    let mut atb = vec![0.0f64; 4];
-    for (row, d) in &rows {
-        for i in 0..4 {
-            atb[i] += row[i] * d;
-            for j in 0..4 {
-                ata[i][j] += row[i] * row[j];
-            }
-        }
-    }
-    let sol = crate::solve::dense::solve(ata.clone(), atb, 1e-300)?;
-    let ss: f64 = rows.iter().map(|(row, d)| (d - (0..4).map(|i| row[i] * sol[i]).sum::<f64>()).powi(2)).sum();
-    let s2 = ss / (rows.len() - 4) as f64;
-    let inv_diag = |i: usize| crate::solve::dense::solve(ata.clone(), (0..4).map(|j| f64::from(u8::from(i == j))).collect(), 1e-300).map(|x| x[i]);
-    let se = [(s2 * inv_diag(0)?).max(0.0).sqrt(), (s2 * inv_diag(1)?).max(0.0).sqrt()];
-    Some(CentroidSimilarity { p: [sol[0], sol[1]], se, rotation_corner_px: 0.5 * (w * w + h * h).sqrt() * sol[1].abs() })
+    let ls = crate::solve::dense::least_squares(&rows, 1e-300)?;
+    let inv_diag = |i: usize| ls.inverse_column(i).map(|x| x[i]);
+    let se = [(ls.s2 * inv_diag(0)?).max(0.0).sqrt(), (ls.s2 * inv_diag(1)?).max(0.0).sqrt()];
+    Some(CentroidSimilarity { p: [ls.p[0], ls.p[1]], se, rotation_corner_px: 0.5 * (w * w + h * h).sqrt() * ls.p[1].abs() })
 }
 
 /// The registration with `A − I = [[p0, −p1], [p1, p0]]` and the current model's kernels moved

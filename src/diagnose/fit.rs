@@ -648,12 +648,6 @@ fn fit_on(data: &Data, corrections: &Corrections, init: &Model, settings: FitSet
     finish(data, setup, corr, p, subset_figures)
 }
 
-/// The `black_level` offset of channel `c` in `corr` (0 without one): the pedestal the noise
-/// law's axis is shifted by ([`super::noise::PoissonGaussian::fit_pedestal`]).
-pub fn pedestal(corr: &Corrections, c: usize) -> f64 {
-    corr.black_level.as_ref().and_then(|b| b.offset.get(c).copied()).unwrap_or(0.0)
-}
-
 /// The fitted parameters `p` into a [`Fit`]: the model, its figures and the noise law's fit.
 fn finish(data: &Data, setup: Setup, corr: Corrections, p: Params, subset_figures: bool) -> Fit {
     finish_scored(data, setup, corr, p, subset_figures, None)
@@ -665,7 +659,7 @@ fn finish_scored(data: &Data, setup: Setup, mut corr: Corrections, mut p: Params
     let (grid, exposure) = setup.final_model(&mut corr, &p);
     let f = setup.figures(&corr, &mut p, subset_figures, scored);
     let (nch, k) = (setup.nch, setup.grid0.kernel_size);
-    let laws: Vec<super::noise::PoissonGaussian> = data.curves.iter().enumerate().map(|(c, curve)| super::noise::PoissonGaussian::fit_pedestal(curve, setup.transfer, pedestal(&corr, c))).collect();
+    let laws: Vec<super::noise::PoissonGaussian> = data.curves.iter().enumerate().map(|(c, curve)| super::noise::PoissonGaussian::fit_pedestal(curve, setup.transfer, corr.black_offset(c))).collect();
     let kernel_params = nch * (grid.tile_count() * (k * k - 1) + 1);
     let params = kernel_params + correction_params(&corr, nch);
     Fit {
@@ -944,7 +938,7 @@ impl<'a> Setup<'a> {
             })
             .collect();
         let glare_amp: Vec<f64> = (0..self.nch).map(|c| corr.veiling_glare.map_or(0.0, |g| g.fraction * init.exposure.get(c).copied().unwrap_or(1.0))).collect();
-        let beta: Vec<f64> = (0..self.nch).map(|c| corr.black_level.as_ref().and_then(|b| b.offset.get(c).copied()).unwrap_or(0.0)).collect();
+        let beta: Vec<f64> = (0..self.nch).map(|c| corr.black_offset(c)).collect();
         let a_parts: Vec<Plane> = (0..self.nch).map(|c| self.blur_part(c, &u[c])).collect();
         Params { u, glare_amp, beta, a_parts, variance_lin: vec![Plane::new(self.w, self.h); self.nch] }
     }

@@ -1076,14 +1076,14 @@ fn what_remains(reduced_chi2: f64, noise_misfit: f64, opts: &DiagnoseOptions) ->
 }
 
 /// The noise model of each channel, with the Poisson–Gaussian law on the final model's axis
-/// (its transfer, shifted by its `black_level` pedestal, [`fit::pedestal`]) and on the linear
+/// (its transfer, shifted by its `black_level` pedestal, [`model::Corrections::black_offset`]) and on the linear
 /// one.
 fn noise_reports(data: &Data, current: &Fit, open: &Image, repeat_noise: bool) -> Vec<NoiseReport> {
     data.curves
         .iter()
         .enumerate()
         .map(|(c, curve)| {
-            let pg = PoissonGaussian::fit_pedestal(curve, current.transfer, fit::pedestal(&current.model.corrections, c));
+            let pg = PoissonGaussian::fit_pedestal(curve, current.transfer, current.model.corrections.black_offset(c));
             let pl = PoissonGaussian::fit(curve, crate::image::Transfer::Linear);
             NoiseReport {
                 channel: open.channels.get(c).cloned().unwrap_or_default(),

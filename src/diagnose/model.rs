@@ -176,6 +176,11 @@ pub enum CorrectionError {
 }
 
 impl Corrections {
+    /// The `black_level` offset `β_c` of channel `c` (linear full scale; 0 without one).
+    pub fn black_offset(&self, c: usize) -> f64 {
+        self.black_level.as_ref().and_then(|b| b.offset.get(c).copied()).unwrap_or(0.0)
+    }
+
     /// The names of the corrections present, in model order.
     pub fn names(&self) -> Vec<&'static str> {
         let mut v = Vec::new();
@@ -326,7 +331,7 @@ pub fn predict_linear(c: &Corrections, profile_grid: &crate::optics::psf_grid::P
                 }
             }
             let s = exposure.get(ch).copied().unwrap_or(1.0);
-            let off = c.black_level.as_ref().and_then(|b| b.offset.get(ch).copied()).unwrap_or(0.0);
+            let off = c.black_offset(ch);
             for y in 0..h {
                 for x in 0..w {
                     let i = y * w + x;

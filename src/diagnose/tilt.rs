@@ -21,7 +21,12 @@ const MIN_CORNER_PX: f64 = 0.25;
 /// `[g, h]` of the keystone the kernels' centroids follow (module docs), or `None` when the
 /// grid cannot determine it (fewer than six tiles, or a singular system).
 pub fn centroid_keystone(current: &Fit) -> Option<[f64; 2]> {
-    keystone_of_grid(&current.model.grid, current.normalized[0].width, current.normalized[0].height)
+    centroid_keystone_fit(current).map(|f| f.k)
+}
+
+/// [`centroid_keystone`] with its covariance ([`KeystoneFit`]).
+pub fn centroid_keystone_fit(current: &Fit) -> Option<KeystoneFit> {
+    keystone_fit_of_grid(&current.model.grid, current.normalized[0].width, current.normalized[0].height)
 }
 
 /// [`centroid_keystone`] of a kernel grid over a `w × h` image.
@@ -42,14 +47,20 @@ pub struct KeystoneFit {
 
 impl KeystoneFit {
     /// The largest corner displacement ([`corner_displacement`]) over its standard error at
-    /// that corner (∞ when the error is 0).
+    /// that corner (0 for no keystone, ∞ when the error is 0).
     pub fn corner_t(&self, w: usize, h: usize) -> f64 {
         let (hx, hy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
         let worst = [(hx, hy), (hx, -hy), (-hx, hy), (-hx, -hy)].into_iter().max_by(|a, b| (self.k[0] * a.0 + self.k[1] * a.1).abs().total_cmp(&(self.k[0] * b.0 + self.k[1] * b.1).abs())).unwrap_or((hx, hy));
         let (x, y) = worst;
         let d = (self.k[0] * x + self.k[1] * y).abs();
         let var = x * x * self.cov[0][0] + 2.0 * x * y * self.cov[0][1] + y * y * self.cov[1][1];
-        if var > 0.0 { d / var.sqrt() } else { f64::INFINITY }
+        if d == 0.0 {
+            0.0
+        } else if var > 0.0 {
+            d / var.sqrt()
+        } else {
+            f64::INFINITY
+        }
     }
 }
 
@@ -62,29 +73,17 @@ pub fn keystone_fit_of_grid(g: &crate::optics::psf_grid::PsfGrid, w: usize, h: u
     let (cx, cy) = ((w - 1.0) / 2.0, (h - 1.0) / 2.0);
     // unknowns p, q, tx, ty, g, h; lengths in units of the half diagonal keep the system scaled
     let unit = 0.5 * (w * w + h * h).sqrt();
-    let mut ata = vec![vec![0.0f64; 6]; 6];
-    let mut atb = vec![0.0f64; 6];
-    let mut rows: Vec<([f64; 6], f64)> = Vec::with_capacity(2 * g.tile_count());
-    for t in 0..g.tile_count() {
-        let (dx, dy) = g.mean_centroid(t);
-        let (x, y) = ((g.centers[t][0] - cx) / unit, (g.centers[t][1] - cy) / unit);
-        for (row, d) in [([x, -y, 1.0, 0.0, x * x, x * y], dx), ([y, x, 0.0, 1.0, x * y, y * y], dy)] {
-            for i in 0..6 {
-                atb[i] += row[i] * d;
-                for j in 0..6 {
-                    ata[i][j] += row[i] * row[j];
-                }
-            }
-            rows.push((row, d));
-        }
-    }
-    let p = crate::solve::dense::solve(ata.clone(), atb, 1e-300)?;
-    let ss: f64 = rows.iter().map(|(row, d)| (d - (0..6).map(|i| row[i] * p[i]).sum::<f64>()).powi(2)).sum();
-    let s2 = ss / (rows.len() - 6) as f64;
-    let col = |i: usize| crate::solve::dense::solve(ata.clone(), (0..6).map(|j| f64::from(u8::from(i == j))).collect(), 1e-300);
-    let (c4, c5) = (col(4)?, col(5)?);
-    let u4 = s2 / unit.powi(4);
-    Some(KeystoneFit { k: [p[4] / (unit * unit), p[5] / (unit * unit)], cov: [[u4 * c4[4], u4 * c4[5]], [u4 * c5[4], u4 * c5[5]]] })
+    let rows: Vec<([f64; 6], f64)> = (0..g.tile_count())
+        .flat_map(|t| {
+            let (dx, dy) = g.mean_centroid(t);
+            let (x, y) = ((g.centers[t][0] - cx) / unit, (g.centers[t][1] - cy) / unit);
+            [([x, -y, 1.0, 0.0, x * x, x * y], dx), ([y, x, 0.0, 1.0, x * y, y * y], dy)]
+        })
+        .collect();
+    let ls = crate::solve::dense::least_squares(&rows, 1e-300)?;
+    let (c4, c5) = (ls.inverse_column(4)?, ls.inverse_column(5)?);
+    let u4 = ls.s2 / unit.powi(4);
+    Some(KeystoneFit { k: [ls.p[4] / (unit * unit), ls.p[5] / (unit * unit)], cov: [[u4 * c4[4], u4 * c4[5]], [u4 * c5[4], u4 * c5[5]]] })
 }
 
 /// The largest keystone displacement (pixels) at the image corners for `[g, h]`.
@@ -138,7 +137,7 @@ pub fn tilt_candidate(data: &Data, current: &Fit, a: &Analysis, gate: &super::ca
     if current.model.corrections.target_tilt.is_some() {
         return (None, "target_tilt");
     }
-    let Some(kf) = keystone_fit_of_grid(&current.model.grid, current.normalized[0].width, current.normalized[0].height) else { return (None, "target_tilt") };
+    let Some(kf) = centroid_keystone_fit(current) else { return (None, "target_tilt") };
     let k0 = kf.k;
     let (w, h) = (data.open.width(), data.open.height());
     let corner0 = corner_displacement(k0, w, h);

@@ -191,6 +191,15 @@ pub struct Fit {
     pub warm: Warm,
 }
 
+/// A fit's measured kernel degrees of freedom and absorbed high-pass shares with its tile
+/// count ([`Fit::dof`]): what [`Fit::inherit`] scales onto another fit.
+#[derive(Clone, Debug)]
+pub struct InheritedDof {
+    kernel_dof: Option<f64>,
+    highpass_absorbed: Option<Vec<f64>>,
+    tiles: usize,
+}
+
 /// The kernel solver's state a fit leaves ([`Fit::warm`]): per channel the FISTA momentum, its
 /// common sum and the step norm's power vector ([`KernelWarm`]), and the data term's pixel
 /// budget it was left on (`data_pixels` of the fit: the subset's blocks or every pixel).
@@ -246,8 +255,17 @@ impl Fit {
     /// counts (a finer grid under `psf_field_variation` has proportionally more): a candidate
     /// is refitted from `from` with the same kernel solver, so it responds to the noise alike.
     pub fn inherit_dof(&mut self, from: &Fit) {
+        self.inherit(&from.dof());
+    }
+    /// What [`Fit::inherit_dof`] takes from this fit, without its whole-image planes: a later
+    /// fit can inherit it after this one is dropped.
+    pub fn dof(&self) -> InheritedDof {
+        InheritedDof { kernel_dof: self.kernel_dof, highpass_absorbed: self.highpass_absorbed.clone(), tiles: self.model.grid.tile_count() }
+    }
+    /// [`Fit::inherit_dof`] from a fit's [`Fit::dof`].
+    pub fn inherit(&mut self, from: &InheritedDof) {
         if let Some(k) = from.kernel_dof {
-            let ratio = self.model.grid.tile_count() as f64 / from.model.grid.tile_count().max(1) as f64;
+            let ratio = self.model.grid.tile_count() as f64 / from.tiles.max(1) as f64;
             self.kernel_dof = Some((k * ratio).min(self.kernel_params as f64));
             self.highpass_absorbed = from.highpass_absorbed.as_ref().map(|a| a.iter().map(|v| (v * ratio).min(super::kernels::MAX_ABSORBED)).collect());
         }
@@ -906,7 +924,7 @@ impl<'a> Setup<'a> {
         let covered = ops.first().map(|o| o.covered().to_vec()).unwrap_or_default();
         let kept = |x: usize, y: usize| keep(x, y) && covered.get(y * w + x).copied().unwrap_or(true);
         let masks = Masks::new(data, corr, &registration, grid0.kernel_size / 2, &kept);
-        let glare_planes: Option<Vec<Plane>> = corr.veiling_glare.map(|g| reference.iter().map(|p| gaussian_blur_wide(p, g.sigma_px)).collect());
+        let glare_planes: Option<Vec<Plane>> = corr.veiling_glare.map(|g| reference.par_iter().map(|p| gaussian_blur_wide(p, g.sigma_px)).collect());
         let diffraction = corr.pinhole_diffraction.clone();
         let warm = (0..nch).map(|_| std::sync::Mutex::new(KernelWarm::default())).collect();
         Self { data, transfer, w, h, nch, reference, open_lin, noise_factor, grid0, masks, glare_planes, ops, diffraction, warm, data_pixels }

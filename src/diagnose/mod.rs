@@ -550,11 +550,14 @@ fn adopt(data: &mut Data, s: &mut Search, (cand, f, dbic): (candidates::Candidat
     }
     let (before, after) = (Figures::of(&previous), Figures::of(&current));
     s.effects.push(FoundEffect { name: cand.name.to_string(), evidence, location: cand.location, parameters, before, after, delta_bic: dbic });
-    // the models no longer needed go before the refit (each holds whole-image planes)
+    // the models no longer needed go before the refit (each holds whole-image planes): the
+    // rescored winner too, whose degrees of freedom the refit inherits (in round 1 the
+    // current model until the refit replaces it shares its planes with `diagnose`'s base)
     drop(previous);
-    s.current = current;
+    let dof = current.dof();
+    drop(current);
     let mut refit = fit::fit_from(data, &model.corrections, &model, FitSettings { rounds: 1, kernel_iterations: opts.candidate_fit.kernel_iterations }, &warm);
-    refit.inherit_dof(&s.current);
+    refit.inherit(&dof);
     s.current = refit;
     s.polished = true;
     if changes_kernel_operator(cand.name) {

@@ -69,6 +69,11 @@ pub struct Data<'a> {
     /// pixels per channel in their data term (every pixel by default; the diagnosis sets
     /// [`super::DiagnoseOptions::screen_pixels`]).
     pub screen_pixels: usize,
+    /// The fits on "every pixel" ([`fit`], [`fit_from`], [`fit_converging`]) keep about this
+    /// many pixels per channel in their data term, the spread blocks of [`fit_subset`], while
+    /// their figures (χ², residual, noise curve) still cover every pixel (every pixel by
+    /// default; the diagnosis sets [`super::DiagnoseOptions::fit_pixels`]).
+    pub fit_pixels: usize,
     /// The reference planes built ([`Setup::new`]), keyed by what they depend on
     /// ([`ReferenceKey`]): fits on the same reference geometry share one copy. Weak: the
     /// planes live as long as a fit or setup holds them; dead entries are dropped.
@@ -104,7 +109,7 @@ impl<'a> Data<'a> {
         let lin = |img: &Image| -> Vec<Plane> { img.planes.iter().map(|p| p.map(|v| img.transfer.decode(v))).collect() };
         let model = crate::estimate::register::RegistrationModel::Translation;
         let base_registration = crate::estimate::register::register(&Plane::sum_of(&lin(open)), &Plane::sum_of(&lin(pinhole)), model).info;
-        Data { open, pinhole, curves, base_registration, pinhole_variance_scale, screen_pixels: usize::MAX, reference_cache: Default::default() }
+        Data { open, pinhole, curves, base_registration, pinhole_variance_scale, screen_pixels: usize::MAX, fit_pixels: usize::MAX, reference_cache: Default::default() }
     }
 }
 
@@ -564,13 +569,13 @@ fn score_channel(mlin: &Plane, vl: &Plane, transfer: Transfer, clip: Option<f32>
 /// Fits `corrections` (their parameter values are starting points) to `data`, starting from
 /// `init`'s kernels and exposure ratios.
 pub fn fit(data: &Data, corrections: &Corrections, init: &Model, settings: FitSettings) -> Fit {
-    fit_on(data, corrections, init, settings, &|_, _| true, usize::MAX, false, None)
+    fit_on(data, corrections, init, settings, &|_, _| true, data.fit_pixels, false, None)
 }
 
 /// [`fit`] continuing the kernel solver's state `warm` (a previous fit's [`Fit::warm`], of the
 /// fit whose model `init` is) instead of starting every channel's FISTA afresh.
 pub fn fit_from(data: &Data, corrections: &Corrections, init: &Model, settings: FitSettings, warm: &Warm) -> Fit {
-    fit_on(data, corrections, init, settings, &|_, _| true, usize::MAX, false, Some(warm))
+    fit_on(data, corrections, init, settings, &|_, _| true, data.fit_pixels, false, Some(warm))
 }
 
 /// [`fit`] with the data term restricted to pixels where `keep(x, y)` and, as in
@@ -624,7 +629,7 @@ pub struct Convergence {
 /// `warm`: a previous fit's solver state to continue ([`fit_from`]), or `None`.
 pub fn fit_converging(data: &Data, corrections: &Corrections, init: &Model, rule: Convergence, warm: Option<&Warm>) -> (Fit, Vec<f64>) {
     let mut corr = corrections.clone();
-    let mut setup = Setup::new(data, &corr, init, &|_, _| true, usize::MAX);
+    let mut setup = Setup::new(data, &corr, init, &|_, _| true, data.fit_pixels);
     if let Some(w) = warm {
         setup.continue_from(w);
     }
@@ -1143,11 +1148,11 @@ impl<'a> Setup<'a> {
     /// `scored`: every channel's [`Setup::channel_figures`] on the evaluation set, already
     /// computed for these parameters (a whole-pixel fit only), or `None`.
     fn figures(&self, corr: &Corrections, p: &mut Params, subset_figures: bool, scored_figures: Option<Vec<ChannelFigures>>) -> Figures {
-        let partial = self.ops.iter().any(|o| o.covered().iter().any(|c| !c));
-        let scored_figures = scored_figures.filter(|f| !partial && f.len() == self.nch);
+        let partial = self.partial();
+        // figures already scored on every pixel ([`Setup::whole_figures`]) stand
+        let scored_figures = scored_figures.filter(|f| (!partial || !subset_figures) && f.len() == self.nch);
         if partial && !subset_figures {
-            let parts: Vec<Plane> = (0..self.nch).into_par_iter().map(|c| KernelOperator::new(&self.reference[c], &self.grid0, usize::MAX).apply_planes(&p.u[c])).collect();
-            p.a_parts = parts;
+            p.a_parts = self.whole_blur_parts(p);
         }
         let scored = if partial && subset_figures { self.scored_mask(corr) } else { self.masks.interior.clone() };
         let count = |m: &[bool]| m.iter().filter(|&&b| b).count();
@@ -1188,7 +1193,22 @@ impl<'a> Setup<'a> {
     fn whole_figures(&self, corr: &Corrections, p: &Params) -> Vec<ChannelFigures> {
         let g = gain_plane(corr, self.w, self.h);
         let scored = &self.masks.interior;
+        if self.partial() {
+            // the blur parts on every pixel: the operators are zero off their kept blocks
+            let whole = Params { u: p.u.clone(), glare_amp: p.glare_amp.clone(), beta: p.beta.clone(), a_parts: self.whole_blur_parts(p), variance_lin: Vec::new() };
+            return (0..self.nch).into_par_iter().map(|c| self.channel_figures(c, corr, &whole, &g, scored)).collect();
+        }
         (0..self.nch).into_par_iter().map(|c| self.channel_figures(c, corr, p, &g, scored)).collect()
+    }
+
+    /// Whether the kernel operators keep only part of the blocks ([`KernelOperator::covered`]).
+    fn partial(&self) -> bool {
+        self.ops.iter().any(|o| o.covered().iter().any(|c| !c))
+    }
+
+    /// Per channel, `Σ_t w_t·(U_t * P̃)` on every pixel (a whole-image operator each).
+    fn whole_blur_parts(&self, p: &Params) -> Vec<Plane> {
+        (0..self.nch).into_par_iter().map(|c| KernelOperator::new(&self.reference[c], &self.grid0, usize::MAX).apply_planes(&p.u[c])).collect()
     }
 
     /// χ² of [`Setup::whole_figures`] (the channels' sum, in the order the evaluation used
@@ -1305,6 +1325,34 @@ mod tests {
         assert!((carried - three).abs() < 0.1 * (fresh - three), "carried {carried:.1}, fresh {fresh:.1}, three rounds {three:.1}");
         // a fit of no rounds leaves no momentum
         assert!(fit(&data, &corr, &init, s(0)).warm.is_empty());
+    }
+
+    /// A pixel cap on the whole-pixel fits ([`Data::fit_pixels`]): the data term keeps part of
+    /// the blocks (the fitted χ² differs), but the figures still score every pixel of the
+    /// evaluation set (the same count, share 1), a model scored without a round is the
+    /// uncapped score, the converging fit's trace ends at its fit's χ², and on a third of the
+    /// pixels the fit gains most of what the uncapped fit gains on every pixel.
+    #[test]
+    fn a_pixel_cap_fits_on_part_of_the_blocks_and_scores_every_pixel() {
+        let (mut data, init) = small_case();
+        let corr = Corrections::default();
+        let s = |rounds| FitSettings { rounds, kernel_iterations: 20 };
+        let (whole, whole0) = (fit(&data, &corr, &init, s(2)), fit(&data, &corr, &init, s(0)));
+        data.fit_pixels = data.open.width() * data.open.height() / 3;
+        let (capped, capped0) = (fit(&data, &corr, &init, s(2)), fit(&data, &corr, &init, s(0)));
+        let kept = Setup::new(&data, &corr, &init, &|_, _| true, data.fit_pixels).ops[0].covered().iter().filter(|&&c| c).count() as f64 / (data.open.width() * data.open.height()) as f64;
+        eprintln!("kept {:.1} % of the pixels; χ² whole {:.1}, capped {:.1}", 100.0 * kept, whole.chi2(), capped.chi2());
+        assert!(kept < 0.6, "the cap keeps part of the blocks: {kept}");
+        assert_eq!((capped.n(), capped.share), (whole.n(), 1.0));
+        assert_ne!(capped.chi2(), whole.chi2(), "the capped data term fits other kernels");
+        let gain = (whole0.chi2() - capped.chi2()) / (whole0.chi2() - whole.chi2());
+        eprintln!("χ² from {:.1}: the capped fit gains {:.1} % of the whole fit's gain", whole0.chi2(), 100.0 * gain);
+        assert!(gain > 0.8 && gain < 1.0, "capped {} whole {} start {}", capped.chi2(), whole.chi2(), whole0.chi2());
+        assert!((capped0.chi2() / whole0.chi2() - 1.0).abs() < 1e-6, "no round: capped {} whole {}", capped0.chi2(), whole0.chi2());
+        let rule = Convergence { kernel_iterations: 20, max_rounds: 2, tolerance: f64::NEG_INFINITY };
+        let (conv, trace) = fit_converging(&data, &corr, &init, rule, None);
+        assert!((trace[trace.len() - 1] - conv.chi2()).abs() <= 1e-9 * conv.chi2(), "trace {trace:?}, fit {}", conv.chi2());
+        assert!((trace[0] / whole0.chi2() - 1.0).abs() < 1e-6, "the trace starts at the whole-pixel score: {} vs {}", trace[0], whole0.chi2());
     }
 
     /// The convergence rule ([`fit_converging`]): its per-round χ² is the χ² of the fit it

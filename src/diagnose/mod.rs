@@ -127,6 +127,11 @@ pub struct DiagnoseOptions {
     /// field ([`fit::fit_subset`]). Only the winner is refitted on every pixel. Captures with
     /// fewer pixels are screened on all of them.
     pub screen_pixels: usize,
+    /// The fits on every pixel (the base fit, the winner's whole-pixel round, the refits and
+    /// rescores) keep about this many pixels per channel in their data term, a spread of
+    /// blocks over the field as in the screening fits; their figures, residual and noise curve
+    /// still cover every pixel. Captures with fewer pixels are fitted on all of them.
+    pub fit_pixels: usize,
 }
 
 impl Default for DiagnoseOptions {
@@ -144,9 +149,18 @@ impl Default for DiagnoseOptions {
             progress: false,
             excluded: Vec::new(),
             screen_pixels: SCREEN_PIXELS,
+            fit_pixels: FIT_PIXELS,
         }
     }
 }
+
+/// Default of [`DiagnoseOptions::fit_pixels`]: a 2000 × 1500 capture is fitted on every
+/// pixel; a 4000 × 3000 one keeps one block in four (about 6 pixels per kernel value on its
+/// grid, against 3.3 at 1024 × 768 on every pixel), so the kernel solves cost a quarter while
+/// the unkept pixels' residual, out of sample, carries the kernels' error: about
+/// `p_eff / N_fit` ≈ 0.6 % of the noise variance there (docs/diagnosis.md, "Speed at camera
+/// resolution").
+pub const FIT_PIXELS: usize = 3_000_000;
 
 /// Default of [`DiagnoseOptions::screen_pixels`]: at 45-px kernels on a 7 × 5 grid, about
 /// 2 pixels per kernel value, enough to rank candidates that all start from the current model.
@@ -325,6 +339,7 @@ fn base_model<'a>(open: &'a Image, pinhole: &'a Image, base_profile: &Profile, o
     let mut lap = crate::estimate::stage_clock();
     let mut data = Data::new(open, pinhole, opts.pinhole_variance_scale);
     data.screen_pixels = opts.screen_pixels;
+    data.fit_pixels = opts.fit_pixels;
     let init = Model { corrections: model::Corrections::default(), grid: base_profile.grid.clone(), exposure: base_profile.meta.exposure_ratio.clone() };
     let (provisional_fit, probe, refit) = base_budget(screens(&data, opts), opts.base_fit);
     let mut provisional = fit::fit(&data, &init.corrections, &init, provisional_fit);

@@ -780,7 +780,8 @@ impl Fit {
 }
 
 /// The pixel sets of a fit: the evaluation set (a kernel radius inside the image), the clipped
-/// wide-open pixels and clipped reference footprints per channel, and the data term's pixels.
+/// wide-open pixels and clipped reference footprints per channel (under `saturation` only, the
+/// one correction that reads them; empty otherwise), and the data term's pixels.
 struct Masks {
     interior: Vec<bool>,
     clipped_open: Vec<Vec<bool>>,
@@ -796,17 +797,22 @@ impl Masks {
         let nch = data.open.channel_count();
         let saturation = corr.saturation.is_some();
         let interior: Vec<bool> = (0..w * h).map(|i| (i % w) >= r && (i % w) + r < w && (i / w) >= r && (i / w) + r < h).collect();
-        let clipped_open: Vec<Vec<bool>> = data.open.planes.iter().map(|p| p.data.iter().map(|&v| v >= CLIP).collect()).collect();
-        let pin_clipped: Vec<Vec<bool>> = data
-            .pinhole
-            .planes
-            .iter()
-            .map(|p| {
-                let m = Plane { width: w, height: h, data: p.data.iter().map(|&v| (v >= CLIP) as u8 as f32).collect() };
-                let reg = crate::estimate::register::apply(&m, registration);
-                dilate(&reg.data.iter().map(|&v| v > 0.0).collect::<Vec<_>>(), w, h, r)
-            })
-            .collect();
+        let (clipped_open, pin_clipped): (Vec<Vec<bool>>, Vec<Vec<bool>>) = if saturation {
+            let open = data.open.planes.par_iter().map(|p| p.data.iter().map(|&v| v >= CLIP).collect()).collect();
+            let pin = data
+                .pinhole
+                .planes
+                .par_iter()
+                .map(|p| {
+                    let m = Plane { width: w, height: h, data: p.data.iter().map(|&v| (v >= CLIP) as u8 as f32).collect() };
+                    let reg = crate::estimate::register::apply(&m, registration);
+                    dilate(&reg.data.iter().map(|&v| v > 0.0).collect::<Vec<_>>(), w, h, r)
+                })
+                .collect();
+            (open, pin)
+        } else {
+            (vec![Vec::new(); nch], vec![Vec::new(); nch])
+        };
         let fitmask: Vec<Vec<bool>> = (0..nch)
             .map(|c| (0..w * h).map(|i| interior[i] && keep(i % w, i / w) && (!saturation || (!clipped_open[c][i] && !pin_clipped[c][i]))).collect())
             .collect();
@@ -817,7 +823,7 @@ impl Masks {
 /// The wide-open planes on the model's linear axis and, under `misregistration`, resampled onto
 /// the reference geometry, with the interpolation's effect on their noise variance.
 fn linear_open(data: &Data, corr: &Corrections, transfer: Transfer) -> (Vec<Plane>, Option<Plane>) {
-    let mut open_lin: Vec<Plane> = data.open.planes.iter().map(|p| p.map(|v| transfer.decode(v))).collect();
+    let mut open_lin: Vec<Plane> = data.open.planes.par_iter().map(|p| p.map(|v| transfer.decode(v))).collect();
     // misregistration: the (band-limited) data onto the reference geometry, with the
     // interpolation's effect on its noise variance
     let mut noise_factor: Option<Plane> = None;

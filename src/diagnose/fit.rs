@@ -1173,7 +1173,7 @@ impl<'a> Setup<'a> {
                 Some(done) => done.into_par_iter().enumerate().map(|(c, cf)| ((!subset_figures).then(|| self.low_band_floor(c, p, g, scored)), cf)).collect(),
                 None => (0..self.nch)
                     .into_par_iter()
-                    .map(|c| ((!subset_figures).then(|| self.low_band_floor(c, p, g, scored)), self.channel_figures(c, corr, p, g, scored)))
+                    .map(|c| ((!subset_figures).then(|| self.low_band_floor(c, p, g, scored)), self.channel_figures(c, corr, p, &p.a_parts[c], g, scored)))
                     .collect(),
             }
         };
@@ -1199,12 +1199,10 @@ impl<'a> Setup<'a> {
     fn whole_figures(&self, corr: &Corrections, p: &Params) -> Vec<ChannelFigures> {
         let g = gain_plane(corr, self.w, self.h);
         let scored = &self.masks.interior;
-        if self.partial() {
-            // the blur parts on every pixel: the operators are zero off their kept blocks
-            let whole = Params { u: p.u.clone(), glare_amp: p.glare_amp.clone(), beta: p.beta.clone(), a_parts: self.whole_blur_parts(p), variance_lin: Vec::new() };
-            return (0..self.nch).into_par_iter().map(|c| self.channel_figures(c, corr, &whole, &g, scored)).collect();
-        }
-        (0..self.nch).into_par_iter().map(|c| self.channel_figures(c, corr, p, &g, scored)).collect()
+        // the blur parts on every pixel: a partial operator is zero off its kept blocks
+        let whole = self.partial().then(|| self.whole_blur_parts(p));
+        let parts = whole.as_ref().unwrap_or(&p.a_parts);
+        (0..self.nch).into_par_iter().map(|c| self.channel_figures(c, corr, p, &parts[c], &g, scored)).collect()
     }
 
     /// Whether the kernel operators keep only part of the blocks ([`KernelOperator::covered`]).
@@ -1225,13 +1223,13 @@ impl<'a> Setup<'a> {
 
     /// Channel `c`'s prediction, variance and χ² on the stored axis (back on the wide-open
     /// geometry under `misregistration`), and the reference noise's share of the residual's
-    /// high-pass.
-    fn channel_figures(&self, c: usize, corr: &Corrections, p: &Params, g: &Plane, scored: &[bool]) -> ChannelFigures {
+    /// high-pass. `a`: the channel's blur part `Σ_t w_t·(U_t * P̃)` on every scored pixel.
+    fn channel_figures(&self, c: usize, corr: &Corrections, p: &Params, a: &Plane, g: &Plane, scored: &[bool]) -> ChannelFigures {
         let (w, h) = (self.w, self.h);
         let data = self.data;
         let clip = corr.saturation.map(|s| s.clip_level);
         let back = super::model::reference_map(corr);
-        let (a, u, glare_amp, beta) = (&p.a_parts[c], &p.u[c], p.glare_amp[c], p.beta[c]);
+        let (u, glare_amp, beta) = (&p.u[c], p.glare_amp[c], p.beta[c]);
         let mut vl = self.update_variance(c, a, u, g, glare_amp, beta);
         let mut mlin = Plane::from_fn(w, h, |x, y| {
             let i = y * w + x;

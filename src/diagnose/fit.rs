@@ -376,6 +376,29 @@ struct ScalarState<'a> {
 }
 
 /// The gain plane `g(x, y)` of the corrections (vignetting × illumination gradient).
+/// `Plane::from_fn(w, h, f)` on the pixels where `need` is true (every pixel with `None`),
+/// `off` elsewhere: a fit whose data term or figures cover a few blocks of a large capture
+/// skips the per-pixel work (noise curves, transfer) on the rest. The same values where
+/// computed.
+fn plane_where(w: usize, h: usize, need: Option<&[bool]>, off: f32, f: impl Fn(usize, usize) -> f32) -> Plane {
+    match need {
+        None => Plane::from_fn(w, h, f),
+        Some(n) => {
+            let mut out = Plane::filled(w, h, off);
+            for y in 0..h {
+                let row = &n[y * w..(y + 1) * w];
+                if !row.iter().any(|&b| b) {
+                    continue;
+                }
+                for (x, _) in row.iter().enumerate().filter(|(_, &b)| b) {
+                    out.data[y * w + x] = f(x, y);
+                }
+            }
+            out
+        }
+    }
+}
+
 fn gain_plane(corr: &Corrections, w: usize, h: usize) -> Plane {
     Plane::from_fn(w, h, |x, y| corr.gain(x, y, w, h) as f32)
 }
@@ -525,12 +548,16 @@ struct ChannelScore {
 /// `χ²`, the pixel count, `Σ d²` and `Σ variance`. With `saturation = (clipped_open,
 /// pin_clipped)`, a pixel clipped in the reference counts 1, one clipped in the open capture
 /// counts only when the prediction is below the clip level.
-fn score_channel(mlin: &Plane, vl: &Plane, transfer: Transfer, clip: Option<f32>, interior: &[bool], open: &Plane, saturation: Option<(&[bool], &[bool])>) -> ChannelScore {
+#[allow(clippy::too_many_arguments)]
+fn score_channel(mlin: &Plane, vl: &Plane, transfer: Transfer, clip: Option<f32>, interior: &[bool], open: &Plane, saturation: Option<(&[bool], &[bool])>, need: Option<&[bool]>) -> ChannelScore {
     let (w, h) = (mlin.width, mlin.height);
     let mut pred = Plane::new(w, h);
     let mut norm = Plane::new(w, h);
     let (mut chi2, mut n, mut sq, mut vs) = (0.0f64, 0usize, 0.0f64, 0.0f64);
     for i in 0..w * h {
+        if need.is_some_and(|nd| !nd[i]) {
+            continue;
+        }
         let m = mlin.data[i];
         let mut e = transfer.encode(m);
         if let Some(l) = clip {
@@ -629,7 +656,7 @@ pub struct Convergence {
 /// `warm`: a previous fit's solver state to continue ([`fit_from`]), or `None`.
 pub fn fit_converging(data: &Data, corrections: &Corrections, init: &Model, rule: Convergence, warm: Option<&Warm>) -> (Fit, Vec<f64>) {
     let mut corr = corrections.clone();
-    let mut setup = Setup::new(data, &corr, init, &|_, _| true, data.fit_pixels);
+    let mut setup = Setup::new(data, &corr, init, &|_, _| true, data.fit_pixels, true);
     if let Some(w) = warm {
         setup.continue_from(w);
     }
@@ -659,7 +686,7 @@ pub fn fit_converging(data: &Data, corrections: &Corrections, init: &Model, rule
 #[allow(clippy::too_many_arguments)]
 fn fit_on(data: &Data, corrections: &Corrections, init: &Model, settings: FitSettings, keep: &dyn Fn(usize, usize) -> bool, data_pixels: usize, subset_figures: bool, warm: Option<&Warm>) -> Fit {
     let mut corr = corrections.clone();
-    let mut setup = Setup::new(data, &corr, init, keep, data_pixels);
+    let mut setup = Setup::new(data, &corr, init, keep, data_pixels, !subset_figures);
     if let Some(w) = warm {
         setup.continue_from(w);
     }
@@ -723,7 +750,7 @@ fn finish_scored(data: &Data, setup: Setup, mut corr: Corrections, mut p: Params
 /// with `α ≈ df/N`, `χ²/(N − df)` on a curve divided by `1 − α` is `≈ χ²_raw/N` whatever `df`.
 pub fn measure_kernel_dof(data: &Data, fit: &Fit, settings: FitSettings, seed: u64, data_pixels: usize) -> KernelDof {
     let corr = fit.model.corrections.clone();
-    let setup = Setup::new(data, &corr, &fit.model, &|_, _| true, data_pixels);
+    let setup = Setup::new(data, &corr, &fit.model, &|_, _| true, data_pixels, false);
     let p = setup.initial_params(&corr, &fit.model);
     let g = gain_plane(&corr, setup.w, setup.h);
     let kset = KernelFitSettings { iterations: settings.kernel_iterations, rounds: settings.rounds.max(1), step: KERNEL_STEP };
@@ -737,7 +764,7 @@ pub fn measure_kernel_dof(data: &Data, fit: &Fit, settings: FitSettings, seed: u
             .par_iter()
             .enumerate()
             .map(|(c, b)| {
-                let var = setup.update_variance(c, &p.a_parts[c], &p.u[c], g, p.glare_amp[c], p.beta[c]);
+                let var = setup.update_variance(c, &p.a_parts[c], &p.u[c], g, p.glare_amp[c], p.beta[c], setup.data_need(c));
                 let (y, wt) = setup.kernel_target(c, g, p, &var);
                 kernel_divergence_with(&setup.ops[c], &y, &wt, &p.u[c], kset, b)
             })
@@ -821,8 +848,9 @@ impl Masks {
 }
 
 /// The wide-open planes on the model's linear axis and, under `misregistration`, resampled onto
-/// the reference geometry, with the interpolation's effect on their noise variance.
-fn linear_open(data: &Data, corr: &Corrections, transfer: Transfer) -> (Vec<Plane>, Option<Plane>) {
+/// the reference geometry, with the interpolation's effect on their noise variance; the
+/// resampling only at the `need` pixels (every pixel with `None`; 0 elsewhere).
+fn linear_open(data: &Data, corr: &Corrections, transfer: Transfer, need: Option<&[bool]>) -> (Vec<Plane>, Option<Plane>) {
     let mut open_lin: Vec<Plane> = data.open.planes.par_iter().map(|p| p.map(|v| transfer.decode(v))).collect();
     // misregistration: the (band-limited) data onto the reference geometry, with the
     // interpolation's effect on its noise variance
@@ -833,7 +861,7 @@ fn linear_open(data: &Data, corr: &Corrections, transfer: Transfer) -> (Vec<Plan
         open_lin = open_lin
             .iter()
             .map(|p| {
-                let (q, f) = super::model::resample_map(p, &inv);
+                let (q, f) = super::model::resample_map_where(p, &inv, need);
                 factor = Some(f);
                 q
             })
@@ -913,7 +941,11 @@ impl<'a> Setup<'a> {
     /// `data_pixels`: the kernel operators keep about this many pixels (every n-th block,
     /// [`KernelOperator::covering`]: more where that share would leave a kernel without data);
     /// the data term is restricted to them.
-    fn new(data: &'a Data, corr: &Corrections, init: &Model, keep: &dyn Fn(usize, usize) -> bool, data_pixels: usize) -> Self {
+    ///
+    /// `whole_figures`: the fit's figures will score every pixel ([`Setup::figures`] without
+    /// `subset_figures`); otherwise a partial operator's setup prepares the wide-open planes
+    /// only on the kept blocks.
+    fn new(data: &'a Data, corr: &Corrections, init: &Model, keep: &dyn Fn(usize, usize) -> bool, data_pixels: usize, whole_figures: bool) -> Self {
         let transfer = model_transfer(corr, data.open.transfer);
         let (w, h) = (data.open.width(), data.open.height());
         let nch = data.open.channel_count();
@@ -926,13 +958,16 @@ impl<'a> Setup<'a> {
                 None => planes,
             }
         });
-        let (open_lin, noise_factor) = linear_open(data, corr, transfer);
         let grid0 = match corr.psf_field_variation {
             Some(f) if f.columns != init.grid.columns || f.rows != init.grid.rows => regrid(&init.grid, w, h, f.columns, f.rows),
             _ => init.grid.clone(),
         };
         let ops: Vec<KernelOperator> = reference.iter().map(|p| KernelOperator::covering(p, &grid0, data_pixels)).collect();
         let covered = ops.first().map(|o| o.covered().to_vec()).unwrap_or_default();
+        // the data term reads the wide-open planes on the kept blocks only; the figures on
+        // every pixel read the stored planes, but the resampling's noise factor everywhere
+        let partial = ops.iter().any(|o| o.kept_runs().is_some());
+        let (open_lin, noise_factor) = linear_open(data, corr, transfer, (partial && !whole_figures).then_some(&covered[..]));
         let kept = |x: usize, y: usize| keep(x, y) && covered.get(y * w + x).copied().unwrap_or(true);
         let masks = Masks::new(data, corr, &registration, grid0.kernel_size / 2, &kept);
         let glare_planes: Option<Vec<Plane>> = corr.veiling_glare.map(|g| reference.par_iter().map(|p| gaussian_blur_wide(p, g.sigma_px)).collect());
@@ -976,8 +1011,9 @@ impl<'a> Setup<'a> {
         self.ops[c].apply_planes(u)
     }
 
-    /// `Σ_t w_t(x)·ΣU_t²`, the gain of the pinhole's noise through the interpolated kernel.
-    fn kernel_energy(&self, c: usize, u: &[Plane]) -> Plane {
+    /// `Σ_t w_t(x)·ΣU_t²`, the gain of the pinhole's noise through the interpolated kernel
+    /// (on the `need` pixels, [`plane_where`]).
+    fn kernel_energy(&self, c: usize, u: &[Plane], need: Option<&[bool]>) -> Plane {
         let e: Vec<f32> = u
             .iter()
             .map(|kk| match &self.diffraction {
@@ -988,7 +1024,7 @@ impl<'a> Setup<'a> {
                 None => kk.data.iter().map(|v| v * v).sum::<f32>(),
             })
             .collect();
-        self.grid0.blend_scalars(&e, self.w, self.h)
+        self.grid0.blend_scalars_where(&e, self.w, self.h, need)
     }
 
     fn lin_var(&self, curve: &NoiseCurve, v: f32) -> f32 {
@@ -996,13 +1032,15 @@ impl<'a> Setup<'a> {
     }
 
     /// The linear-axis variance of channel `c`'s prediction: the wide-open noise at the model
-    /// plus the pinhole's noise through the kernels.
-    fn update_variance(&self, c: usize, a: &Plane, u: &[Plane], g: &Plane, glare_amp: f64, beta: f64) -> Plane {
+    /// plus the pinhole's noise through the kernels; on the `need` pixels (1 elsewhere,
+    /// [`plane_where`]).
+    #[allow(clippy::too_many_arguments)]
+    fn update_variance(&self, c: usize, a: &Plane, u: &[Plane], g: &Plane, glare_amp: f64, beta: f64, need: Option<&[bool]>) -> Plane {
         let (w, h) = (self.w, self.h);
         let data = self.data;
-        let kq = self.kernel_energy(c, u);
+        let kq = self.kernel_energy(c, u, need);
         let s = u.iter().map(|kk| kk.sum()).sum::<f64>() / u.len().max(1) as f64;
-        Plane::from_fn(w, h, |x, y| {
+        plane_where(w, h, need, 1.0, |x, y| {
             let i = y * w + x;
             let b = a.data[i] + glare_amp as f32 * self.glare_planes.as_ref().map_or(0.0, |gp| gp[c].data[i]);
             let m = g.data[i] * b + beta as f32;
@@ -1041,7 +1079,7 @@ impl<'a> Setup<'a> {
     fn kernel_target(&self, c: usize, g: &Plane, p: &Params, var: &Plane) -> (Plane, Vec<f32>) {
         let (w, h) = (self.w, self.h);
         let (glare_amp, beta) = (p.glare_amp[c], p.beta[c]);
-        let y = Plane::from_fn(w, h, |x, yy| {
+        let y = plane_where(w, h, self.data_need(c), 0.0, |x, yy| {
             let i = yy * w + x;
             (self.open_lin[c].data[i] - beta as f32) / g.data[i] - glare_amp as f32 * self.glare_planes.as_ref().map_or(0.0, |gp| gp[c].data[i])
         });
@@ -1054,7 +1092,7 @@ impl<'a> Setup<'a> {
     /// with the scalar parameters fixed; reads only channel `c` of `p` and returns its new
     /// state (so that the channels can run concurrently).
     fn kernel_step(&self, c: usize, corr: &Corrections, g: &Plane, p: &Params, kset: KernelFitSettings) -> KernelStepResult {
-        let variance = self.update_variance(c, &p.a_parts[c], &p.u[c], g, p.glare_amp[c], p.beta[c]);
+        let variance = self.update_variance(c, &p.a_parts[c], &p.u[c], g, p.glare_amp[c], p.beta[c], self.data_need(c));
         let (y, wt) = self.kernel_target(c, g, p, &variance);
         let mut r = KernelStepResult { variance, u: p.u[c].clone(), a_part: p.a_parts[c].clone(), glare_amp: p.glare_amp[c] };
         if kset.iterations > 0 {
@@ -1116,8 +1154,8 @@ impl<'a> Setup<'a> {
         let bins = super::analysis::low_band_bins(w, h);
         let low: Vec<f32> = u.iter().map(|k| super::analysis::band_gain(k, &bins) as f32).collect();
         let lowq = self.grid0.blend_scalars(&low, w, h);
-        let kq = self.kernel_energy(c, u);
-        let vl = self.update_variance(c, &p.a_parts[c], u, g, p.glare_amp[c], p.beta[c]);
+        let kq = self.kernel_energy(c, u, None);
+        let vl = self.update_variance(c, &p.a_parts[c], u, g, p.glare_amp[c], p.beta[c], None);
         let s = u.iter().map(|kk| kk.sum()).sum::<f64>() / u.len().max(1) as f64;
         let (mut sum, mut n) = (0.0f64, 0usize);
         for i in (0..w * h).filter(|&i| scored[i]) {
@@ -1141,7 +1179,17 @@ impl<'a> Setup<'a> {
                 let outside: Vec<bool> = covered.iter().map(|&c| !c).collect();
                 let near = dilate(&outside, self.w, self.h, SCORED_MARGIN);
                 let safe = Plane { width: self.w, height: self.h, data: near.iter().map(|&n| if n { 0.0 } else { 1.0 }).collect() };
-                super::model::resample_map(&safe, &m).0.data.iter().map(|&v| v > 0.999).collect()
+                // only where the map's source pixel is kept: elsewhere every tap (within 4 px
+                // of it) lies in the margin, where `safe` is 0
+                let (w, h) = (self.w, self.h);
+                let candidate: Vec<bool> = (0..w * h)
+                    .map(|i| {
+                        let (sx, sy) = m.source(i % w, i / w, w, h);
+                        let (x, y) = (sx.round(), sy.round());
+                        self.masks.interior[i] && x >= 0.0 && y >= 0.0 && (x as usize) < w && (y as usize) < h && covered[y as usize * w + x as usize]
+                    })
+                    .collect();
+                super::model::resample_map_where(&safe, &m, Some(&candidate)).0.data.iter().map(|&v| v > 0.999).collect()
             }
         };
         self.masks.interior.iter().zip(&inside).map(|(&a, &b)| a && b).collect()
@@ -1161,6 +1209,9 @@ impl<'a> Setup<'a> {
             p.a_parts = self.whole_blur_parts(p);
         }
         let scored = if partial && subset_figures { self.scored_mask(corr) } else { self.masks.interior.clone() };
+        // a subset's figures need the kept blocks' pixels only (the scored set lies inside
+        // them, with the interpolation taps of a reference map)
+        let need = (partial && subset_figures).then(|| self.ops[0].covered());
         let count = |m: &[bool]| m.iter().filter(|&&b| b).count();
         let g = gain_plane(corr, self.w, self.h);
         let mut f = Figures { share: count(&scored) as f64 / count(&self.masks.interior).max(1) as f64, ..Default::default() };
@@ -1173,7 +1224,7 @@ impl<'a> Setup<'a> {
                 Some(done) => done.into_par_iter().enumerate().map(|(c, cf)| ((!subset_figures).then(|| self.low_band_floor(c, p, g, scored)), cf)).collect(),
                 None => (0..self.nch)
                     .into_par_iter()
-                    .map(|c| ((!subset_figures).then(|| self.low_band_floor(c, p, g, scored)), self.channel_figures(c, corr, p, &p.a_parts[c], g, scored)))
+                    .map(|c| ((!subset_figures).then(|| self.low_band_floor(c, p, g, scored)), self.channel_figures(c, corr, p, &p.a_parts[c], g, scored, need)))
                     .collect(),
             }
         };
@@ -1202,12 +1253,18 @@ impl<'a> Setup<'a> {
         // the blur parts on every pixel: a partial operator is zero off its kept blocks
         let whole = self.partial().then(|| self.whole_blur_parts(p));
         let parts = whole.as_ref().unwrap_or(&p.a_parts);
-        (0..self.nch).into_par_iter().map(|c| self.channel_figures(c, corr, p, &parts[c], &g, scored)).collect()
+        (0..self.nch).into_par_iter().map(|c| self.channel_figures(c, corr, p, &parts[c], &g, scored, None)).collect()
     }
 
     /// Whether the kernel operators keep only part of the blocks ([`KernelOperator::covered`]).
     fn partial(&self) -> bool {
-        self.ops.iter().any(|o| o.covered().iter().any(|c| !c))
+        self.ops.iter().any(|o| o.kept_runs().is_some())
+    }
+
+    /// The pixels channel `c`'s data term needs (its data mask, [`Masks::fitmask`]) when the
+    /// operators keep part of the blocks; `None` (every pixel) when they keep all.
+    fn data_need(&self, c: usize) -> Option<&[bool]> {
+        self.partial().then(|| &self.masks.fitmask[c][..])
     }
 
     /// Per channel, `Σ_t w_t·(U_t * P̃)` on every pixel (a whole-image operator each).
@@ -1224,14 +1281,17 @@ impl<'a> Setup<'a> {
     /// Channel `c`'s prediction, variance and χ² on the stored axis (back on the wide-open
     /// geometry under `misregistration`), and the reference noise's share of the residual's
     /// high-pass. `a`: the channel's blur part `Σ_t w_t·(U_t * P̃)` on every scored pixel.
-    fn channel_figures(&self, c: usize, corr: &Corrections, p: &Params, a: &Plane, g: &Plane, scored: &[bool]) -> ChannelFigures {
+    /// `need`: the pixels to compute on (every pixel with `None`); the prediction and variance
+    /// are 0 and 1 elsewhere, and `scored` must lie inside `need` (with a reference map's taps).
+    #[allow(clippy::too_many_arguments)]
+    fn channel_figures(&self, c: usize, corr: &Corrections, p: &Params, a: &Plane, g: &Plane, scored: &[bool], need: Option<&[bool]>) -> ChannelFigures {
         let (w, h) = (self.w, self.h);
         let data = self.data;
         let clip = corr.saturation.map(|s| s.clip_level);
         let back = super::model::reference_map(corr);
         let (u, glare_amp, beta) = (&p.u[c], p.glare_amp[c], p.beta[c]);
-        let mut vl = self.update_variance(c, a, u, g, glare_amp, beta);
-        let mut mlin = Plane::from_fn(w, h, |x, y| {
+        let mut vl = self.update_variance(c, a, u, g, glare_amp, beta, need);
+        let mut mlin = plane_where(w, h, need, 0.0, |x, y| {
             let i = y * w + x;
             let lp = self.glare_planes.as_ref().map_or(0.0, |gp| gp[c].data[i]);
             g.data[i] * (a.data[i] + glare_amp as f32 * lp) + beta as f32
@@ -1240,9 +1300,9 @@ impl<'a> Setup<'a> {
         let mut hp = {
             let (psf, eps) = self.diffraction.as_ref().map(|d| d.channel(c)).unzip();
             let e: Vec<f32> = u.iter().map(|kk| super::diffraction::propagated_energy(kk, psf.as_ref().zip(eps), true)).collect();
-            let eq = self.grid0.blend_scalars(&e, w, h);
+            let eq = self.grid0.blend_scalars_where(&e, w, h, need);
             let s = u.iter().map(|kk| kk.sum()).sum::<f64>() / u.len().max(1) as f64;
-            Plane::from_fn(w, h, |x, y| {
+            plane_where(w, h, need, 0.0, |x, y| {
                 let i = y * w + x;
                 let level = (a.data[i] as f64 / s.max(1e-12)) as f32;
                 g.data[i] * g.data[i] * eq.data[i] * data.pinhole_variance_scale as f32 * self.lin_var(&data.curves[c], level) / self.lin_var(&data.curves[c], mlin.data[i])
@@ -1251,19 +1311,22 @@ impl<'a> Setup<'a> {
         if let Some(m) = back {
             // onto the wide-open geometry; the open's own noise there is unscaled
             if let Some(nf) = &self.noise_factor {
-                vl = Plane::from_fn(w, h, |x, y| {
+                vl = plane_where(w, h, need, 1.0, |x, y| {
                     let i = y * w + x;
                     let o = self.lin_var(&data.curves[c], mlin.data[i]);
                     vl.data[i] - nf.data[i] * o + o
                 });
             }
-            mlin = super::model::resample_map(&mlin, &m).0;
-            vl = super::model::resample_map(&vl, &m).0;
-            hp = super::model::resample_map(&hp, &m).0;
+            // a subset's scored pixels' taps lie inside `need` ([`Setup::scored_mask`])
+            let out = need.map(|_| scored);
+            mlin = super::model::resample_map_where(&mlin, &m, out).0;
+            vl = super::model::resample_map_where(&vl, &m, out).0;
+            hp = super::model::resample_map_where(&hp, &m, out).0;
         }
         let m = &self.masks;
         let sat = m.saturation.then_some((&m.clipped_open[c][..], &m.pin_clipped[c][..]));
-        let score = score_channel(&mlin, &vl, self.transfer, clip, scored, &data.open.planes[c], sat);
+        let score_need = if back.is_some() { need.map(|_| scored) } else { need };
+        let score = score_channel(&mlin, &vl, self.transfer, clip, scored, &data.open.planes[c], sat, score_need);
         ChannelFigures { score, reference_highpass: hp }
     }
 }
@@ -1344,7 +1407,7 @@ mod tests {
         let (whole, whole0) = (fit(&data, &corr, &init, s(2)), fit(&data, &corr, &init, s(0)));
         data.fit_pixels = data.open.width() * data.open.height() / 3;
         let (capped, capped0) = (fit(&data, &corr, &init, s(2)), fit(&data, &corr, &init, s(0)));
-        let kept = Setup::new(&data, &corr, &init, &|_, _| true, data.fit_pixels).ops[0].covered().iter().filter(|&&c| c).count() as f64 / (data.open.width() * data.open.height()) as f64;
+        let kept = Setup::new(&data, &corr, &init, &|_, _| true, data.fit_pixels, true).ops[0].covered().iter().filter(|&&c| c).count() as f64 / (data.open.width() * data.open.height()) as f64;
         eprintln!("kept {:.1} % of the pixels; χ² whole {:.1}, capped {:.1}", 100.0 * kept, whole.chi2(), capped.chi2());
         assert!(kept < 0.6, "the cap keeps part of the blocks: {kept}");
         assert_eq!((capped.n(), capped.share), (whole.n(), 1.0));
@@ -1357,6 +1420,55 @@ mod tests {
         let (conv, trace) = fit_converging(&data, &corr, &init, rule, None);
         assert!((trace[trace.len() - 1] - conv.chi2()).abs() <= 1e-9 * conv.chi2(), "trace {trace:?}, fit {}", conv.chi2());
         assert!((trace[0] / whole0.chi2() - 1.0).abs() < 1e-6, "the trace starts at the whole-pixel score: {} vs {}", trace[0], whole0.chi2());
+    }
+
+    /// A subset fit computes its data term and figures on the kept blocks only (the variance,
+    /// target and prediction on them; under a reference map the resampling at the scored
+    /// pixels, the wide-open planes on the kept blocks): its figures are the ones computed on
+    /// every pixel, bit for bit, with and without a map, and the scored mask's shortcut (only
+    /// pixels whose map source is kept) is the whole resampling's mask.
+    #[test]
+    fn subset_figures_on_the_kept_blocks_equal_the_whole_computation() {
+        let (data, init) = small_case();
+        let (w, h) = (data.open.width(), data.open.height());
+        let rot = 2f64.to_radians();
+        let info = RegistrationInfo { model: "similarity".into(), matrix: [rot.cos(), -rot.sin(), rot.sin(), rot.cos()], translation: [0.0, 0.0], residual_px: 0.0 };
+        for corr in [Corrections::default(), Corrections { misregistration: Some(info), ..Corrections::default() }] {
+            let mapped = corr.misregistration.is_some();
+            let setup = Setup::new(&data, &corr, &init, &|_, _| true, w * h / 4, false);
+            assert!(setup.partial(), "a quarter of the pixels keeps part of the blocks");
+            let mut c = corr.clone();
+            let mut p = setup.initial_params(&c, &init);
+            setup.round(&mut c, &mut p, KernelFitSettings { iterations: 5, rounds: 1, step: KERNEL_STEP });
+            // the same round on a setup that prepared the wide-open planes everywhere
+            let everywhere = Setup::new(&data, &corr, &init, &|_, _| true, w * h / 4, true);
+            let (mut c2, mut p2) = (corr.clone(), everywhere.initial_params(&corr, &init));
+            everywhere.round(&mut c2, &mut p2, KernelFitSettings { iterations: 5, rounds: 1, step: KERNEL_STEP });
+            let bits = |u: &[Vec<Plane>]| u.iter().flatten().flat_map(|k| k.data.iter().map(|v| v.to_bits())).collect::<Vec<u32>>();
+            assert_eq!(bits(&p.u), bits(&p2.u), "mapped {mapped}: the round's kernels");
+            let covered = setup.ops[0].covered();
+            let scored = setup.scored_mask(&c);
+            if let Some(m) = super::super::model::reference_map(&c) {
+                let outside: Vec<bool> = covered.iter().map(|&b| !b).collect();
+                let near = dilate(&outside, w, h, SCORED_MARGIN);
+                let safe = Plane { width: w, height: h, data: near.iter().map(|&n| if n { 0.0 } else { 1.0 }).collect() };
+                let whole: Vec<bool> = super::super::model::resample_map(&safe, &m).0.data.iter().zip(&setup.masks.interior).map(|(&v, &i)| i && v > 0.999).collect();
+                assert_eq!(scored, whole, "the scored mask's shortcut");
+            }
+            let n_scored = scored.iter().filter(|&&b| b).count();
+            assert!(n_scored > w * h / 50 && n_scored < w * h / 2, "mapped {mapped}: {n_scored} scored pixels");
+            let g = gain_plane(&c, w, h);
+            for ch in 0..setup.nch {
+                let part = setup.channel_figures(ch, &c, &p, &p.a_parts[ch], &g, &scored, Some(covered));
+                let all = setup.channel_figures(ch, &c, &p, &p.a_parts[ch], &g, &scored, None);
+                let (a, b) = (&part.score, &all.score);
+                assert!(a.n == n_scored && a.chi2 > 0.0, "mapped {mapped}: {} pixels, χ² {}", a.n, a.chi2);
+                assert_eq!((a.chi2.to_bits(), a.n, a.sq.to_bits(), a.var_sum.to_bits()), (b.chi2.to_bits(), b.n, b.sq.to_bits(), b.var_sum.to_bits()), "mapped {mapped}, channel {ch}");
+                for i in (0..w * h).filter(|&i| scored[i]) {
+                    assert_eq!(a.predicted.data[i].to_bits(), b.predicted.data[i].to_bits(), "mapped {mapped}, pixel {i}");
+                }
+            }
+        }
     }
 
     /// The convergence rule ([`fit_converging`]): its per-round χ² is the χ² of the fit it

@@ -85,12 +85,28 @@ struct WeightedFit<'a> {
 
 impl Composite for WeightedFit<'_> {
     fn gradient(&mut self, x: &[f32], out: &mut [f32]) -> f64 {
-        self.op.apply(x, &mut self.pred);
         let mut f = 0.0f64;
-        for ((p, q), w) in self.pred.iter_mut().zip(self.y).zip(self.weight) {
-            let d = *p - q;
-            *p = d * w;
-            f += 0.5 * (d * *p) as f64;
+        let mut term = |pred: &mut [f32], y: &[f32], weight: &[f32]| {
+            for ((p, q), w) in pred.iter_mut().zip(y).zip(weight) {
+                let d = *p - q;
+                *p = d * w;
+                f += 0.5 * (d * *p) as f64;
+            }
+        };
+        match self.op.kept_runs() {
+            // a subsampled operator: only its kept blocks' pixels (the weights are 0 off them,
+            // and the adjoint reads nothing else); the rest of `pred` stays 0. The same terms
+            // in the same order as the whole-image loop, so the same bits.
+            Some(runs) => {
+                self.op.apply_kept(x, &mut self.pred);
+                for &(a, n) in runs {
+                    term(&mut self.pred[a..a + n], &self.y[a..a + n], &self.weight[a..a + n]);
+                }
+            }
+            None => {
+                self.op.apply(x, &mut self.pred);
+                term(&mut self.pred, self.y, self.weight);
+            }
         }
         self.op.apply_adjoint(&self.pred, out);
         f

@@ -300,6 +300,11 @@ pub fn resample_map(p: &Plane, map: &Projective) -> (Plane, Plane) {
     warp_projective_with_variance(p, map, Interpolation::Lanczos4)
 }
 
+/// [`resample_map`] at the pixels where `need` is true (every pixel with `None`), 0 elsewhere.
+pub fn resample_map_where(p: &Plane, map: &Projective, need: Option<&[bool]>) -> (Plane, Plane) {
+    crate::image::resample::warp_projective_where(p, map, Interpolation::Lanczos4, need)
+}
+
 /// Resamples `p` at `M·(q − c) + c` for every pixel `q` (Lanczos-4, mirror boundaries); also
 /// returns, per pixel, `Σw²` of the interpolation weights (the factor on white noise's variance).
 pub fn resample(p: &Plane, m: [f64; 4]) -> (Plane, Plane) {

@@ -88,6 +88,9 @@ pub struct KernelOperator {
     index: Vec<usize>,
     /// Pixels of the kept blocks.
     covered: Vec<bool>,
+    /// The kept blocks' pixels as row runs `(start, len)` (row-major index), in pixel order;
+    /// `None` when every block is kept.
+    kept_runs: Option<Vec<(usize, usize)>>,
     /// Blocks per row of the full layout, its pixel count, and the kept share `1/keep_every`.
     blocks_per_row: usize,
     layout_pixels: usize,
@@ -351,6 +354,12 @@ impl KernelOperator {
                 covered[y * p.width + blk.x0..y * p.width + blk.x0 + blk.sw].fill(true);
             }
         }
+        let partial = covered.iter().any(|&c| !c);
+        let kept_runs = partial.then(|| {
+            let mut runs: Vec<(usize, usize)> = p.blocks.iter().flat_map(|blk| (blk.y0..blk.y0 + blk.sh).map(move |y| (y * p.width + blk.x0, blk.sw))).collect();
+            runs.sort_unstable();
+            runs
+        });
         let blocks = p.blocks;
         let column_blocks = (0..p.columns).map(|c| (0..blocks.len()).filter(|&bi| blocks[bi].groups.iter().any(|(cc, _)| *cc == c)).collect()).collect();
         Self {
@@ -366,10 +375,29 @@ impl KernelOperator {
             cy: p.cy,
             index: p.index,
             covered,
+            kept_runs,
             blocks_per_row: p.blocks_per_row,
             layout_pixels: p.layout_pixels,
             keep_every: p.keep_every,
             buffers: Mutex::new(Buffers::default()),
+        }
+    }
+
+    /// `A b` into `out`: the kept blocks' pixels, and 0 on the others when `zero_rest`.
+    fn apply_into(&self, b: &[f32], out: &mut [f32], zero_rest: bool) {
+        let mut guard = self.buffers.lock().unwrap_or_else(|e| e.into_inner());
+        let Buffers { b_hat, preds, .. } = &mut *guard;
+        self.kernel_spectra(b, b_hat);
+        preds.resize_with(self.blocks.len(), Vec::new);
+        self.blocks.par_iter().zip(preds.par_iter_mut()).for_each(|(blk, local)| with_work(&self.fft, |wk| self.predict_block_fast(blk, b_hat, wk, local)));
+        if zero_rest && self.kept_runs.is_some() {
+            out.fill(0.0);
+        }
+        for (blk, local) in self.blocks.iter().zip(preds.iter()) {
+            for y in 0..blk.sh {
+                let o = (blk.y0 + y) * self.width + blk.x0;
+                out[o..o + blk.sw].copy_from_slice(&local[y * blk.sw..(y + 1) * blk.sw]);
+            }
         }
     }
 
@@ -396,6 +424,20 @@ impl KernelOperator {
     /// 1 on the pixels of the kept blocks (all pixels unless subsampled).
     pub fn covered(&self) -> &[bool] {
         &self.covered
+    }
+
+    /// The kept blocks' pixels as row runs `(start, len)` (row-major pixel index), in pixel
+    /// order; `None` when every block is kept (every pixel).
+    pub fn kept_runs(&self) -> Option<&[(usize, usize)]> {
+        self.kept_runs.as_deref()
+    }
+
+    /// `A b` on the kept blocks' pixels only: writes those pixels of `out` (the same values as
+    /// [`LinearOperator::apply`]) and leaves the others as they are, which `apply` sets to 0.
+    /// A solver that reads only the kept pixels ([`KernelOperator::kept_runs`]) saves the
+    /// whole-image pass when the operator keeps a few blocks of a large image.
+    pub fn apply_kept(&self, b: &[f32], out: &mut [f32]) {
+        self.apply_into(b, out, false);
     }
 
     /// The weight of tile `t` at pixel `(x, y)`.
@@ -599,18 +641,7 @@ impl LinearOperator for KernelOperator {
         self.width * self.height
     }
     fn apply(&self, b: &[f32], out: &mut [f32]) {
-        let mut guard = self.buffers.lock().unwrap_or_else(|e| e.into_inner());
-        let Buffers { b_hat, preds, .. } = &mut *guard;
-        self.kernel_spectra(b, b_hat);
-        preds.resize_with(self.blocks.len(), Vec::new);
-        self.blocks.par_iter().zip(preds.par_iter_mut()).for_each(|(blk, local)| with_work(&self.fft, |wk| self.predict_block_fast(blk, b_hat, wk, local)));
-        out.fill(0.0);
-        for (blk, local) in self.blocks.iter().zip(preds.iter()) {
-            for y in 0..blk.sh {
-                let o = (blk.y0 + y) * self.width + blk.x0;
-                out[o..o + blk.sw].copy_from_slice(&local[y * blk.sw..(y + 1) * blk.sw]);
-            }
-        }
+        self.apply_into(b, out, true);
     }
     fn apply_adjoint(&self, resid: &[f32], out: &mut [f32]) {
         let k2 = self.k * self.k;
@@ -738,6 +769,44 @@ pub(crate) mod tests {
             assert_eq!(a, b);
         }
         assert!(KernelOperator::new(&sharp, &g, w * h / 2).subsampled(w * h / 3).is_none(), "one in 3 is not a subset of one in 2");
+    }
+
+    /// A subsampled operator's kept runs are exactly its covered pixels, in pixel order, and
+    /// `apply_kept` writes the same values as `apply` there and nothing elsewhere; a whole
+    /// operator has no runs, and `apply` overwrites every pixel without a zero fill.
+    #[test]
+    fn kept_runs_are_the_covered_pixels_and_apply_kept_writes_only_them() {
+        let (w, h, k) = (192, 144, 11);
+        let mut rng = Rng::new(31);
+        let sharp = Plane::from_fn(w, h, |_, _| rng.uniform() as f32);
+        let g = grid(w, h, k, 4, 3, 32);
+        let b: Vec<f32> = g.kernels[0].iter().flat_map(|p| p.data.iter().copied()).collect();
+        let sub = KernelOperator::new(&sharp, &g, w * h / 4);
+        let runs = sub.kept_runs().expect("a subset has runs");
+        let mut from_runs = vec![false; w * h];
+        for &(a, n) in runs {
+            assert!(from_runs[a..a + n].iter().all(|&c| !c), "runs overlap at {a}");
+            from_runs[a..a + n].fill(true);
+        }
+        assert_eq!(from_runs, sub.covered());
+        assert!(runs.windows(2).all(|r| r[0].0 + r[0].1 <= r[1].0), "pixel order");
+        let mut whole = vec![f32::NAN; w * h];
+        sub.apply(&b, &mut whole);
+        let mut kept = vec![7.0f32; w * h];
+        sub.apply_kept(&b, &mut kept);
+        for i in 0..w * h {
+            if sub.covered()[i] {
+                assert_eq!(kept[i].to_bits(), whole[i].to_bits(), "pixel {i}");
+            } else {
+                assert_eq!((kept[i], whole[i]), (7.0, 0.0), "pixel {i}");
+            }
+        }
+        let full = KernelOperator::new(&sharp, &g, usize::MAX);
+        assert!(full.kept_runs().is_none());
+        let mut out = vec![f32::NAN; w * h];
+        full.apply(&b, &mut out);
+        assert!(out.iter().all(|v| v.is_finite()), "every pixel written");
+        assert_eq!(out, full.apply_planes(&g.kernels[0]).data);
     }
 
     /// The AVX2 build of the operator's loops returns the same bits as the baseline build, for

@@ -140,6 +140,12 @@ impl PsfGrid {
     /// The blend `Σ_t w_t(x, y) · values[t]` of one scalar per tile over a `width × height`
     /// image (e.g. a per-tile kernel energy).
     pub fn blend_scalars(&self, values: &[f32], width: usize, height: usize) -> Plane {
+        self.blend_scalars_where(values, width, height, None)
+    }
+
+    /// [`PsfGrid::blend_scalars`] on the pixels where `need` is true (every pixel with
+    /// `None`); 0 elsewhere. The same values where computed.
+    pub fn blend_scalars_where(&self, values: &[f32], width: usize, height: usize, need: Option<&[bool]>) -> Plane {
         assert_eq!(values.len(), self.tile_count(), "one value per tile");
         let (xs, ys) = (self.column_xs(), self.row_ys());
         let cx: Vec<[(usize, f32); 4]> = (0..width).map(|x| hat_weights_1d(&xs, x as f64)).collect();
@@ -147,7 +153,14 @@ impl PsfGrid {
         for y in 0..height {
             let wy = hat_weights_1d(&ys, y as f64);
             let row = &mut out.data[y * width..(y + 1) * width];
-            for (o, wx) in row.iter_mut().zip(&cx) {
+            let need_row = need.map(|n| &n[y * width..(y + 1) * width]);
+            if need_row.is_some_and(|n| !n.iter().any(|&b| b)) {
+                continue;
+            }
+            for (x, (o, wx)) in row.iter_mut().zip(&cx).enumerate() {
+                if need_row.is_some_and(|n| !n[x]) {
+                    continue;
+                }
                 let mut s = 0.0f32;
                 for &(j, a) in &wy {
                     for &(i, b) in wx {
@@ -229,6 +242,18 @@ mod tests {
                 let want: f32 = g.weights_at(x as f64, y as f64).iter().map(|q| q.weight * values[q.tile]).sum();
                 assert!((blend.get(x, y) - want).abs() < 1e-4, "blend at ({x}, {y})");
             }
+        }
+    }
+
+    /// The masked blend has the whole blend's values on the needed pixels and 0 elsewhere.
+    #[test]
+    fn masked_blend_is_the_blend_where_needed() {
+        let g = PsfGrid { kernel_size: 3, columns: 4, rows: 3, centers: PsfGrid::regular_centers(97, 61, 4, 3), channels: vec!["Y".into()], kernels: vec![vec![Plane::new(3, 3); 12]] };
+        let values: Vec<f32> = (0..12).map(|t| 1.0 + t as f32 * 0.5).collect();
+        let need: Vec<bool> = (0..97 * 61).map(|i| (i % 97) % 5 != 0 && (i / 97) > 10).collect();
+        let (all, some) = (g.blend_scalars(&values, 97, 61), g.blend_scalars_where(&values, 97, 61, Some(&need)));
+        for i in 0..97 * 61 {
+            assert_eq!(some.data[i], if need[i] { all.data[i] } else { 0.0 }, "pixel {i}");
         }
     }
 

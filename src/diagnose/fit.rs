@@ -399,6 +399,11 @@ fn plane_where(w: usize, h: usize, need: Option<&[bool]>, off: f32, f: impl Fn(u
     }
 }
 
+/// Whether any of the kernel operators keeps only part of the blocks.
+fn any_partial(ops: &[KernelOperator]) -> bool {
+    ops.iter().any(|o| o.kept_runs().is_some())
+}
+
 fn gain_plane(corr: &Corrections, w: usize, h: usize) -> Plane {
     Plane::from_fn(w, h, |x, y| corr.gain(x, y, w, h) as f32)
 }
@@ -966,8 +971,7 @@ impl<'a> Setup<'a> {
         let covered = ops.first().map(|o| o.covered().to_vec()).unwrap_or_default();
         // the data term reads the wide-open planes on the kept blocks only; the figures on
         // every pixel read the stored planes, but the resampling's noise factor everywhere
-        let partial = ops.iter().any(|o| o.kept_runs().is_some());
-        let (open_lin, noise_factor) = linear_open(data, corr, transfer, (partial && !whole_figures).then_some(&covered[..]));
+        let (open_lin, noise_factor) = linear_open(data, corr, transfer, (any_partial(&ops) && !whole_figures).then_some(&covered[..]));
         let kept = |x: usize, y: usize| keep(x, y) && covered.get(y * w + x).copied().unwrap_or(true);
         let masks = Masks::new(data, corr, &registration, grid0.kernel_size / 2, &kept);
         let glare_planes: Option<Vec<Plane>> = corr.veiling_glare.map(|g| reference.par_iter().map(|p| gaussian_blur_wide(p, g.sigma_px)).collect());
@@ -1258,7 +1262,7 @@ impl<'a> Setup<'a> {
 
     /// Whether the kernel operators keep only part of the blocks ([`KernelOperator::covered`]).
     fn partial(&self) -> bool {
-        self.ops.iter().any(|o| o.kept_runs().is_some())
+        any_partial(&self.ops)
     }
 
     /// The pixels channel `c`'s data term needs (its data mask, [`Masks::fitmask`]) when the
@@ -1308,6 +1312,9 @@ impl<'a> Setup<'a> {
                 g.data[i] * g.data[i] * eq.data[i] * data.pinhole_variance_scale as f32 * self.lin_var(&data.curves[c], level) / self.lin_var(&data.curves[c], mlin.data[i])
             })
         };
+        // on the wide-open geometry a subset needs its scored pixels (a reference map's taps
+        // from them lie inside `need`, [`Setup::scored_mask`]); without a map they lie in `need`
+        let out_need = if back.is_some() { need.map(|_| scored) } else { need };
         if let Some(m) = back {
             // onto the wide-open geometry; the open's own noise there is unscaled
             if let Some(nf) = &self.noise_factor {
@@ -1317,16 +1324,13 @@ impl<'a> Setup<'a> {
                     vl.data[i] - nf.data[i] * o + o
                 });
             }
-            // a subset's scored pixels' taps lie inside `need` ([`Setup::scored_mask`])
-            let out = need.map(|_| scored);
-            mlin = super::model::resample_map_where(&mlin, &m, out).0;
-            vl = super::model::resample_map_where(&vl, &m, out).0;
-            hp = super::model::resample_map_where(&hp, &m, out).0;
+            mlin = super::model::resample_map_where(&mlin, &m, out_need).0;
+            vl = super::model::resample_map_where(&vl, &m, out_need).0;
+            hp = super::model::resample_map_where(&hp, &m, out_need).0;
         }
         let m = &self.masks;
         let sat = m.saturation.then_some((&m.clipped_open[c][..], &m.pin_clipped[c][..]));
-        let score_need = if back.is_some() { need.map(|_| scored) } else { need };
-        let score = score_channel(&mlin, &vl, self.transfer, clip, scored, &data.open.planes[c], sat, score_need);
+        let score = score_channel(&mlin, &vl, self.transfer, clip, scored, &data.open.planes[c], sat, out_need);
         ChannelFigures { score, reference_highpass: hp }
     }
 }

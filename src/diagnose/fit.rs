@@ -383,16 +383,10 @@ struct ScalarState<'a> {
 fn plane_where(w: usize, h: usize, need: Option<&[bool]>, off: f32, f: impl Fn(usize, usize) -> f32) -> Plane {
     match need {
         None => Plane::from_fn(w, h, f),
-        Some(n) => {
+        Some(_) => {
             let mut out = Plane::filled(w, h, off);
-            for y in 0..h {
-                let row = &n[y * w..(y + 1) * w];
-                if !row.iter().any(|&b| b) {
-                    continue;
-                }
-                for (x, _) in row.iter().enumerate().filter(|(_, &b)| b) {
-                    out.data[y * w + x] = f(x, y);
-                }
+            for (y, row) in out.data.chunks_exact_mut(w.max(1)).enumerate() {
+                crate::image::for_needed(row, crate::image::mask_row(need, y, w), |x, o| *o = f(x, y));
             }
             out
         }

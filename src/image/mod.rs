@@ -363,6 +363,29 @@ impl Image {
     }
 }
 
+/// Row `y` of a `width`-wide pixel mask (`None` stays `None`: every pixel).
+pub fn mask_row(mask: Option<&[bool]>, y: usize, width: usize) -> Option<&[bool]> {
+    mask.map(|m| &m[y * width..(y + 1) * width])
+}
+
+/// Runs `f(x, &mut row[x])` on the pixels of one image row that `need` marks (every pixel when
+/// `None`), leaving the others as they are; a row with no marked pixel returns at once. The
+/// one loop of the masked computations that produce only the pixels a caller reads (a subset
+/// fit's planes, blends and warps; `diagnose::fit`, [`crate::optics::psf_grid`],
+/// [`resample`]).
+pub fn for_needed<T>(row: &mut [T], need: Option<&[bool]>, mut f: impl FnMut(usize, &mut T)) {
+    match need {
+        None => row.iter_mut().enumerate().for_each(|(x, v)| f(x, v)),
+        Some(n) => {
+            debug_assert_eq!(n.len(), row.len(), "mask row length");
+            if !n.iter().any(|&b| b) {
+                return;
+            }
+            row.iter_mut().zip(n).enumerate().filter(|(_, (_, &b))| b).for_each(|(x, (v, _))| f(x, v));
+        }
+    }
+}
+
 /// `Y` for one channel, `R,G,B` for three, `R,G,B,A`-free `C0..Cn` otherwise.
 pub fn default_channel_names(n: usize) -> Vec<String> {
     match n {
@@ -374,6 +397,31 @@ pub fn default_channel_names(n: usize) -> Vec<String> {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn for_needed_visits_the_marked_pixels_only_and_leaves_the_rest() {
+        let need = [false, true, false, true, true];
+        let mut row = [9.0f32; 5];
+        let mut seen = Vec::new();
+        super::for_needed(&mut row, Some(&need), |x, v| {
+            seen.push(x);
+            *v = x as f32;
+        });
+        assert_eq!(seen, vec![1, 3, 4]);
+        assert_eq!(row, [9.0, 1.0, 9.0, 3.0, 4.0]);
+        // no mask: every pixel, in order
+        let mut all = [0.0f32; 3];
+        super::for_needed(&mut all, None, |x, v| *v = 10.0 + x as f32);
+        assert_eq!(all, [10.0, 11.0, 12.0]);
+        // an empty row is not visited at all
+        let mut calls = 0;
+        super::for_needed(&mut [1.0f32; 4], Some(&[false; 4]), |_, _| calls += 1);
+        assert_eq!(calls, 0);
+        // the mask's rows
+        let mask = [true, false, false, true, true, false];
+        assert_eq!(super::mask_row(Some(&mask), 1, 3), Some(&mask[3..6]));
+        assert_eq!(super::mask_row(None, 1, 3), None);
+    }
+
     use super::*;
 
     /// The window equals the per-pixel mirrored lookup for windows inside, across every

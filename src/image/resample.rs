@@ -171,19 +171,12 @@ pub fn warp_projective_where(p: &Plane, map: &Projective, interp: Interpolation,
         return (out, wsq);
     }
     out.data.par_chunks_mut(w).zip(wsq.data.par_chunks_mut(w)).enumerate().for_each(|(y, (orow, qrow))| {
-        let need_row = need.map(|n| &n[y * w..(y + 1) * w]);
-        if need_row.is_some_and(|n| !n.iter().any(|&b| b)) {
-            return;
-        }
-        for x in 0..w {
-            if need_row.is_some_and(|n| !n[x]) {
-                continue;
-            }
+        super::for_needed(orow, super::mask_row(need, y, w), |x, o| {
             let (sx, sy) = map.source(x, y, w, p.height);
             let (v, q) = sample(p, sx, sy, interp);
-            orow[x] = v;
+            *o = v;
             qrow[x] = q as f32;
-        }
+        });
     });
     (out, wsq)
 }

@@ -153,22 +153,15 @@ impl PsfGrid {
         for y in 0..height {
             let wy = hat_weights_1d(&ys, y as f64);
             let row = &mut out.data[y * width..(y + 1) * width];
-            let need_row = need.map(|n| &n[y * width..(y + 1) * width]);
-            if need_row.is_some_and(|n| !n.iter().any(|&b| b)) {
-                continue;
-            }
-            for (x, (o, wx)) in row.iter_mut().zip(&cx).enumerate() {
-                if need_row.is_some_and(|n| !n[x]) {
-                    continue;
-                }
+            crate::image::for_needed(row, crate::image::mask_row(need, y, width), |x, o| {
                 let mut s = 0.0f32;
                 for &(j, a) in &wy {
-                    for &(i, b) in wx {
+                    for &(i, b) in &cx[x] {
                         s += a * b * values[j * self.columns + i];
                     }
                 }
                 *o = s;
-            }
+            });
         }
         out
     }

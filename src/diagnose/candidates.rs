@@ -35,11 +35,11 @@ pub struct Candidate {
 
 /// The part of a candidate's parameter search left until the round's screening shows that
 /// the candidate could win it (docs/notes/diagnosis-history.md, "Session 19"): a search that costs
-/// many converged fits is worth its cost only there.
+/// many search fits is worth its cost only there.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Deferred {
     /// `pinhole_diffraction` at the radius screen's best green Airy radius (px) with `σ_a = 0`;
-    /// left: the golden sections of converged fits on the radius and `σ_a`
+    /// left: the golden sections of warm-started search fits on the radius and `σ_a`
     /// ([`DiffractionSearch::radius`], [`DiffractionSearch::aberration`]).
     Diffraction { radius_px: f64 },
 }
@@ -49,7 +49,7 @@ pub fn complete(data: &Data, current: &Fit, cand: Candidate) -> Candidate {
     match cand.deferred {
         None => cand,
         Some(Deferred::Diffraction { radius_px }) => {
-            let search = DiffractionSearch { data, current };
+            let search = DiffractionSearch { data, current, best: Default::default() };
             let (r, v) = search.radius(radius_px);
             let (best_r, best_sa) = search.aberration(r, v);
             Candidate {
@@ -613,7 +613,7 @@ fn diffraction_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Can
         // every band within what a non-negative kernel can pass: nothing for this effect
         return None;
     }
-    let search = DiffractionSearch { data, current };
+    let search = DiffractionSearch { data, current, best: Default::default() };
     let r = search.screened_radius();
     Some(Candidate {
         name: "pinhole_diffraction",
@@ -655,7 +655,18 @@ fn worst_excess_detail(data: &Data, current: &Fit) -> (f64, f64) {
 struct DiffractionSearch<'a> {
     data: &'a Data<'a>,
     current: &'a Fit,
+    /// The search's lowest χ² so far and its fitted model: the start of the next search fit
+    /// ([`Self::refined`]).
+    best: std::cell::RefCell<Option<(f64, Model)>>,
 }
+
+/// The budget of one fit of the Airy-radius and `σ_a` searches ([`DiffractionSearch::refined`]):
+/// one round of 100 kernel iterations from the search's best fit so far. Until 48062dc every
+/// search fit ran 3 × 150 from the cold start `K_current ⊛ D` (13 such fits were 335 s of a
+/// 563-s diagnosis at 512×384); the warm start carries the convergence from fit to fit, and
+/// on the pinhole_diffraction case at 512×384 (seed 41) the search chose the same radius and
+/// `σ_a` as cold fits of 2 × 100 (docs/notes/diagnosis-history.md, "Session 29").
+const SEARCH_FIT: FitSettings = FitSettings { rounds: 1, kernel_iterations: 100 };
 
 impl DiffractionSearch<'_> {
     /// The correction for green Airy radius `r` (channels scaled by wavelength) and `σ_a`,
@@ -696,15 +707,27 @@ impl DiffractionSearch<'_> {
         fit(self.data, &m.corrections, &m, settings).chi2()
     }
 
-    /// χ² of a converged fit at `(r, σ_a)`.
+    /// χ² of a search fit at `(r, σ_a)` ([`SEARCH_FIT`]): from the kernels of the search's
+    /// best fit so far with the correction at `(r, σ_a)`, or from the warm start
+    /// [`Self::init`] for the first. Neighbouring radii want nearly the same kernels (the
+    /// restored reference changes little), so each fit goes on converging where the last
+    /// best one stopped instead of shedding the unrestored reference's sharpening again.
     fn refined(&self, r: f64, sa: f64) -> f64 {
-        self.chi2(r, sa, FitSettings { rounds: 3, kernel_iterations: 150 })
+        let start = self.best.borrow().as_ref().map(|(_, m)| Model { corrections: Corrections { pinhole_diffraction: Some(self.correction(r, sa)), ..self.current.model.corrections.clone() }, ..m.clone() });
+        let m = start.unwrap_or_else(|| self.init(r, sa));
+        let f = fit(self.data, &m.corrections, &m, SEARCH_FIT);
+        let v = f.chi2();
+        if self.best.borrow().as_ref().map_or(true, |(b, _)| v < *b) {
+            *self.best.borrow_mut() = Some((v, f.model));
+        }
+        v
     }
 
     /// The radius screen (with `σ_a = 0`): the best of [`AIRY_RADII`] by χ² of a short fit
     /// from each warm start. The screen's short fits only locate the basin (they favour too
     /// large a radius: the kernels have not yet shed the sharpening the unrestored reference
-    /// forced on them); [`Self::radius`] refines it with converged fits.
+    /// forced on them); [`Self::radius`] refines it with the search fits, each going on from
+    /// the best one before it.
     fn screened_radius(&self) -> f64 {
         let screen = FitSettings { rounds: 1, kernel_iterations: 30 };
         let scores: Vec<(f64, f64)> = AIRY_RADII.iter().map(|&r| (r, self.chi2(r, 0.0, screen))).collect();
@@ -713,7 +736,7 @@ impl DiffractionSearch<'_> {
 
     /// The radius (with `σ_a = 0`) and its χ²: the screened radius `r0`
     /// ([`Self::screened_radius`]) refined by golden section on `ln r` within a factor 1.5,
-    /// comparing converged fits only.
+    /// comparing search fits only ([`Self::refined`]).
     fn radius(&self, r0: f64) -> (f64, f64) {
         let (mut best_r, mut best_v) = (r0, f64::INFINITY);
         let points = golden_section((r0 / 1.5).ln(), (r0 * 1.5).ln(), 3, &|x| self.refined(x.exp(), 0.0));
@@ -833,6 +856,25 @@ mod tests {
         };
         let ks: Vec<Plane> = centers.iter().map(kernel).collect();
         PsfGrid { kernel_size: n, columns: cols, rows, centers, channels: vec!["R".into(), "G".into(), "B".into()], kernels: vec![ks.clone(), ks.clone(), ks] }
+    }
+
+    /// The diffraction search's fits go on from its best fit so far: the same `(r, σ_a)` fitted
+    /// again lowers χ² (from a cold start it would repeat the first fit's figure exactly), and a
+    /// fit that does worse does not replace the best.
+    #[test]
+    fn the_diffraction_search_continues_from_its_best_fit() {
+        let (data, current) = super::super::registered::tests::small_case(Some("pinhole_diffraction"), 1);
+        let search = DiffractionSearch { data: &data, current: &current, best: Default::default() };
+        let r = search.screened_radius();
+        let (first, cold) = (search.refined(r, 0.0), search.chi2(r, 0.0, SEARCH_FIT));
+        assert!((first - cold).abs() <= 1e-6 * cold, "the first search fit starts from the warm start K * D: {first} against {cold}");
+        let again = search.refined(r, 0.0);
+        assert!(again < first, "χ² {again} after {first}: the second fit did not continue the first");
+        let best = search.best.borrow().as_ref().map(|b| b.0);
+        assert_eq!(best, Some(again));
+        let far = search.refined(4.0 * r, 0.0);
+        assert!(far > again, "a radius 4× too large fits worse ({far} against {again})");
+        assert_eq!(search.best.borrow().as_ref().map(|b| b.0), Some(again), "a worse fit does not replace the best");
     }
 
     /// A pseudo-random jitter in ±`a` px, fixed by the tile centre.

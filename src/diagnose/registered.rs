@@ -294,7 +294,7 @@ pub fn outside_frame(map: &crate::image::resample::Projective, w: usize, h: usiz
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     /// The decision alone: a start that beats the current model only by its extra iterations
@@ -327,7 +327,7 @@ mod tests {
     /// A small case (256×192 mono, 15-px kernels, the proof suite's size) with its data and a
     /// current model: the base estimate refitted briefly (1 × 10), so that the pre-fit's extra
     /// iterations lower χ² whatever the map.
-    fn small_case(effect: Option<&str>, seed: u64) -> (Data<'static>, Fit) {
+    pub(crate) fn small_case(effect: Option<&str>, seed: u64) -> (Data<'static>, Fit) {
         let spec = super::super::proof::CaseSpec::default();
         let case = super::super::proof::render_case(effect, seed, &spec).expect("renders");
         // the data borrow the captures for the test's whole run

@@ -53,7 +53,7 @@ pub fn complete(data: &Data, current: &Fit, cand: Candidate) -> Candidate {
             let (r, v) = search.radius(radius_px);
             let (best_r, best_sa) = search.aberration(r, v);
             Candidate {
-                corrections: Corrections { pinhole_diffraction: Some(search.correction(best_r, best_sa)), ..current.model.corrections.clone() },
+                corrections: search.corrections(best_r, best_sa),
                 init: Some(search.init(best_r, best_sa)),
                 deferred: None,
                 ..cand
@@ -617,7 +617,7 @@ fn diffraction_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Can
     let r = search.screened_radius();
     Some(Candidate {
         name: "pinhole_diffraction",
-        corrections: Corrections { pinhole_diffraction: Some(search.correction(r, 0.0)), ..current.model.corrections.clone() },
+        corrections: search.corrections(r, 0.0),
         evidence: format!(
             "the wide-open capture has {:.2}× the power a non-negative kernel can pass from the reference at {:.2} cycles/px (noise removed; at most 1 without this effect); residual against image gradient: {}",
             worst.1,
@@ -689,15 +689,21 @@ impl DiffractionSearch<'_> {
         super::model::DiffractionCorrection { airy_radius_px: radii, epsilon: eps, aberration_sigma_px: sa, bandwidth }
     }
 
+    /// The current model's corrections with the diffraction correction at `(r, σ_a)`.
+    fn corrections(&self, r: f64, sa: f64) -> Corrections {
+        Corrections { pinhole_diffraction: Some(self.correction(r, sa)), ..self.current.model.corrections.clone() }
+    }
+
     /// The warm start: `K ≈ K_current * D` (module docs of `diffraction`).
     fn init(&self, r: f64, sa: f64) -> Model {
-        let d = self.correction(r, sa);
+        let corrections = self.corrections(r, sa);
+        let d = corrections.pinhole_diffraction.as_ref().expect("set just above");
         let mut m = self.current.model.clone();
         for (c, ks) in m.grid.kernels.iter_mut().enumerate() {
             let psf = d.channel(c).0;
             ks.iter_mut().for_each(|k| *k = super::diffraction::blur_kernel(k, &psf));
         }
-        m.corrections = Corrections { pinhole_diffraction: Some(d), ..self.current.model.corrections.clone() };
+        m.corrections = corrections;
         m
     }
 
@@ -713,7 +719,7 @@ impl DiffractionSearch<'_> {
     /// restored reference changes little), so each fit goes on converging where the last
     /// best one stopped instead of shedding the unrestored reference's sharpening again.
     fn refined(&self, r: f64, sa: f64) -> f64 {
-        let start = self.best.borrow().as_ref().map(|(_, m)| Model { corrections: Corrections { pinhole_diffraction: Some(self.correction(r, sa)), ..self.current.model.corrections.clone() }, ..m.clone() });
+        let start = self.best.borrow().as_ref().map(|(_, m)| Model { corrections: self.corrections(r, sa), ..m.clone() });
         let m = start.unwrap_or_else(|| self.init(r, sa));
         let f = fit(self.data, &m.corrections, &m, SEARCH_FIT);
         let v = f.chi2();

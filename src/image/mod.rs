@@ -369,8 +369,7 @@ pub fn mask_row(mask: Option<&[bool]>, y: usize, width: usize) -> Option<&[bool]
 }
 
 /// Runs `f(x, &mut row[x])` on the pixels of one image row that `need` marks (every pixel when
-/// `None`), leaving the others as they are; a row with no marked pixel returns at once. The
-/// one loop of the masked computations that produce only the pixels a caller reads (a subset
+/// `None`), leaving the others as they are. The one loop of the masked computations that produce only the pixels a caller reads (a subset
 /// fit's planes, blends and warps; `diagnose::fit`, [`crate::optics::psf_grid`],
 /// [`resample`]).
 pub fn for_needed<T>(row: &mut [T], need: Option<&[bool]>, mut f: impl FnMut(usize, &mut T)) {
@@ -378,9 +377,6 @@ pub fn for_needed<T>(row: &mut [T], need: Option<&[bool]>, mut f: impl FnMut(usi
         None => row.iter_mut().enumerate().for_each(|(x, v)| f(x, v)),
         Some(n) => {
             debug_assert_eq!(n.len(), row.len(), "mask row length");
-            if !n.iter().any(|&b| b) {
-                return;
-            }
             row.iter_mut().zip(n).enumerate().filter(|(_, (_, &b))| b).for_each(|(x, (v, _))| f(x, v));
         }
     }

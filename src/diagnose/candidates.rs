@@ -691,19 +691,23 @@ impl DiffractionSearch<'_> {
 
     /// The current model's corrections with the diffraction correction at `(r, σ_a)`.
     fn corrections(&self, r: f64, sa: f64) -> Corrections {
-        Corrections { pinhole_diffraction: Some(self.correction(r, sa)), ..self.current.model.corrections.clone() }
+        self.with_correction(self.correction(r, sa))
+    }
+
+    /// The current model's corrections with the diffraction correction `d`.
+    fn with_correction(&self, d: super::model::DiffractionCorrection) -> Corrections {
+        Corrections { pinhole_diffraction: Some(d), ..self.current.model.corrections.clone() }
     }
 
     /// The warm start: `K ≈ K_current * D` (module docs of `diffraction`).
     fn init(&self, r: f64, sa: f64) -> Model {
-        let corrections = self.corrections(r, sa);
-        let d = corrections.pinhole_diffraction.as_ref().expect("set just above");
+        let d = self.correction(r, sa);
         let mut m = self.current.model.clone();
         for (c, ks) in m.grid.kernels.iter_mut().enumerate() {
             let psf = d.channel(c).0;
             ks.iter_mut().for_each(|k| *k = super::diffraction::blur_kernel(k, &psf));
         }
-        m.corrections = corrections;
+        m.corrections = self.with_correction(d);
         m
     }
 

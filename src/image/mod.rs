@@ -369,9 +369,9 @@ pub fn mask_row(mask: Option<&[bool]>, y: usize, width: usize) -> Option<&[bool]
 }
 
 /// Runs `f(x, &mut row[x])` on the pixels of one image row that `need` marks (every pixel when
-/// `None`), leaving the others as they are. The one loop of the masked computations that produce only the pixels a caller reads (a subset
-/// fit's planes, blends and warps; `diagnose::fit`, [`crate::optics::psf_grid`],
-/// [`resample`]).
+/// `None`), leaving the others as they are. The one loop of the masked computations that
+/// produce only the pixels a caller reads (a subset fit's planes, blends and warps;
+/// `diagnose::fit`, [`crate::optics::psf_grid`], [`resample`]).
 pub fn for_needed<T>(row: &mut [T], need: Option<&[bool]>, mut f: impl FnMut(usize, &mut T)) {
     match need {
         None => row.iter_mut().enumerate().for_each(|(x, v)| f(x, v)),

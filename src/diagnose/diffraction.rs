@@ -287,8 +287,10 @@ pub fn excess_detail(open: &Plane, reference: &Plane, s: f64, var_open: f64, var
     let bands = 8;
     let (sums, cnt) = radial_power_sums(&fft, &[&so, &sp], bands, 0.5, Range::ClosedOpen(0.02, 0.5));
     let (po, pp) = (&sums[0], &sums[1]);
-    // white noise of variance v has expected windowed power v·Σhann² per bin
-    let nw = w2.sqrt();
+    // white noise of variance v has the expected windowed power v·Σ_xy w² = v·(Σhann²)² per
+    // bin (the forward transform is unnormalised; until session 32 this read v·Σhann², about
+    // 1 % of the noise at 256 px, so that a band holding only noise read N_O/(s²·N_P))
+    let nw = w2;
     (0..bands)
         .filter(|&b| cnt[b] > 0)
         .filter_map(|b| {
@@ -326,6 +328,29 @@ pub fn blur_kernel(kernel: &Plane, psf: &ReferencePsf) -> Plane {
 mod tests {
     use super::*;
     use crate::rng::Rng;
+
+    /// [`excess_detail`]: a sharp reference behind a blurring wide-open kernel shows no band
+    /// above 1 even where both captures hold only noise (the pinhole averaged 16 frames, so its
+    /// noise is 1/16 of the open's: unsubtracted, such bands read about 16); a blurred reference
+    /// behind a sharp kernel does.
+    #[test]
+    fn excess_detail_subtracts_the_noise_and_finds_a_blurred_reference() {
+        let n = 256;
+        let mut rng = Rng::new(5);
+        // a soft scene: above about 0.25 cycles/px both captures hold noise only
+        let scene = crate::image::filter::gaussian_blur_wide(&Plane::from_fn(n, n, |_, _| (0.4 + 0.3 * rng.normal()) as f32), 1.5);
+        let noisy = |p: &Plane, v: f64, rng: &mut Rng| Plane::from_fn(p.width, p.height, |x, y| p.get(x, y) + (v.sqrt() * rng.normal()) as f32);
+        let (no, np) = (1e-3, 1e-3 / 16.0);
+        let open = noisy(&crate::image::filter::gaussian_blur_wide(&scene, 1.2), no, &mut rng);
+        let sharp_ref = noisy(&scene, np, &mut rng);
+        let worst = |bands: Vec<(f64, f64)>| bands.iter().map(|b| b.1).fold(0.0, f64::max);
+        let clean = worst(excess_detail(&open, &sharp_ref, 1.0, no, np));
+        assert!(clean < 1.2, "a sharp reference: worst band {clean:.2}");
+        let sharp_open = noisy(&scene, no, &mut rng);
+        let blurred_ref = noisy(&crate::image::filter::gaussian_blur_wide(&scene, 1.2), np, &mut rng);
+        let blurred = worst(excess_detail(&sharp_open, &blurred_ref, 1.0, no, np));
+        assert!(blurred > 2.0, "a blurred reference: worst band {blurred:.2}");
+    }
 
     #[test]
     fn otf_is_one_at_dc_zero_at_cutoff_and_decreasing() {

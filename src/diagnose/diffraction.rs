@@ -287,16 +287,14 @@ pub fn excess_detail(open: &Plane, reference: &Plane, s: f64, var_open: f64, var
     let bands = 8;
     let (sums, cnt) = radial_power_sums(&fft, &[&so, &sp], bands, 0.5, Range::ClosedOpen(0.02, 0.5));
     let (po, pp) = (&sums[0], &sums[1]);
-    // white noise of variance v has the expected windowed power v·Σ_xy w² = v·(Σhann²)² per
-    // bin (the forward transform is unnormalised; until session 32 this read v·Σhann², about
-    // 1 % of the noise at 256 px, so that a band holding only noise read N_O/(s²·N_P))
-    let nw = w2;
+    // white noise of variance v has the expected windowed power v·Σ_xy w² = v·w2 per bin (the
+    // forward transform is unnormalised)
     (0..bands)
         .filter(|&b| cnt[b] > 0)
         .filter_map(|b| {
             let (mo, mp) = (po[b] / cnt[b] as f64, pp[b] / cnt[b] as f64);
-            let (so_, sp_) = (mo - var_open * nw, mp - var_ref * nw);
-            (mp > 2.0 * var_ref * nw && sp_ > 0.0).then(|| (band_centre(b, bands, 0.5), so_.max(0.0) / (s * s * sp_)))
+            let (so_, sp_) = (mo - var_open * w2, mp - var_ref * w2);
+            (mp > 2.0 * var_ref * w2 && sp_ > 0.0).then(|| (band_centre(b, bands, 0.5), so_.max(0.0) / (s * s * sp_)))
         })
         .collect()
 }

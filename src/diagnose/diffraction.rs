@@ -337,7 +337,7 @@ mod tests {
         let mut rng = Rng::new(5);
         // a soft scene: above about 0.25 cycles/px both captures hold noise only
         let scene = crate::image::filter::gaussian_blur_wide(&Plane::from_fn(n, n, |_, _| (0.4 + 0.3 * rng.normal()) as f32), 1.5);
-        let noisy = |p: &Plane, v: f64, rng: &mut Rng| Plane::from_fn(p.width, p.height, |x, y| p.get(x, y) + (v.sqrt() * rng.normal()) as f32);
+        let noisy = |p: &Plane, v: f64, rng: &mut Rng| Plane { width: p.width, height: p.height, data: crate::estimate::bootstrap::add_noise(&p.data, |_| v as f32, rng) };
         let (no, np) = (1e-3, 1e-3 / 16.0);
         let open = noisy(&crate::image::filter::gaussian_blur_wide(&scene, 1.2), no, &mut rng);
         let sharp_ref = noisy(&scene, np, &mut rng);

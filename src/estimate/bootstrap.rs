@@ -223,7 +223,7 @@ impl Replicates {
 }
 
 /// Adds `√v(x) · n` to every sample of `x` (`n ~ N(0, 1)`).
-fn add_noise(x: &[f32], variance: impl Fn(f32) -> f32, rng: &mut Rng) -> Vec<f32> {
+pub(crate) fn add_noise(x: &[f32], variance: impl Fn(f32) -> f32, rng: &mut Rng) -> Vec<f32> {
     x.iter().map(|&p| p + variance(p).max(0.0).sqrt() * rng.normal() as f32).collect()
 }
 

@@ -77,6 +77,10 @@ pub struct DiagnoseArgs {
     /// capture instead of the simulator's lens; its size, channels and kernel size set the case.
     #[arg(long, hide = true)]
     pub bench_lens: Option<PathBuf>,
+    /// Benchmark: the search's progress on stderr at the proof suite's size too (each
+    /// proposal's path, gate and comparison; on by default at other sizes).
+    #[arg(long, hide = true)]
+    pub bench_progress: bool,
     /// No progress output.
     #[arg(long)]
     pub quiet: bool,
@@ -211,6 +215,7 @@ fn bench(a: &DiagnoseArgs, seeds: u64) -> Result<()> {
         opts.estimate.tile = None;
         opts.progress = !a.quiet;
     }
+    opts.progress |= a.bench_progress && !a.quiet;
     let effects: Vec<Option<&str>> = match &a.bench_effect {
         Some(list) => list.iter().map(|e| (e != "clean").then_some(e.as_str())).collect(),
         None => std::iter::once(None).chain(CONCEALED.iter().map(|e| Some(*e))).collect(),

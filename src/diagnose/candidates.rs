@@ -68,8 +68,9 @@ pub fn complete(data: &Data, current: &Fit, cand: Candidate) -> Candidate {
 /// screening evaluation on the subset), against the current model evaluated the same way. A search
 /// runs only from a start that already lowers χ². The current model's figure is computed at the
 /// first use and kept for the round. Where it refuses a geometric candidate whose map moves a
-/// corner by a pixel or more, that candidate's start is re-estimated under the map instead and
-/// compared like for like ([`super::registered`]).
+/// corner by [`super::registered::MIN_CORNER_PX`] or more, at [`super::registered::MIN_CORNER_T`]
+/// standard errors, that candidate's start is re-estimated under the map instead and compared
+/// like for like ([`super::registered`]).
 pub struct StartGate<'a> {
     data: &'a Data<'a>,
     current: &'a Fit,

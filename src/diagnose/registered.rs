@@ -7,7 +7,8 @@
 //! that move smooths the sharp kernels (a Keys bicubic sub-pixel shift) and costs +29 % of χ²
 //! even at the rendered map, so the gate refuses a true misregistration
 //! (docs/notes/diagnosis-history.md, "Session 20: the catalogue at 1024×768"). Where it refuses and
-//! the evidence is strong (the map moves a corner by at least [`MIN_CORNER_PX`]), this module
+//! the evidence is strong (the map moves a corner by at least [`MIN_CORNER_PX`], at
+//! [`MIN_CORNER_T`] standard errors), this module
 //! builds the start another way:
 //!
 //! 1. **Re-estimate under the map** ([`reestimate`]): the base estimate's window fits
@@ -33,12 +34,19 @@ use super::model::Corrections;
 use crate::image::{Image, Transfer};
 
 /// The registered path runs only where the candidate's map moves some image corner by at least
-/// this many pixels. At 1024×768, seed 41: the centroids' similarity moves the corners by
-/// 5.23 px on the misregistration case and by 0.05 px on the vignetting case
-/// (docs/notes/diagnosis-history.md, "Session 20"), where the registered path would only cost (two
-/// estimates and two pre-fits, ≈ 80 CPU-s). A pixel is also where the moved-kernel start stops
-/// working: below it the move costs little.
-pub const MIN_CORNER_PX: f64 = 1.0;
+/// this many pixels: a floor below which a map is too small to be worth two estimates and two
+/// pre-fits (≈ 80 CPU-s at 1024×768), the same quarter pixel as the tilt's proposal floor
+/// ([`super::tilt`]). Whether a map is real is [`MIN_CORNER_T`]'s question, not this one's: at
+/// 1024×768, seed 41, the vignetting case's similarity moves the corners by 0.05 px and its
+/// keystone by 1.00 px at 2.7 standard errors (no tilt), the misregistration case's by 5.23 px
+/// (docs/notes/diagnosis-history.md, "Session 20", "Session 26").
+///
+/// 1 px until session 46, on the view that below a pixel the moved-kernel start of
+/// [`StartGate`] costs little. It does not: on the 256×192 misregistration case of seed 21
+/// (0.32°) the centroids' similarity moves the corners by 0.94 px at 24.5 standard errors, the
+/// gate refuses the moved start, and the 1-px bound left the case "unexplained" at 1.09× the
+/// floor (docs/notes/diagnosis-history.md, "Session 46").
+pub const MIN_CORNER_PX: f64 = 0.25;
 
 /// …and only where that corner displacement is at least this many of its standard errors (the
 /// centroids' scatter about the map's least-squares fit). At 1024×768, seed 41, vignetting

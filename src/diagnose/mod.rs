@@ -1182,9 +1182,12 @@ mod tests {
     #[test]
     fn a_rotation_round_adopts_an_equal_fit_whose_kernels_stop_rotating() {
         let sim = |rot_deg: f64, se_deg: f64| candidates::CentroidSimilarity { p: [0.004, rot_deg.to_radians()], se: [1e-4, se_deg.to_radians()], rotation_corner_px: 640.0 * rot_deg.to_radians().abs() };
-        let (still, stopped, tiny) = (sim(-0.37, 0.004), sim(0.001, 0.002), sim(0.05, 0.001));
+        let (still, stopped, sub_pixel, tiny) = (sim(-0.37, 0.004), sim(0.001, 0.002), sim(0.05, 0.001), sim(0.02, 0.001));
         assert!(rotation_significant(&still) && !rotation_significant(&stopped));
-        // t = 50 but 0.56 px at the corners: below the map's least displacement
+        // t = 50 and 0.56 px at the corners: a real rotation, below the 1 px of before session 46
+        // (the proof's misregistration seed 21 rotates the corners by 0.91 px at t = −23.9)
+        assert!(rotation_significant(&sub_pixel));
+        // t = 20 but 0.22 px at the corners: below the map's least displacement
         assert!(!rotation_significant(&tiny));
         // sf11 seed 42: +9 747 on χ² 2.12 M, noise 6 056: within 1 % of χ²
         let tol = rotation_tolerance(6056.0, 2_120_391.0, 0.01);

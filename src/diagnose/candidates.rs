@@ -68,9 +68,10 @@ pub fn complete(data: &Data, current: &Fit, cand: Candidate) -> Candidate {
 /// screening evaluation on the subset), against the current model evaluated the same way. A search
 /// runs only from a start that already lowers χ². The current model's figure is computed at the
 /// first use and kept for the round. Where it refuses a geometric candidate whose map moves a
-/// corner by [`super::registered::MIN_CORNER_PX`] or more, at [`super::registered::MIN_CORNER_T`]
-/// standard errors, that candidate's start is re-estimated under the map instead and compared
-/// like for like ([`super::registered`]).
+/// corner by [`super::registered::MIN_CORNER_PX`] or more (a misregistration whose rotation is
+/// significant: [`super::registered::MIN_ROTATION_CORNER_PX`]), at
+/// [`super::registered::MIN_CORNER_T`] standard errors, that candidate's start is re-estimated
+/// under the map instead and compared like for like ([`super::registered`]).
 pub struct StartGate<'a> {
     data: &'a Data<'a>,
     current: &'a Fit,
@@ -446,7 +447,8 @@ fn glare_sigma(data: &Data, current: &Fit) -> Option<f64> {
 /// ([`refine_similarity`]) when that start (the current kernels moved to it) passes the
 /// [`StartGate`]; proposed when the refined similarity moves the corners by at least a quarter
 /// pixel. Where the gate refuses and the similarity moves the corners by at least
-/// [`super::registered::MIN_CORNER_PX`], the start is re-estimated under the similarity and
+/// [`registered_bound`] (a pixel, a quarter where its rotation is significant), the start is
+/// re-estimated under the similarity and
 /// pre-fitted, and proposed where it beats the same start without the similarity
 /// ([`super::registered::geometric_candidate`]); that similarity is not refined (its rotation
 /// is the centroids', free of the lens's coma; the scale carries the coma's share,
@@ -466,6 +468,7 @@ fn misregistration_candidate(data: &Data, current: &Fit, a: &Analysis, gate: &St
         moved: &init0,
         corner_px: corner0,
         corner_t: sim.magnitude_t(),
+        min_corner_px: registered_bound(&sim),
     };
     super::registered::geometric_candidate(gate, registered, &c, || similarity_candidate(data, current, a, p0), |_, cmp| {
         let (rot, scale) = rotation_and_scale(1.0 + p0[0], p0[1]);
@@ -476,6 +479,19 @@ fn misregistration_candidate(data: &Data, current: &Fit, a: &Analysis, gate: &St
         );
         (evidence, location(data, a, "growing towards the corners"))
     })
+}
+
+/// The least corner displacement at which a misregistration the gate refuses goes the registered
+/// way ([`super::registered::MapCandidate::min_corner_px`]): a quarter pixel
+/// ([`super::registered::MIN_ROTATION_CORNER_PX`]) when the similarity's rotation is significant
+/// (no lens term rotates kernels), else a pixel ([`super::registered::MIN_CORNER_PX`]: a
+/// sub-pixel scale is what coma puts in the centroids).
+pub fn registered_bound(sim: &CentroidSimilarity) -> f64 {
+    if super::rotation_significant(sim) {
+        super::registered::MIN_ROTATION_CORNER_PX
+    } else {
+        super::registered::MIN_CORNER_PX
+    }
 }
 
 /// The rotation (degrees) and scale change of the similarity whose first column is
@@ -849,6 +865,25 @@ mod tests {
     use super::*;
     use crate::image::Plane;
     use crate::optics::psf_grid::PsfGrid;
+
+    /// The registered path's bound follows the rotation: the 256×192 misregistration seed 21's
+    /// base kernels (rotation −0.326° ± 0.014°, scale +0.00135, 0.91 px at the corners) get a
+    /// quarter pixel; the 1024×768 target-tilt case's round 2 (a similarity of 0.84 px at the
+    /// corners, almost all scale: coma, rotation 0.002°) keeps a pixel, and so does a rotation
+    /// under [`super::super::ROTATION_T`] standard errors.
+    #[test]
+    fn a_significant_rotation_lowers_the_registered_bound() {
+        let half_diagonal = |w: f64, h: f64| 0.5 * w.hypot(h);
+        let sim = |scale: f64, rot_deg: f64, se_deg: f64, hd: f64| CentroidSimilarity { p: [scale, rot_deg.to_radians()], se: [1e-5, se_deg.to_radians()], rotation_corner_px: hd * rot_deg.to_radians().abs() };
+        let seed21 = sim(0.00135, -0.3264, 0.0137, half_diagonal(256.0, 192.0));
+        assert!((seed21.rotation_corner_px - 0.91).abs() < 0.01, "{}", seed21.rotation_corner_px);
+        assert_eq!(registered_bound(&seed21), super::super::registered::MIN_ROTATION_CORNER_PX);
+        let coma = sim(-0.00131, 0.0019, 0.0009, half_diagonal(1024.0, 768.0));
+        assert_eq!(registered_bound(&coma), super::super::registered::MIN_CORNER_PX);
+        let weak = sim(0.0, 0.3, 0.05, half_diagonal(1024.0, 768.0));
+        assert!(weak.rotation_t().abs() < super::super::ROTATION_T && weak.rotation_corner_px > 1.0);
+        assert_eq!(registered_bound(&weak), super::super::registered::MIN_CORNER_PX);
+    }
 
     /// A `cols × rows` grid of Gaussian kernels (σ 2 px, side 21) on a `w × h` image, each
     /// centred at `disp(x, y)` from its kernel's centre (tile centre `(x, y)`), three channels.

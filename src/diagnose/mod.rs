@@ -693,14 +693,15 @@ pub const ROTATION_T: f64 = 10.0;
 
 /// The rotation of the kernels' centroids ([`candidates::centroid_similarity_fit`]) when it is
 /// significant: at least [`ROTATION_T`] standard errors and a displacement of at least
-/// [`registered::MIN_CORNER_PX`] at the corners; `None` otherwise.
+/// [`registered::MIN_ROTATION_CORNER_PX`] at the corners; `None` otherwise.
 pub fn kernel_rotation(f: &Fit) -> Option<candidates::CentroidSimilarity> {
     candidates::centroid_similarity_fit(f).filter(rotation_significant)
 }
 
-/// At least [`ROTATION_T`] standard errors and [`registered::MIN_CORNER_PX`] at the corners.
-fn rotation_significant(c: &candidates::CentroidSimilarity) -> bool {
-    c.rotation_t().abs() >= ROTATION_T && c.rotation_corner_px >= registered::MIN_CORNER_PX
+/// At least [`ROTATION_T`] standard errors and [`registered::MIN_ROTATION_CORNER_PX`] at the
+/// corners.
+pub(crate) fn rotation_significant(c: &candidates::CentroidSimilarity) -> bool {
+    c.rotation_t().abs() >= ROTATION_T && c.rotation_corner_px >= registered::MIN_ROTATION_CORNER_PX
 }
 
 /// The adoption rule of a [`Round::Rotation`] winner: the kernels took the map up, so χ² cannot

@@ -7,8 +7,9 @@
 //! that move smooths the sharp kernels (a Keys bicubic sub-pixel shift) and costs +29 % of χ²
 //! even at the rendered map, so the gate refuses a true misregistration
 //! (docs/notes/diagnosis-history.md, "Session 20: the catalogue at 1024×768"). Where it refuses and
-//! the evidence is strong (the map moves a corner by at least [`MIN_CORNER_PX`], at
-//! [`MIN_CORNER_T`] standard errors), this module
+//! the evidence is strong (the map moves a corner by at least [`MIN_CORNER_PX`], or
+//! [`MIN_ROTATION_CORNER_PX`] where its rotation is significant, at [`MIN_CORNER_T`] standard
+//! errors), this module
 //! builds the start another way:
 //!
 //! 1. **Re-estimate under the map** ([`reestimate`]): the base estimate's window fits
@@ -34,19 +35,24 @@ use super::model::Corrections;
 use crate::image::{Image, Transfer};
 
 /// The registered path runs only where the candidate's map moves some image corner by at least
-/// this many pixels: a floor below which a map is too small to be worth two estimates and two
-/// pre-fits (≈ 80 CPU-s at 1024×768), the same quarter pixel as the tilt's proposal floor
-/// ([`super::tilt`]). Whether a map is real is [`MIN_CORNER_T`]'s question, not this one's: at
-/// 1024×768, seed 41, the vignetting case's similarity moves the corners by 0.05 px and its
-/// keystone by 1.00 px at 2.7 standard errors (no tilt), the misregistration case's by 5.23 px
-/// (docs/notes/diagnosis-history.md, "Session 20", "Session 26").
-///
-/// 1 px until session 46, on the view that below a pixel the moved-kernel start of
-/// [`StartGate`] costs little. It does not: on the 256×192 misregistration case of seed 21
-/// (0.32°) the centroids' similarity moves the corners by 0.94 px at 24.5 standard errors, the
-/// gate refuses the moved start, and the 1-px bound left the case "unexplained" at 1.09× the
-/// floor (docs/notes/diagnosis-history.md, "Session 46").
-pub const MIN_CORNER_PX: f64 = 0.25;
+/// this many pixels (or [`MIN_ROTATION_CORNER_PX`], below). At 1024×768, seed 41: the centroids'
+/// similarity moves the corners by 5.23 px on the misregistration case and by 0.05 px on the
+/// vignetting case (docs/notes/diagnosis-history.md, "Session 20"), where the registered path
+/// would only cost (two estimates and two pre-fits, ≈ 80 CPU-s). Whether a map is real is
+/// [`MIN_CORNER_T`]'s question; this bound keeps the cost away from maps that a lens's own
+/// kernels put in the centroids: coma moves them radially, like a scale change (the target-tilt
+/// case's round 2 at 1024×768, seed 41: a similarity of 0.84 px at 42 standard errors, almost
+/// all scale, whose registered start cost 54 s and was refused).
+pub const MIN_CORNER_PX: f64 = 1.0;
+
+/// The bound that replaces [`MIN_CORNER_PX`] for a misregistration whose map's *rotation* is
+/// significant ([`super::rotation_significant`]: [`super::ROTATION_T`] standard errors, and
+/// this many pixels at the corners). A rotationally symmetric lens never rotates its kernels,
+/// so a rotation is evidence no lens term can fake, down to a quarter pixel (the tilt
+/// proposal's floor, [`super::tilt`]). With the 1-px bound alone the 256×192 misregistration
+/// seeds 21 and 63 (0.32°, 0.9 px at the corners, t ≈ −24) ended "unexplained": the start gate
+/// refuses the moved kernels there too (docs/notes/diagnosis-history.md, "Session 46").
+pub const MIN_ROTATION_CORNER_PX: f64 = 0.25;
 
 /// …and only where that corner displacement is at least this many of its standard errors (the
 /// centroids' scatter about the map's least-squares fit). At 1024×768, seed 41, vignetting
@@ -172,7 +178,7 @@ impl<'a> RegisteredStarts<'a> {
 pub struct MapCandidate<'m> {
     /// The candidate's name; also the label where the gate passes.
     pub name: &'static str,
-    /// The label where the gate refuses and the map moves no corner by [`MIN_CORNER_PX`].
+    /// The label where the gate refuses and the map moves no corner by `min_corner_px`.
     pub gated: &'static str,
     /// The label where the start re-estimated under the map wins like for like.
     pub registered: &'static str,
@@ -187,13 +193,16 @@ pub struct MapCandidate<'m> {
     pub corner_px: f64,
     /// That displacement over its standard error ([`MIN_CORNER_T`]).
     pub corner_t: f64,
+    /// The least corner displacement for the registered path: [`MIN_CORNER_PX`], or
+    /// [`MIN_ROTATION_CORNER_PX`] for a misregistration whose rotation is significant.
+    pub min_corner_px: f64,
 }
 
 /// The proposal of a geometric candidate (module docs), with the label of the path that
 /// stopped or proposed it:
 /// - `c`'s moved start passes the `gate` ([`StartGate::passes`]): what `gate_passed` (the
 ///   candidate's own parameter search) returns, labelled `c.name`;
-/// - the gate refuses and the map moves no corner by [`MIN_CORNER_PX`], or by fewer than
+/// - the gate refuses and the map moves no corner by `c.min_corner_px`, or by fewer than
 ///   [`MIN_CORNER_T`] standard errors: none, `c.gated`;
 /// - the start re-estimated under the map ([`RegisteredStarts::start`]) wins like for like
 ///   ([`Comparison::wins`]): the candidate `c.name` from that start (its corrections, its
@@ -213,7 +222,7 @@ pub fn geometric_candidate(
     if registered.progress {
         eprintln!("{}: the gate refuses; the map moves the corners by {:.2} px, {:.1} standard errors", c.name, c.corner_px, c.corner_t);
     }
-    if c.corner_px < MIN_CORNER_PX || c.corner_t < MIN_CORNER_T {
+    if c.corner_px < c.min_corner_px || c.corner_t < MIN_CORNER_T {
         return (None, c.gated);
     }
     match registered.start(c.corrections, gate.base()) {

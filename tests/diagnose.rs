@@ -168,9 +168,10 @@ fn misregistration_is_named_and_its_rotation_recovered() {
 
 /// A misregistration the kernels almost absorb: seed 21 rotates the 256×192 frame by 0.32°, the
 /// corners by under a pixel, and the current kernels moved by the centroids' similarity do not
-/// pass the start gate. The start re-estimated under the map must still find it (the registered
-/// path's bound is a quarter pixel; at 1 px, before session 46, this case ended "unexplained" at
-/// 1.088× the floor).
+/// pass the start gate. The start re-estimated under the map must still find it: the kernels'
+/// rotation is significant (t ≈ −24), so the registered path's bound is a quarter pixel
+/// (`candidates::registered_bound`); at 1 px, before session 46, this case ended "unexplained"
+/// at 1.088× the floor.
 #[test]
 fn a_sub_pixel_misregistration_is_named_and_its_rotation_recovered() {
     let (row, d, c) = case(Some("misregistration"), 21);

@@ -868,9 +868,10 @@ mod tests {
 
     /// The registered path's bound follows the rotation: the 256×192 misregistration seed 21's
     /// base kernels (rotation −0.326° ± 0.014°, scale +0.00135, 0.91 px at the corners) get a
-    /// quarter pixel; the 1024×768 target-tilt case's round 2 (a similarity of 0.84 px at the
-    /// corners, almost all scale: coma, rotation 0.002°) keeps a pixel, and so does a rotation
-    /// under [`super::super::ROTATION_T`] standard errors.
+    /// quarter pixel; a map that is almost all scale (coma: the 1024×768 target-tilt case's round
+    /// 2, 0.84 px at the corners from a scale of −0.0013, rotation 0.002°) keeps a pixel, and so
+    /// does a rotation over a quarter pixel but under [`super::super::ROTATION_T`] standard errors,
+    /// or one over a pixel at that.
     #[test]
     fn a_significant_rotation_lowers_the_registered_bound() {
         let half_diagonal = |w: f64, h: f64| 0.5 * w.hypot(h);
@@ -879,7 +880,11 @@ mod tests {
         assert!((seed21.rotation_corner_px - 0.91).abs() < 0.01, "{}", seed21.rotation_corner_px);
         assert_eq!(registered_bound(&seed21), super::super::registered::MIN_ROTATION_CORNER_PX);
         let coma = sim(-0.00131, 0.0019, 0.0009, half_diagonal(1024.0, 768.0));
+        assert!(coma.rotation_corner_px < 0.25 && coma.p[0].abs() * half_diagonal(1024.0, 768.0) > 0.8);
         assert_eq!(registered_bound(&coma), super::super::registered::MIN_CORNER_PX);
+        let faint = sim(0.0, 0.05, 0.01, half_diagonal(1024.0, 768.0));
+        assert!(faint.rotation_corner_px > 0.25 && faint.rotation_t().abs() < super::super::ROTATION_T);
+        assert_eq!(registered_bound(&faint), super::super::registered::MIN_CORNER_PX);
         let weak = sim(0.0, 0.3, 0.05, half_diagonal(1024.0, 768.0));
         assert!(weak.rotation_t().abs() < super::super::ROTATION_T && weak.rotation_corner_px > 1.0);
         assert_eq!(registered_bound(&weak), super::super::registered::MIN_CORNER_PX);

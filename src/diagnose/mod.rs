@@ -22,7 +22,8 @@
 //!    `rescore_near_misses`). A parameter search runs only from a start
 //!    that already lowers χ² ([`candidates::StartGate`]); where a geometric candidate's
 //!    start (the current kernels moved by its map) does not, and the map moves a corner by a
-//!    pixel or more, its start is re-estimated under the map, pre-fitted, and proposed only if
+//!    pixel or more (a quarter for a misregistration whose rotation is significant,
+//!    [`candidates::registered_bound`]), its start is re-estimated under the map, pre-fitted, and proposed only if
 //!    it beats the same start without the map ([`registered`], like for like); a search of many converged fits
 //!    (`pinhole_diffraction`'s Airy radius) is deferred until its provisional candidate's
 //!    screening shows it could decide the round (`in_contention`). The polished winner is
@@ -34,7 +35,8 @@
 //!    (`final_polish_rule`).
 //!
 //!    A consistent fit whose kernels' centroids follow a rotation about the image centre
-//!    ([`kernel_rotation`]: at least [`ROTATION_T`] standard errors, a pixel at the corners) has
+//!    ([`kernel_rotation`]: at least [`ROTATION_T`] standard errors and
+//!    [`registered::MIN_ROTATION_CORNER_PX`], a quarter pixel, at the corners) has
 //!    taken up a misregistration in its kernels, which no lens does: a round screens
 //!    misregistration alone (`Round::Rotation`), and its winner is adopted where it fits as well
 //!    (χ² not raised beyond `3·√(2N)` or `min_gain` of χ², `rotation_tolerance`) and leaves kernels that no longer rotate

@@ -133,6 +133,12 @@ pub struct CentroidSimilarity {
 }
 
 impl CentroidSimilarity {
+    /// The similarity `p` with standard errors `se` on a `w × h` image: the rotation's corner
+    /// displacement is the half diagonal times `|p1|`.
+    pub fn new(p: [f64; 2], se: [f64; 2], w: f64, h: f64) -> Self {
+        Self { p, se, rotation_corner_px: 0.5 * (w * w + h * h).sqrt() * p[1].abs() }
+    }
+
     /// The size `|p| = √(p0² + p1²)` of the similarity (its corner displacement over the half
     /// diagonal) over its standard error `√((p0·se0)² + (p1·se1)²) / |p|` (0 for no similarity, ∞
     /// when the error is 0).
@@ -182,7 +188,7 @@ pub fn centroid_similarity_of(g: &crate::optics::psf_grid::PsfGrid, w: usize, h:
     let ls = crate::solve::dense::least_squares(&rows, 1e-300)?;
     let inv_diag = |i: usize| ls.inverse_column(i).map(|x| x[i]);
     let se = [(ls.s2 * inv_diag(0)?).max(0.0).sqrt(), (ls.s2 * inv_diag(1)?).max(0.0).sqrt()];
-    Some(CentroidSimilarity { p: [ls.p[0], ls.p[1]], se, rotation_corner_px: 0.5 * (w * w + h * h).sqrt() * ls.p[1].abs() })
+    Some(CentroidSimilarity::new([ls.p[0], ls.p[1]], se, w, h))
 }
 
 /// The registration with `A − I = [[p0, −p1], [p1, p0]]` and the current model's kernels moved
@@ -448,8 +454,8 @@ fn glare_sigma(data: &Data, current: &Fit) -> Option<f64> {
 /// [`StartGate`]; proposed when the refined similarity moves the corners by at least a quarter
 /// pixel. Where the gate refuses and the similarity moves the corners by at least
 /// [`registered_bound`] (a pixel, a quarter where its rotation is significant), the start is
-/// re-estimated under the similarity and
-/// pre-fitted, and proposed where it beats the same start without the similarity
+/// re-estimated under the similarity and pre-fitted, and proposed where it beats the same start
+/// without the similarity
 /// ([`super::registered::geometric_candidate`]); that similarity is not refined (its rotation
 /// is the centroids', free of the lens's coma; the scale carries the coma's share,
 /// docs/notes/diagnosis-history.md "Session 20"). The label says which path stopped it or
@@ -875,17 +881,17 @@ mod tests {
     #[test]
     fn a_significant_rotation_lowers_the_registered_bound() {
         let half_diagonal = |w: f64, h: f64| 0.5 * w.hypot(h);
-        let sim = |scale: f64, rot_deg: f64, se_deg: f64, hd: f64| CentroidSimilarity { p: [scale, rot_deg.to_radians()], se: [1e-5, se_deg.to_radians()], rotation_corner_px: hd * rot_deg.to_radians().abs() };
-        let seed21 = sim(0.00135, -0.3264, 0.0137, half_diagonal(256.0, 192.0));
+        let sim = |scale: f64, rot_deg: f64, se_deg: f64, (w, h): (f64, f64)| CentroidSimilarity::new([scale, rot_deg.to_radians()], [1e-5, se_deg.to_radians()], w, h);
+        let seed21 = sim(0.00135, -0.3264, 0.0137, (256.0, 192.0));
         assert!((seed21.rotation_corner_px - 0.91).abs() < 0.01, "{}", seed21.rotation_corner_px);
         assert_eq!(registered_bound(&seed21), super::super::registered::MIN_ROTATION_CORNER_PX);
-        let coma = sim(-0.00131, 0.0019, 0.0009, half_diagonal(1024.0, 768.0));
+        let coma = sim(-0.00131, 0.0019, 0.0009, (1024.0, 768.0));
         assert!(coma.rotation_corner_px < 0.25 && coma.p[0].abs() * half_diagonal(1024.0, 768.0) > 0.8);
         assert_eq!(registered_bound(&coma), super::super::registered::MIN_CORNER_PX);
-        let faint = sim(0.0, 0.05, 0.01, half_diagonal(1024.0, 768.0));
+        let faint = sim(0.0, 0.05, 0.01, (1024.0, 768.0));
         assert!(faint.rotation_corner_px > 0.25 && faint.rotation_t().abs() < super::super::ROTATION_T);
         assert_eq!(registered_bound(&faint), super::super::registered::MIN_CORNER_PX);
-        let weak = sim(0.0, 0.3, 0.05, half_diagonal(1024.0, 768.0));
+        let weak = sim(0.0, 0.3, 0.05, (1024.0, 768.0));
         assert!(weak.rotation_t().abs() < super::super::ROTATION_T && weak.rotation_corner_px > 1.0);
         assert_eq!(registered_bound(&weak), super::super::registered::MIN_CORNER_PX);
     }

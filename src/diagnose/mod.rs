@@ -23,8 +23,9 @@
 //!    that already lowers χ² ([`candidates::StartGate`]); where a geometric candidate's
 //!    start (the current kernels moved by its map) does not, and the map moves a corner by a
 //!    pixel or more (a quarter for a misregistration whose rotation is significant,
-//!    [`candidates::registered_bound`]), its start is re-estimated under the map, pre-fitted, and proposed only if
-//!    it beats the same start without the map ([`registered`], like for like); a search of many converged fits
+//!    [`candidates::registered_bound`]), its start is re-estimated under the map, pre-fitted,
+//!    and proposed only if it beats the same start without the map ([`registered`], like for
+//!    like); a search of many converged fits
 //!    (`pinhole_diffraction`'s Airy radius) is deferred until its provisional candidate's
 //!    screening shows it could decide the round (`in_contention`). The polished winner is
 //!    adopted only if it lowers the whole-pixel χ² by more than `3·√(2N)` (the stop rule of
@@ -1184,7 +1185,7 @@ mod tests {
 
     #[test]
     fn a_rotation_round_adopts_an_equal_fit_whose_kernels_stop_rotating() {
-        let sim = |rot_deg: f64, se_deg: f64| candidates::CentroidSimilarity { p: [0.004, rot_deg.to_radians()], se: [1e-4, se_deg.to_radians()], rotation_corner_px: 640.0 * rot_deg.to_radians().abs() };
+        let sim = |rot_deg: f64, se_deg: f64| candidates::CentroidSimilarity::new([0.004, rot_deg.to_radians()], [1e-4, se_deg.to_radians()], 1024.0, 768.0);
         let (still, stopped, sub_pixel, tiny) = (sim(-0.37, 0.004), sim(0.001, 0.002), sim(0.05, 0.001), sim(0.02, 0.001));
         assert!(rotation_significant(&still) && !rotation_significant(&stopped));
         // t = 50 and 0.56 px at the corners: a real rotation, below the 1 px of before session 46

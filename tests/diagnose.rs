@@ -171,7 +171,10 @@ fn misregistration_is_named_and_its_rotation_recovered() {
 /// pass the start gate. The start re-estimated under the map must still find it: the kernels'
 /// rotation is significant (t ≈ −24), so the registered path's bound is a quarter pixel
 /// (`candidates::registered_bound`); at 1 px, before session 46, this case ended "unexplained"
-/// at 1.088× the floor.
+/// at 1.088× the floor. The start's scale is refined by χ² (`registered::RegisteredStarts::refine`):
+/// the centroids' scale (+0.00137, the lens's coma included, against −0.00282 rendered) left the
+/// fit at χ²/dof 1.106, above the consistency bound, and the verdict "unexplained after
+/// misregistration" (session 46).
 #[test]
 fn a_sub_pixel_misregistration_is_named_and_its_rotation_recovered() {
     let (row, d, c) = case(Some("misregistration"), 21);
@@ -182,6 +185,9 @@ fn a_sub_pixel_misregistration_is_named_and_its_rotation_recovered() {
     let got = d.effects[0].parameters["rotation_deg"].as_f64().unwrap();
     assert!((got / want - 1.0).abs() < 0.10, "rotation {got} vs {want}");
     assert!(row.floor_ratio <= FLOOR, "final residual {:.3}× the floor", row.floor_ratio);
+    assert!(row.final_chi2 <= 1.10 && !d.verdict.contains("unexplained"), "χ²/dof {:.3}: {}", row.final_chi2, d.verdict);
+    let (scale, want) = (d.effects[0].parameters["scale"].as_f64().unwrap(), c.truth["scale"].as_f64().unwrap());
+    assert!((scale - want).abs() < 0.0015, "scale {scale:+.5} vs {want:+.5} rendered");
 }
 
 #[test]

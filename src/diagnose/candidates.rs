@@ -42,12 +42,25 @@ pub enum Deferred {
     /// left: the golden sections of warm-started search fits on the radius and `σ_a`
     /// ([`DiffractionSearch::radius`], [`DiffractionSearch::aberration`]).
     Diffraction { radius_px: f64 },
+    /// `misregistration` from a registered start ([`super::registered`]) at the similarity
+    /// `A − I = [[p0, −p1], [p1, p0]]`, whose pre-fitted χ² is `chi2`; left: its scale `p0`,
+    /// refined by χ² over re-estimated starts in steps of `step` ([`super::registered::refine`]).
+    Scale { p: [f64; 2], step: f64, chi2: f64 },
 }
 
 /// `cand` with its deferred search run ([`Deferred`]); `cand` itself when nothing was deferred.
-pub fn complete(data: &Data, current: &Fit, cand: Candidate) -> Candidate {
+/// With `progress`, the search's steps go to stderr.
+pub fn complete(data: &Data, current: &Fit, cand: Candidate, progress: bool) -> Candidate {
     match cand.deferred {
         None => cand,
+        Some(Deferred::Scale { p, step, chi2 }) => {
+            let Some(start) = cand.init else { return Candidate { deferred: None, ..cand } };
+            let at = |v: f64| Corrections { misregistration: Some(similarity_info(&data.base_registration, [v, p[1]])), ..current.model.corrections.clone() };
+            let search = super::registered::ParameterSearch { name: "scale", at: &at, v0: p[0], step };
+            let (m, _, v) = super::registered::refine(data, current, &search, (start, chi2), progress);
+            let (_, scale) = rotation_and_scale(1.0 + v, p[1]);
+            Candidate { corrections: m.corrections.clone(), init: Some(m), deferred: None, evidence: format!("{}; the scale refined by χ² over re-estimated starts: {scale:+.5}", cand.evidence), ..cand }
+        }
         Some(Deferred::Diffraction { radius_px }) => {
             let search = DiffractionSearch { data, current, best: Default::default() };
             let (r, v) = search.radius(radius_px);
@@ -196,7 +209,7 @@ pub fn centroid_similarity_of(g: &crate::optics::psf_grid::PsfGrid, w: usize, h:
 pub fn similarity_model(current: &Fit, base: &crate::profile::RegistrationInfo, p: [f64; 2]) -> (crate::profile::RegistrationInfo, Model, f64) {
     let (w, h) = (current.normalized[0].width as f64, current.normalized[0].height as f64);
     let (cx, cy) = ((w - 1.0) / 2.0, (h - 1.0) / 2.0);
-    let info = crate::profile::RegistrationInfo { model: "similarity".into(), matrix: [1.0 + p[0], -p[1], p[1], 1.0 + p[0]], translation: [base.translation[0].round(), base.translation[1].round()], residual_px: 0.0 };
+    let info = similarity_info(base, p);
     let corner = 0.5 * (w * w + h * h).sqrt() * (p[0] * p[0] + p[1] * p[1]).sqrt();
     let init = moved_kernels(current, &|x, y| {
         let (x, y) = (x - cx, y - cy);
@@ -204,6 +217,20 @@ pub fn similarity_model(current: &Fit, base: &crate::profile::RegistrationInfo, 
     });
     (info, init, corner)
 }
+
+/// The registration with `A − I = [[p0, −p1], [p1, p0]]` about the image centre, and the base
+/// registration's translation rounded to whole pixels.
+fn similarity_info(base: &crate::profile::RegistrationInfo, p: [f64; 2]) -> crate::profile::RegistrationInfo {
+    crate::profile::RegistrationInfo { model: "similarity".into(), matrix: [1.0 + p[0], -p[1], p[1], 1.0 + p[0]], translation: [base.translation[0].round(), base.translation[1].round()], residual_px: 0.0 }
+}
+
+/// The step of the registered start's scale search ([`super::registered::ParameterSearch`]), as
+/// the displacement it makes at the image corners (pixels). Half a pixel: the centroids' scale
+/// carries the lens's coma, about +0.004 at 256×192 with 15-px kernels (0.7 px at the corners;
+/// misregistration seed 21, docs/notes/diagnosis-history.md "Session 47") and +0.001 at
+/// 1024×768 with 45-px kernels (0.67 px), so the truth lies within the parabola's reach of
+/// two steps.
+pub const SCALE_STEP_CORNER_PX: f64 = 0.5;
 
 /// The current model with each kernel's content moved by minus `disp(x, y)`, the displacement
 /// at its tile centre `(x, y)` (pixels, image coordinates), clamped at 0 and renormalised.
@@ -456,15 +483,19 @@ fn glare_sigma(data: &Data, current: &Fit) -> Option<f64> {
 /// [`registered_bound`] (a pixel, a quarter where its rotation is significant), the start is
 /// re-estimated under the similarity and pre-fitted, and proposed where it beats the same start
 /// without the similarity
-/// ([`super::registered::geometric_candidate`]); that similarity is not refined (its rotation
-/// is the centroids', free of the lens's coma; the scale carries the coma's share,
-/// docs/notes/diagnosis-history.md "Session 20"). The label says which path stopped it or
-/// proposed it.
+/// ([`super::registered::geometric_candidate`]). That start's rotation is the centroids' (free
+/// of the lens's coma); its scale, which carries the coma's share (docs/notes/diagnosis-history.md
+/// "Session 20"), is refined by χ² over re-estimated starts, a step of
+/// [`SCALE_STEP_CORNER_PX`] at the corners ([`super::registered::RegisteredStarts::refine`]).
+/// The label says which path stopped it or proposed it.
 fn misregistration_candidate(data: &Data, current: &Fit, a: &Analysis, gate: &StartGate, registered: &super::registered::RegisteredStarts) -> (Option<Candidate>, &'static str) {
     let Some(sim) = centroid_similarity_fit(current) else { return (None, "misregistration") };
     let p0 = sim.p;
     let (info0, init0, corner0) = similarity_model(current, &data.base_registration, p0);
     let corr0 = Corrections { misregistration: Some(info0), ..current.model.corrections.clone() };
+    let (w, h) = (current.normalized[0].width as f64, current.normalized[0].height as f64);
+    let step = SCALE_STEP_CORNER_PX / (0.5 * w.hypot(h));
+    let defer = |cmp: &super::registered::Comparison| Deferred::Scale { p: p0, step, chi2: cmp.with_map };
     let c = super::registered::MapCandidate {
         name: "misregistration",
         gated: "misregistration (gated: no χ² gain at the centroids' similarity)",
@@ -475,6 +506,7 @@ fn misregistration_candidate(data: &Data, current: &Fit, a: &Analysis, gate: &St
         corner_px: corner0,
         corner_t: sim.magnitude_t(),
         min_corner_px: registered_bound(&sim),
+        defer: Some(&defer),
     };
     super::registered::geometric_candidate(gate, registered, &c, || similarity_candidate(data, current, a, p0), |_, cmp| {
         let (rot, scale) = rotation_and_scale(1.0 + p0[0], p0[1]);

@@ -895,7 +895,7 @@ fn search_round(data: &Data, current: &Fit, analysis: &Analysis, round: Round, o
             continue;
         }
         let mut lap = crate::estimate::stage_clock();
-        let cand = candidates::complete(data, current, cand);
+        let cand = candidates::complete(data, current, cand, opts.progress);
         progress_lap(opts, lap("deferred parameter search"));
         let f = screen(cand.name, &cand.corrections, cand.init.as_ref().unwrap_or(&current.model));
         let (dbic2, gain) = (f.bic() - null.bic(), chi2_gain(&null, &f));

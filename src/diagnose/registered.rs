@@ -25,6 +25,11 @@
 //!    the two starts speaks for the map. The candidate is proposed only when its start beats the
 //!    start without the map by [`MARGIN`] of χ² and also the current model at the gate's budget.
 //!
+//! 4. **Refine** (misregistration only, [`refine`]): the winning start's scale by χ² over
+//!    re-estimated, pre-fitted starts (a parabola through three), since the centroids' scale
+//!    carries the lens's coma. Deferred ([`super::candidates::Deferred::Scale`]): it runs only
+//!    where the round's screening shows the candidate could win.
+//!
 //! The start without the map is computed once per round and shared by both candidates
 //! ([`RegisteredStarts`]). Both candidates take the path above through [`geometric_candidate`]
 //! and keep only their map, their parameters and their texts.
@@ -196,6 +201,34 @@ pub struct MapCandidate<'m> {
     /// The least corner displacement for the registered path: [`MIN_CORNER_PX`], or
     /// [`MIN_ROTATION_CORNER_PX`] for a misregistration whose rotation is significant.
     pub min_corner_px: f64,
+    /// The search left to a winning start, from its comparison (the candidate's
+    /// [`super::candidates::Deferred`]: run once the round's screening shows the candidate
+    /// could win it), if any.
+    pub defer: Option<&'m dyn Fn(&Comparison) -> super::candidates::Deferred>,
+}
+
+/// One parameter of a candidate's map, refined by χ² once its registered start has won and
+/// the round's screening shows it could win the round ([`refine`]): the similarity's scale, which the kernels' centroids cannot
+/// give (a lens's coma moves them radially, as a magnification does; misregistration seed 21
+/// at 256×192: the centroids' scale +0.00137 against −0.00282 rendered, and the start under the
+/// rendered scale pre-fits 9 % lower, docs/notes/diagnosis-history.md "Session 47").
+pub struct ParameterSearch<'m> {
+    /// The parameter's name in the progress lines.
+    pub name: &'static str,
+    /// The map's corrections at a parameter value.
+    pub at: &'m dyn Fn(f64) -> Corrections,
+    /// The value the winning start was built at.
+    pub v0: f64,
+    /// The step of the search (the parameter's units).
+    pub step: f64,
+}
+
+/// The vertex of the parabola through `(−h, c_minus)`, `(0, c0)` and `(h, c_plus)`, as an
+/// offset from the middle point, clamped to `±2h`; `None` where the three points do not curve
+/// upwards (no minimum between them).
+pub fn parabola_vertex(c_minus: f64, c0: f64, c_plus: f64, h: f64) -> Option<f64> {
+    let curvature = c_minus - 2.0 * c0 + c_plus;
+    (curvature > 0.0).then(|| (0.5 * h * (c_minus - c_plus) / curvature).clamp(-2.0 * h, 2.0 * h))
 }
 
 /// The proposal of a geometric candidate (module docs), with the label of the path that
@@ -206,7 +239,8 @@ pub struct MapCandidate<'m> {
 ///   [`MIN_CORNER_T`] standard errors: none, `c.gated`;
 /// - the start re-estimated under the map ([`RegisteredStarts::start`]) wins like for like
 ///   ([`Comparison::wins`]): the candidate `c.name` from that start (its corrections, its
-///   model as the start; the map not refined), with the evidence and location `texts` gives for
+///   model as the start; `c.defer`'s search left to the round, the rest of the map not
+///   refined), with the evidence and location `texts` gives for
 ///   the start and its comparison, labelled `c.registered`;
 /// - otherwise (it loses, or an estimate fails): none, `c.refused`.
 pub fn geometric_candidate(
@@ -228,10 +262,39 @@ pub fn geometric_candidate(
     match registered.start(c.corrections, gate.base()) {
         Some((start, cmp)) if cmp.wins() => {
             let (evidence, location) = texts(&start, &cmp);
-            (Some(Candidate { name: c.name, corrections: start.corrections.clone(), evidence, location, init: Some(start), deferred: None }), c.registered)
+            (Some(Candidate { name: c.name, corrections: start.corrections.clone(), evidence, location, init: Some(start), deferred: c.defer.map(|d| d(&cmp)) }), c.registered)
         }
         _ => (None, c.refused),
     }
+}
+
+/// The winning `start` (its model and χ² after [`PREFIT`], built at `s.v0`) with `s`'s
+/// parameter refined by χ²: the starts at `v0 ± step` (re-estimated and pre-fitted, as
+/// [`RegisteredStarts::start`]), then the start at the vertex of the parabola through the three
+/// χ² ([`parabola_vertex`]) where it lies more than a quarter step from every value tried. The
+/// start with the lowest χ² is returned, with its χ² and value; a failed estimate is skipped.
+/// With `progress`, each start's χ² goes to stderr.
+pub fn refine(data: &Data, current: &Fit, s: &ParameterSearch, start: (Model, f64), progress: bool) -> (Model, f64, f64) {
+    let eval = |v: f64| {
+        let f = prefit(data, current, &(s.at)(v))?;
+        if progress {
+            eprintln!("registered start, {} {v:+.5}: χ² {:.0}", s.name, f.chi2());
+        }
+        Some((v, f.chi2(), f.model))
+    };
+    let (minus, plus) = (eval(s.v0 - s.step), eval(s.v0 + s.step));
+    let vertex = match (&minus, &plus) {
+        (Some(m), Some(p)) => parabola_vertex(m.1, start.1, p.1, s.step).map(|d| s.v0 + d),
+        _ => None,
+    };
+    let mut tried = vec![(s.v0, start.1, start.0)];
+    tried.extend(minus);
+    tried.extend(plus);
+    if let Some(v) = vertex.filter(|v| tried.iter().all(|t| (t.0 - v).abs() > 0.25 * s.step)) {
+        tried.extend(eval(v));
+    }
+    let best = tried.into_iter().min_by(|a, b| a.1.total_cmp(&b.1)).expect("the start itself");
+    (best.2, best.1, best.0)
 }
 
 /// The start under `corr`'s geometry ([`reestimate`]) pre-fitted with [`PREFIT`] on the
@@ -400,6 +463,46 @@ pub(crate) mod tests {
         let (_, cmp) = RegisteredStarts::new(&data, &current, StartRule::LikeForLike, false).start(&corr, gate.base()).expect("estimates");
         eprintln!("keystone {k:?}: {}", cmp.text());
         assert!(cmp.wins(), "{}", cmp.text());
+    }
+
+    /// The vertex of three χ² values, as an offset from the middle one: symmetric values give
+    /// the middle, a parabola's own vertex is found, and a vertex beyond two steps is clamped;
+    /// three values that do not curve upwards have none.
+    #[test]
+    fn the_parabola_vertex_is_the_minimum_of_three_values() {
+        assert_eq!(parabola_vertex(5.0, 1.0, 5.0, 0.5), Some(0.0));
+        // c(x) = (x − 0.3)² + 2 at x = −1, 0, 1
+        let c = |x: f64| (x - 0.3) * (x - 0.3) + 2.0;
+        assert!((parabola_vertex(c(-1.0), c(0.0), c(1.0), 1.0).unwrap() - 0.3).abs() < 1e-12);
+        // c(x) = (x + 5)²: the vertex at −5 steps is clamped to −2
+        let c = |x: f64| (x + 5.0) * (x + 5.0);
+        assert_eq!(parabola_vertex(c(-1.0), c(0.0), c(1.0), 1.0), Some(-2.0));
+        assert_eq!(parabola_vertex(1.0, 2.0, 1.0, 1.0), None);
+        assert_eq!(parabola_vertex(1.0, 2.0, 3.0, 1.0), None);
+    }
+
+    /// The scale search on the 256×192 misregistration case, seed 21 (docs/notes/diagnosis-history.md
+    /// "Session 47"): from the centroids' similarity, whose scale carries the lens's coma, the
+    /// refined start pre-fits lower and its scale lies nearer the rendered one.
+    #[test]
+    fn the_scale_search_moves_a_registered_start_towards_the_rendered_scale() {
+        use super::super::candidates::{centroid_similarity, similarity_model, StartGate, SCALE_STEP_CORNER_PX};
+        let (data, current) = small_case(Some("misregistration"), 21);
+        let truth = super::super::proof::render_case(Some("misregistration"), 21, &super::super::proof::CaseSpec::default()).expect("renders").truth;
+        let want = truth["scale"].as_f64().unwrap();
+        let p = centroid_similarity(&current).expect("determined");
+        let corr_at = |v: f64| Corrections { misregistration: Some(similarity_model(&current, &data.base_registration, [v, p[1]]).0), ..current.model.corrections.clone() };
+        let gate = StartGate::new(&data, &current);
+        let starts = RegisteredStarts::new(&data, &current, StartRule::LikeForLike, false);
+        let (start, cmp) = starts.start(&corr_at(p[0]), gate.base()).expect("estimates");
+        let step = SCALE_STEP_CORNER_PX / (0.5 * 256f64.hypot(192.0));
+        let search = ParameterSearch { name: "scale", at: &corr_at, v0: p[0], step };
+        let (m, chi2, v) = refine(&data, &current, &search, (start, cmp.with_map), false);
+        eprintln!("scale {:+.5} (χ² {:.0}) → {v:+.5} (χ² {chi2:.0}); rendered {want:+.5}", p[0], cmp.with_map);
+        assert!(chi2 < 0.95 * cmp.with_map, "{chi2} vs {}", cmp.with_map);
+        assert!((v - want).abs() < 0.5 * (p[0] - want).abs(), "{v} from {} against {want}", p[0]);
+        let s = m.corrections.misregistration.expect("the map").matrix[0] - 1.0;
+        assert!((s - v).abs() < 1e-12, "the returned model is the refined start's: {s} vs {v}");
     }
 
     /// Only the pixels a map pulls in from beyond the frame (or within the taps of its edge)

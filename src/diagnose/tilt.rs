@@ -155,6 +155,7 @@ pub fn tilt_candidate(data: &Data, current: &Fit, a: &Analysis, gate: &super::ca
         corner_px: corner0,
         corner_t: kf.corner_t(w, h),
         min_corner_px: super::registered::MIN_CORNER_PX,
+        defer: None,
     };
     super::registered::geometric_candidate(gate, registered, &c, || keystone_candidate(data, current, a, k0, corner0), |m, cmp| {
         let t = m.corrections.target_tilt.unwrap_or(TiltCorrection { g: 0.0, h: 0.0 });

@@ -764,17 +764,12 @@ impl Round {
         out
     }
 
-    /// What the round's registered starts must beat: the current model alone
-    /// ([`registered::StartRule::BeatsCurrent`]) in a [`Round::Rotation`], and in a
-    /// [`Round::Full`] whose current kernels rotate (`rotates`, [`kernel_rotation`]): kernels that
-    /// took a map up leave the start without the map to take it up as well, so like for like
-    /// cannot prefer the map (misregistration + pinhole_diffraction at 1024×768, seed 41, round 2:
-    /// kernels at t = −529, the map's start +2.9 % like for like; docs/notes/diagnosis-history.md
-    /// "Session 47"). Otherwise like for like.
-    fn start_rule(self, rotates: bool) -> registered::StartRule {
-        match (self, rotates) {
-            (Round::Full, false) => registered::StartRule::LikeForLike,
-            _ => registered::StartRule::BeatsCurrent,
+    /// What the round's registered starts must beat: in a [`Round::Rotation`] the current
+    /// model alone ([`registered::StartRule::BeatsCurrent`]).
+    fn start_rule(self) -> registered::StartRule {
+        match self {
+            Round::Full => registered::StartRule::LikeForLike,
+            Round::Rotation => registered::StartRule::BeatsCurrent,
         }
     }
 }
@@ -844,7 +839,7 @@ pub fn low_band_of(power: f64, floor: f64, [w, h, nch]: [usize; 3], evaluated: f
 /// BIC and removes at least `min_gain` of its χ² (the acceptance rule, [`screened`]): on the
 /// screening subset, or, for a near miss there, on every pixel ([`rescore_near_misses`]).
 fn search_round(data: &Data, current: &Fit, analysis: &Analysis, round: Round, opts: &DiagnoseOptions) -> (Vec<CandidateScore>, Option<(candidates::Candidate, Fit, f64)>) {
-    let (proposed, times) = candidates::propose_timed(data, current, analysis, &round.excluded(opts), round.start_rule(kernel_rotation(current).is_some()), opts.progress);
+    let (proposed, times) = candidates::propose_timed(data, current, analysis, &round.excluded(opts), round.start_rule(), opts.progress);
     for t in times {
         progress_lap_as(opts, "proposal of ", t);
     }
@@ -1185,8 +1180,7 @@ mod tests {
         let excluded = Round::Rotation.excluded(&opts);
         assert!(proof::CONCEALED.iter().all(|n| excluded.iter().any(|e| e == n) == (*n != "misregistration")));
         assert_eq!(Round::Full.excluded(&opts), ["target_tilt"]);
-        assert_eq!((Round::Full.start_rule(false), Round::Rotation.start_rule(false)), (registered::StartRule::LikeForLike, registered::StartRule::BeatsCurrent));
-        assert_eq!((Round::Full.start_rule(true), Round::Rotation.start_rule(true)), (registered::StartRule::BeatsCurrent, registered::StartRule::BeatsCurrent));
+        assert_eq!((Round::Full.start_rule(), Round::Rotation.start_rule()), (registered::StartRule::LikeForLike, registered::StartRule::BeatsCurrent));
     }
 
     #[test]

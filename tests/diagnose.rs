@@ -171,7 +171,7 @@ fn misregistration_is_named_and_its_rotation_recovered() {
 /// pass the start gate. The start re-estimated under the map must still find it: the kernels'
 /// rotation is significant (t ≈ −24), so the registered path's bound is a quarter pixel
 /// (`candidates::registered_bound`); at 1 px, before session 46, this case ended "unexplained"
-/// at 1.088× the floor. The start's scale is refined by χ² (`registered::RegisteredStarts::refine`):
+/// at 1.088× the floor. The start's scale is refined by χ² (`registered::refine`):
 /// the centroids' scale (+0.00137, the lens's coma included, against −0.00282 rendered) left the
 /// fit at χ²/dof 1.106, above the consistency bound, and the verdict "unexplained after
 /// misregistration" (session 46).

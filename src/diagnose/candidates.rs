@@ -226,10 +226,10 @@ fn similarity_info(base: &crate::profile::RegistrationInfo, p: [f64; 2]) -> crat
 
 /// The step of the registered start's scale search ([`super::registered::ParameterSearch`]), as
 /// the displacement it makes at the image corners (pixels). Half a pixel: the centroids' scale
-/// carries the lens's coma, about +0.004 at 256×192 with 15-px kernels (0.7 px at the corners;
-/// misregistration seed 21, docs/notes/diagnosis-history.md "Session 47") and +0.001 at
-/// 1024×768 with 45-px kernels (0.67 px), so the truth lies within the parabola's reach of
-/// two steps.
+/// carries the lens's coma, 0.67 px at the corners on misregistration seed 21 (256×192, 15-px
+/// kernels) and 0.65 px on seed 41 (1024×768, 45-px kernels; docs/notes/diagnosis-history.md
+/// "Session 47"), so the walk ([`super::registered::MAX_STEPS`]) brackets the truth within two
+/// steps there.
 pub const SCALE_STEP_CORNER_PX: f64 = 0.5;
 
 /// The current model with each kernel's content moved by minus `disp(x, y)`, the displacement
@@ -486,7 +486,7 @@ fn glare_sigma(data: &Data, current: &Fit) -> Option<f64> {
 /// ([`super::registered::geometric_candidate`]). That start's rotation is the centroids' (free
 /// of the lens's coma); its scale, which carries the coma's share (docs/notes/diagnosis-history.md
 /// "Session 20"), is refined by χ² over re-estimated starts, a step of
-/// [`SCALE_STEP_CORNER_PX`] at the corners ([`super::registered::RegisteredStarts::refine`]).
+/// [`SCALE_STEP_CORNER_PX`] at the corners ([`super::registered::refine`]).
 /// The label says which path stopped it or proposed it.
 fn misregistration_candidate(data: &Data, current: &Fit, a: &Analysis, gate: &StartGate, registered: &super::registered::RegisteredStarts) -> (Option<Candidate>, &'static str) {
     let Some(sim) = centroid_similarity_fit(current) else { return (None, "misregistration") };

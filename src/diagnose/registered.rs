@@ -286,17 +286,24 @@ pub fn refine(data: &Data, current: &Fit, s: &ParameterSearch, start: (Model, f6
         Some((v, f.chi2(), f.model))
     };
     let mut tried = vec![(s.v0, start.1, start.0)];
+    if !(s.step > 0.0 && s.step.is_finite()) {
+        return (tried.remove(0).2, start.1, s.v0);
+    }
     let probe = |v: f64, tried: &mut Vec<(f64, f64, Model)>| eval(v).map(|t| tried.push(t)).is_some();
     let both = probe(s.v0 - s.step, &mut tried) & probe(s.v0 + s.step, &mut tried);
-    while both {
-        let grid: Vec<(f64, f64)> = tried.iter().map(|t| (t.0, t.1)).collect();
-        if !next_step(&grid, s.v0, s.step).is_some_and(|v| probe(v, &mut tried)) {
-            break;
+    if both {
+        // each step adds a value beyond those tried, at most `MAX_STEPS` from `v0`
+        loop {
+            let grid: Vec<(f64, f64)> = tried.iter().map(|t| (t.0, t.1)).collect();
+            if !next_step(&grid, s.v0, s.step).is_some_and(|v| probe(v, &mut tried)) {
+                break;
+            }
         }
     }
+    // the values tried are consecutive grid points: an interior lowest has neighbours a step away
     tried.sort_by(|a, b| a.0.total_cmp(&b.0));
     let b = (0..tried.len()).min_by(|&i, &j| tried[i].1.total_cmp(&tried[j].1)).expect("the start itself");
-    if b > 0 && b + 1 < tried.len() && (tried[b + 1].0 - tried[b].0 - s.step).abs() < 1e-3 * s.step && (tried[b].0 - tried[b - 1].0 - s.step).abs() < 1e-3 * s.step {
+    if both && b > 0 && b + 1 < tried.len() {
         let vertex = parabola_vertex(tried[b - 1].1, tried[b].1, tried[b + 1].1, s.step).map(|d| tried[b].0 + d);
         if let Some(v) = vertex.filter(|v| tried.iter().all(|t| (t.0 - v).abs() > 0.25 * s.step)) {
             probe(v, &mut tried);
@@ -307,9 +314,10 @@ pub fn refine(data: &Data, current: &Fit, s: &ParameterSearch, start: (Model, f6
 }
 
 /// The farthest a [`refine`] walk goes from its start, in steps: with
-/// [`super::candidates::SCALE_STEP_CORNER_PX`], 2 px at the corners (the centroids' scale was
-/// 2.3 px off the rendered one through the sf11 lens, seed 44, docs/notes/diagnosis-history.md
-/// "Session 23"; the parabola's vertex reaches up to two steps beyond).
+/// [`super::candidates::SCALE_STEP_CORNER_PX`], 2 px at the corners. The centroids' scale was
+/// 0.65–0.9 px off the rendered one at the corners (256×192 seeds 21 and 23, 1024×768 seed 41;
+/// docs/notes/diagnosis-history.md "Session 47"), so four steps leave a factor two; the vertex,
+/// tried only once the lowest is bracketed, lies within half a step of it.
 pub const MAX_STEPS: i32 = 4;
 
 /// The next value of a [`refine`] walk over the grid `v0 + k·step` (`tried`: values and χ²):

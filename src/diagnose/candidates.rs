@@ -220,7 +220,7 @@ pub fn similarity_model(current: &Fit, base: &crate::profile::RegistrationInfo, 
 
 /// The registration with `A − I = [[p0, −p1], [p1, p0]]` about the image centre, and the base
 /// registration's translation rounded to whole pixels.
-fn similarity_info(base: &crate::profile::RegistrationInfo, p: [f64; 2]) -> crate::profile::RegistrationInfo {
+pub(crate) fn similarity_info(base: &crate::profile::RegistrationInfo, p: [f64; 2]) -> crate::profile::RegistrationInfo {
     crate::profile::RegistrationInfo { model: "similarity".into(), matrix: [1.0 + p[0], -p[1], p[1], 1.0 + p[0]], translation: [base.translation[0].round(), base.translation[1].round()], residual_px: 0.0 }
 }
 

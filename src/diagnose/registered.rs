@@ -545,12 +545,12 @@ pub(crate) mod tests {
     /// distance from the rendered one.
     #[test]
     fn the_scale_search_moves_a_registered_start_towards_the_rendered_scale() {
-        use super::super::candidates::{centroid_similarity, similarity_model, StartGate, SCALE_STEP_CORNER_PX};
+        use super::super::candidates::{centroid_similarity, similarity_info, StartGate, SCALE_STEP_CORNER_PX};
         let (data, current) = small_case(Some("misregistration"), 21);
         let truth = super::super::proof::render_case(Some("misregistration"), 21, &super::super::proof::CaseSpec::default()).expect("renders").truth;
         let want = truth["scale"].as_f64().unwrap();
         let p = centroid_similarity(&current).expect("determined");
-        let corr_at = |v: f64| Corrections { misregistration: Some(similarity_model(&current, &data.base_registration, [v, p[1]]).0), ..current.model.corrections.clone() };
+        let corr_at = |v: f64| Corrections { misregistration: Some(similarity_info(&data.base_registration, [v, p[1]])), ..current.model.corrections.clone() };
         let gate = StartGate::new(&data, &current);
         let starts = RegisteredStarts::new(&data, &current, StartRule::LikeForLike, false);
         let (start, cmp) = starts.start(&corr_at(p[0]), gate.base()).expect("estimates");

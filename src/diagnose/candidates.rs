@@ -59,7 +59,8 @@ pub fn complete(data: &Data, current: &Fit, cand: Candidate, progress: bool) -> 
             let search = super::registered::ParameterSearch { name: "scale", at: &at, v0: p[0], step };
             let (m, _, v) = super::registered::refine(data, current, &search, (start, chi2), progress);
             let (_, scale) = rotation_and_scale(1.0 + v, p[1]);
-            Candidate { corrections: m.corrections.clone(), init: Some(m), deferred: None, evidence: format!("{}; the scale refined by χ² over re-estimated starts: {scale:+.5}", cand.evidence), ..cand }
+            let how = if v == p[0] { "the centroids' scale kept: re-estimated starts' χ² does not locate another" } else { "the scale refined by χ² over re-estimated starts" };
+            Candidate { corrections: m.corrections.clone(), init: Some(m), deferred: None, evidence: format!("{}; {how}: {scale:+.5}", cand.evidence), ..cand }
         }
         Some(Deferred::Diffraction { radius_px }) => {
             let search = DiffractionSearch { data, current, best: Default::default() };

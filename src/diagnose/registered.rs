@@ -405,7 +405,7 @@ pub fn next_step(tried: &[(f64, f64)], v0: f64, step: f64) -> Option<f64> {
 
 /// The start under `corr`'s geometry ([`reestimate`]) pre-fitted with [`PREFIT`] on the
 /// screening subset.
-fn prefit(data: &Data, current: &Fit, corr: &Corrections) -> Option<Fit> {
+pub(crate) fn prefit(data: &Data, current: &Fit, corr: &Corrections) -> Option<Fit> {
     let m = reestimate(data, current, corr)?;
     Some(fit_subset(data, corr, &m, PREFIT, data.screen_pixels))
 }

@@ -29,7 +29,10 @@
 //!    re-estimated, pre-fitted starts (a walk in steps until the lowest is bracketed, then a
 //!    parabola), since the centroids' scale
 //!    carries the lens's coma. Deferred ([`super::candidates::Deferred::Scale`]): it runs only
-//!    where the round's screening shows the candidate could win.
+//!    where the round's screening shows the candidate could win. A misregistration whose moved
+//!    start passed the gate gets the same search from a start re-estimated at the centroids'
+//!    scale ([`super::candidates::Deferred::GatedScale`]), kept where it pre-fits lower than
+//!    the moved start.
 //!
 //! The start without the map is computed once per round and shared by both candidates
 //! ([`RegisteredStarts`]). Both candidates take the path above through [`geometric_candidate`]

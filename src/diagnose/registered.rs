@@ -278,8 +278,8 @@ pub fn geometric_candidate(
 /// tried ([`next_step`], at most [`MAX_STEPS`] from `v0`), then at the vertex of the parabola
 /// through the lowest and its two neighbours ([`parabola_vertex`]) where it lies more than a
 /// quarter step from every value tried. The start with the lowest χ² is returned, with its χ²
-/// and value, where the values tried locate it ([`located`]); otherwise the start itself. A failed estimate ends the walk. With `progress`, each start's χ²
-/// goes to stderr.
+/// and value, where the values tried locate it ([`located`]); otherwise the start itself. A
+/// failed estimate ends the walk. With `progress`, each start's χ² goes to stderr.
 pub fn refine(data: &Data, current: &Fit, s: &ParameterSearch, start: (Model, f64), progress: bool) -> (Model, f64, f64) {
     let eval = |v: f64| {
         let f = prefit(data, current, &(s.at)(v))?;
@@ -633,8 +633,8 @@ pub(crate) mod tests {
         // the start lowest, or missing from the values tried: nothing located
         assert!(!located(&[(0.0, 100.0), (-1.0, 120.0), (1.0, 130.0), (2.0, 150.0)], 0.0, 1.0));
         assert!(!located(&m21[1..], m21[0].0, small));
-        // a smooth parabola (exact: σ = 0) with a drop of 0.1 % is located; the same drop on a
-        // bumped profile is not, a drop of 1 % is whatever the bumps
+        // a smooth parabola (exact: σ = 0) with a drop of 0.05 % is located; the same drop on
+        // a bumped profile is not; a drop of 2 % is located whatever the bumps
         let c = |x: f64| 1e6 + 250.0 * (x - 1.5) * (x - 1.5);
         let exact: Vec<(f64, f64)> = [0.0, -1.0, 1.0, 2.0, 3.0].iter().map(|&x| (x, c(x))).collect();
         assert!(parabola_residual(&exact, 0.0, 1.0).unwrap() < 1e-6);

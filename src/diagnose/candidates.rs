@@ -51,9 +51,11 @@ pub enum Deferred {
     /// from a start re-estimated at the rotation `p1` and the centroids' scale `p0`. The golden
     /// section over quick fits from moved kernels is drawn towards the scale that moves the
     /// kernels least (their move smooths them): through the real-design sf11 lens (1024×768,
-    /// seed 44) it ended at +0.00029 against +0.00394 rendered, where the re-estimated starts'
-    /// χ² is lowest at +0.0034 (docs/notes/diagnosis-history.md "Session 48"). The refined start
-    /// replaces the moved one only where it pre-fits lower ([`complete`]).
+    /// seed 44) it ended at `p0` = +0.00029 (a reported scale of +0.00035, the rotation
+    /// included) against +0.00394 rendered, where the re-estimated starts' χ² is lowest at
+    /// +0.0034 (docs/notes/diagnosis-history.md "Session 48"). The refined start replaces the
+    /// moved one only where it pre-fits lower ([`complete`]), and the round keeps the moved one
+    /// where the replacement screens no better (`mod.rs::search_round`).
     GatedScale { p: [f64; 2], step: f64 },
 }
 
@@ -86,7 +88,8 @@ pub fn complete(data: &Data, current: &Fit, cand: Candidate, progress: bool) -> 
             if chi2 >= moved {
                 return Candidate { deferred: None, ..cand };
             }
-            Candidate { corrections: m.corrections.clone(), init: Some(m), deferred: None, evidence: format!("{}; the scale by χ² over starts re-estimated from the centroids' (re-estimated χ² {chi2:.0} against the moved start's {moved:.0}): {scale:+.5}", cand.evidence), ..cand }
+            let how = if v == p[0] { "the centroids' scale (re-estimated starts' χ² does not locate another)" } else { "the scale refined by χ² over starts re-estimated from the centroids'" };
+            Candidate { corrections: m.corrections.clone(), init: Some(m), deferred: None, evidence: format!("{}; a start re-estimated at {how}, pre-fitted to χ² {chi2:.0} against the moved start's {moved:.0}: {scale:+.5}", cand.evidence), ..cand }
         }
         Some(Deferred::Diffraction { radius_px }) => {
             let search = DiffractionSearch { data, current, best: Default::default() };

@@ -861,8 +861,11 @@ fn search_round(data: &Data, current: &Fit, analysis: &Analysis, round: Round, o
     let mut scores = vec![CandidateScore { name: "(null refit)".into(), reduced_chi2: null.reduced_chi2(), parameters: serde_json::Value::Null, delta_bic: 0.0, note: "the current model refitted with the candidates' budget".into() }];
     let mut best: Option<(candidates::Candidate, Fit, f64)> = None;
     let mut near: Vec<(candidates::Candidate, f64)> = Vec::new();
-    // deferred candidates with their provisional verdict, ΔBIC and entry in `scores`
-    let mut provisional: Vec<(candidates::Candidate, Screened, f64, usize)> = Vec::new();
+    // deferred candidates with their provisional verdict, ΔBIC and entry in `scores`, and for
+    // a gated misregistration ([`candidates::Deferred::GatedScale`]) the provisional candidate
+    // itself with its screening fit, which stands where the search does not improve on it
+    #[allow(clippy::type_complexity)]
+    let mut provisional: Vec<(candidates::Candidate, Screened, f64, usize, Option<(candidates::Candidate, Fit)>)> = Vec::new();
     let on = if subset { " on the screening subset" } else { "" };
     let score = |name: &str, f: &Fit, dbic: f64, gain: f64| CandidateScore { name: name.to_string(), parameters: candidates::parameters_json(name, &f.model.corrections), reduced_chi2: f.reduced_chi2(), delta_bic: dbic, note: format!("removes {:.1}% of χ²{on}", 100.0 * gain) };
     // a screened candidate becomes the round's best (the lowest ΔBIC among winners) or a near miss
@@ -879,14 +882,18 @@ fn search_round(data: &Data, current: &Fit, analysis: &Analysis, round: Round, o
         let verdict = screened(dbic, gain, opts.min_gain, subset);
         if cand.deferred.is_some() {
             // decided below, against the round's best complete candidate
-            provisional.push((cand, verdict, dbic, scores.len() - 1));
+            let fallback = matches!(cand.deferred, Some(candidates::Deferred::GatedScale { .. })).then(|| {
+                let c = candidates::Candidate { name: cand.name, corrections: cand.corrections.clone(), evidence: cand.evidence.clone(), location: cand.location.clone(), init: cand.init.clone(), deferred: None };
+                (c, f)
+            });
+            provisional.push((cand, verdict, dbic, scores.len() - 1, fallback));
             continue;
         }
         consider(&mut best, &mut near, verdict, cand, f, dbic);
     }
     // a provisional candidate's deferred search runs only where its provisional score could
     // decide the round ([`in_contention`]); its completed candidate is screened again
-    for (cand, verdict, dbic, entry) in provisional {
+    for (cand, verdict, dbic, entry, fallback) in provisional {
         if !in_contention(verdict, dbic, best.as_ref().map(|b| b.2)) {
             scores[entry].note += "; its parameter search skipped: cannot decide the round";
             if opts.progress {
@@ -897,10 +904,27 @@ fn search_round(data: &Data, current: &Fit, analysis: &Analysis, round: Round, o
         let mut lap = crate::estimate::stage_clock();
         let cand = candidates::complete(data, current, cand, opts.progress);
         progress_lap(opts, lap("deferred parameter search"));
+        // a gated misregistration that kept its moved start is the provisional candidate: its
+        // screening stands
+        let fallback = match fallback {
+            Some((before, f0)) if before.corrections == cand.corrections => {
+                consider(&mut best, &mut near, verdict, before, f0, dbic);
+                continue;
+            }
+            other => other,
+        };
         let f = screen(cand.name, &cand.corrections, cand.init.as_ref().unwrap_or(&current.model));
         let (dbic2, gain) = (f.bic() - null.bic(), chi2_gain(&null, &f));
         if opts.progress {
             eprintln!("{}: provisional ΔBIC {dbic:.0}, after its parameter search {dbic2:.0}", cand.name);
+        }
+        // …and one whose re-estimated start screens no better keeps the provisional one
+        if let Some((before, f0)) = fallback.filter(|_| dbic2 >= dbic) {
+            if opts.progress {
+                eprintln!("{}: the re-estimated start screens no better: the moved start kept", cand.name);
+            }
+            consider(&mut best, &mut near, verdict, before, f0, dbic);
+            continue;
         }
         scores[entry] = score(cand.name, &f, dbic2, gain);
         consider(&mut best, &mut near, screened(dbic2, gain, opts.min_gain, subset), cand, f, dbic2);

@@ -315,7 +315,7 @@ pub fn refine(data: &Data, current: &Fit, s: &ParameterSearch, start: (Model, f6
     let grid: Vec<(f64, f64)> = tried.iter().map(|t| (t.0, t.1)).collect();
     let located = located(&grid, s.v0, s.step);
     if progress && !located {
-        eprintln!("registered start, {}: the values tried do not locate a lower χ² (a drop under {:.0} % of the start's, on a profile no parabola explains); the start's {:+.5} kept", s.name, 100.0 * MIN_DROP, s.v0);
+        eprintln!("registered start, {}: the values tried do not locate a χ² below the start's (none lower, or a drop under {:.0} % on a profile no parabola explains); the start's {:+.5} kept", s.name, 100.0 * MIN_DROP, s.v0);
     }
     let pick = if located { tried.iter().enumerate().min_by(|a, b| a.1 .1.total_cmp(&b.1 .1)).map(|(i, _)| i) } else { tried.iter().position(|t| t.0 == s.v0) };
     let best = tried.swap_remove(pick.expect("the start itself"));
@@ -324,9 +324,9 @@ pub fn refine(data: &Data, current: &Fit, s: &ParameterSearch, start: (Model, f6
 
 /// The drop of χ², as a fraction of the start's, at which a [`refine`] search moves the
 /// parameter from its start whatever the profile's shape. At 1024×768 the profiles have bumps
-/// at the scale of a step: on the real-design sf11 lens (seed 42) the values tried over ±2 px
-/// at the corners lay within 0.5 % of the start's, both neighbours of the start lower than it
-/// and the lowest two steps away, 0.0010 from the rendered scale against the start's 0.0006.
+/// at the scale of a step: on the real-design sf11 lens (seed 42) the values tried, from −1.5 to
+/// +0.5 px at the corners, lay within 0.5 % of the start's, both neighbours of the start lower
+/// than it and the lowest two steps away, 0.0010 from the rendered scale against the start's 0.0006.
 /// Where the search found the rendered scale through such bumps the drop was 2.8–3.2 %
 /// (1024×768 seed 41: the misregistration and the pair with pinhole diffraction;
 /// docs/notes/diagnosis-history.md "Session 48").
@@ -336,8 +336,10 @@ pub const MIN_DROP: f64 = 0.01;
 /// residual σ ([`parabola_residual`]) over the drop from the start's χ² to the lowest, for a
 /// drop below [`MIN_DROP`] to move the parameter: such a profile is smooth, and its lowest is
 /// where χ² puts the parameter. Recorded (docs/notes/diagnosis-history.md "Session 48"): 0.05–0.07
-/// at 256×192 (seeds 21, 23, 63), 0.16 on the achromat at 1024×768 (seed 41, drop 1.06 %,
-/// lowest 0.00358 against 0.00378 rendered, the start 0.00257); sf11 seed 42 0.52.
+/// at 256×192 (seeds 21, 23, 63); 0.16 on the achromat at 1024×768 (seed 41), whose drop of
+/// 1.06 % (lowest 0.00358 against 0.00378 rendered, the start 0.00257) passed [`MIN_DROP`] by
+/// a hair: this bound is what locates such a profile should its drop fall under 1 %; sf11
+/// seed 42 0.52. No recorded profile was located by this bound alone.
 pub const MAX_ROUGHNESS: f64 = 0.25;
 
 /// Whether a [`refine`] profile (`tried`: values and χ², the start `v0` among them; values
@@ -611,7 +613,7 @@ pub(crate) mod tests {
     /// The profiles that [`refine`] recorded (docs/notes/diagnosis-history.md "Sessions 47
     /// and 48"; scale, χ²; the start first): where the lowest lies at the rendered scale
     /// (256×192 seeds 21, 23, 63; 1024×768 seed 41, alone and with pinhole diffraction, by a
-    /// drop of 2.8–3.2 %; the achromat's seed 41, by a smooth drop of 1.06 %) it is located; on
+    /// drop of 2.8–3.2 %; the achromat's seed 41, by a drop of 1.06 % on a smooth profile) it is located; on
     /// the real-design sf11 lens (1024×768, seed 42), where the values lie within 0.5 % in bumps
     /// and the lowest lay further from the rendered scale than the start, it is not; nor where
     /// the start is the lowest. A smooth parabola is located by any drop, a bumped one only by
@@ -640,15 +642,15 @@ pub(crate) mod tests {
         assert!(parabola_residual(&exact, 0.0, 1.0).unwrap() < 1e-6);
         assert!(located(&exact, 0.0, 1.0));
         let bump = |b: f64, e: &[(f64, f64)]| e.iter().enumerate().map(|(i, &(x, v))| (x, if i == 2 { v + b } else { v })).collect::<Vec<_>>();
-        assert!(!located(&bump(250.0, &exact), 0.0, 1.0));
+        assert!(!located(&bump(400.0, &exact), 0.0, 1.0));
         let deep: Vec<(f64, f64)> = [0.0, -1.0, 1.0, 2.0, 3.0].iter().map(|&x| (x, 1e6 + 1e4 * (x - 1.5) * (x - 1.5))).collect();
-        let (rough, drop) = (bump(1e4, &deep), 22_500.0 - 2_500.0);
+        let (rough, drop) = (bump(2e4, &deep), 22_500.0 - 2_500.0);
         assert!(parabola_residual(&rough, 0.0, 1.0).unwrap() > MAX_ROUGHNESS * drop);
         assert!(located(&rough, 0.0, 1.0));
         // three values have no residual: only the drop counts
         assert!(parabola_residual(&exact[..3], 0.0, 1.0).is_none());
         assert!(!located(&[(0.0, 100.0), (-1.0, 120.0), (1.0, 99.5)], 0.0, 1.0));
-        assert!(located(&[(0.0, 100.0), (-1.0, 120.0), (1.0, 99.0)], 0.0, 1.0));
+        assert!(located(&[(0.0, 100.0), (-1.0, 120.0), (1.0, 98.9)], 0.0, 1.0));
     }
 
     /// The scale search on the 256×192 misregistration case, seed 21 (docs/notes/diagnosis-history.md

@@ -25,9 +25,11 @@
 //!    pixel or more (a quarter for a misregistration whose rotation is significant,
 //!    [`candidates::registered_bound`]), its start is re-estimated under the map, pre-fitted,
 //!    and proposed only if it beats the same start without the map ([`registered`], like for
-//!    like); a search of many converged fits
-//!    (`pinhole_diffraction`'s Airy radius) is deferred until its provisional candidate's
-//!    screening shows it could decide the round (`in_contention`). The polished winner is
+//!    like); a search of many converged fits (`pinhole_diffraction`'s Airy radius, a
+//!    misregistration's scale over re-estimated starts: [`candidates::Deferred`]) is deferred
+//!    until its provisional candidate's screening shows it could decide the round
+//!    (`in_contention`); a gated misregistration keeps its moved start where the search's
+//!    re-estimated one screens no better. The polished winner is
 //!    adopted only if it lowers the whole-pixel χ² by more than `3·√(2N)` (the stop rule of
 //!    `adopt`). The winner's polish ends on every pixel; the search's final model is polished
 //!    again (the final polish) only where backward elimination changed it after the last

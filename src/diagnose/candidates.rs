@@ -66,22 +66,14 @@ pub fn complete(data: &Data, current: &Fit, cand: Candidate, progress: bool) -> 
         None => cand,
         Some(Deferred::Scale { p, step, chi2 }) => {
             let Some(start) = cand.init else { return Candidate { deferred: None, ..cand } };
-            let at = |v: f64| Corrections { misregistration: Some(similarity_info(&data.base_registration, [v, p[1]])), ..current.model.corrections.clone() };
-            let search = super::registered::ParameterSearch { name: "scale", at: &at, v0: p[0], step };
-            let (m, _, v) = super::registered::refine(data, current, &search, (start, chi2), progress);
-            let (_, scale) = rotation_and_scale(1.0 + v, p[1]);
+            let (m, _, v, scale) = scale_search(data, current, p, step, Some((start, chi2)), progress).expect("a given start");
             let how = if v == p[0] { "the centroids' scale kept: re-estimated starts' χ² does not locate another" } else { "the scale refined by χ² over re-estimated starts" };
             Candidate { corrections: m.corrections.clone(), init: Some(m), deferred: None, evidence: format!("{}; {how}: {scale:+.5}", cand.evidence), ..cand }
         }
         Some(Deferred::GatedScale { p, step }) => {
-            let at = |v: f64| Corrections { misregistration: Some(similarity_info(&data.base_registration, [v, p[1]])), ..current.model.corrections.clone() };
-            let Some(start) = super::registered::prefit(data, current, &at(p[0])) else { return Candidate { deferred: None, ..cand } };
-            let search = super::registered::ParameterSearch { name: "scale", at: &at, v0: p[0], step };
-            let c0 = start.chi2();
-            let (m, chi2, v) = super::registered::refine(data, current, &search, (start.model, c0), progress);
+            let Some((m, chi2, v, scale)) = scale_search(data, current, p, step, None, progress) else { return Candidate { deferred: None, ..cand } };
             // like for like: the moved start, pre-fitted with the same budget
             let moved = super::fit::fit_subset(data, &cand.corrections, cand.init.as_ref().unwrap_or(&current.model), super::registered::PREFIT, data.screen_pixels).chi2();
-            let (_, scale) = rotation_and_scale(1.0 + v, p[1]);
             if progress {
                 eprintln!("misregistration: the re-estimated start at scale {scale:+.5} pre-fits to χ² {chi2:.0}, the moved start to {moved:.0}: {}", if chi2 < moved { "re-estimated" } else { "moved kept" });
             }
@@ -103,6 +95,31 @@ pub fn complete(data: &Data, current: &Fit, cand: Candidate, progress: bool) -> 
             }
         }
     }
+}
+
+/// The misregistration's scale searched by [`super::registered::refine`] at the rotation `p1`
+/// from `p0` (`A − I = [[p0, −p1], [p1, p0]]`) in steps of `step`, from `start` (its model and
+/// pre-fitted χ²) or, without one, from the start re-estimated and pre-fitted at `p0`: the
+/// refined start, its χ², its `p0` and its scale; `None` when that estimate fails.
+fn scale_search(data: &Data, current: &Fit, p: [f64; 2], step: f64, start: Option<(Model, f64)>, progress: bool) -> Option<(Model, f64, f64, f64)> {
+    let at = |v: f64| Corrections { misregistration: Some(similarity_info(&data.base_registration, [v, p[1]])), ..current.model.corrections.clone() };
+    let start = match start {
+        Some(s) => s,
+        None => super::registered::prefit(data, current, &at(p[0])).map(|f| {
+            let c = f.chi2();
+            (f.model, c)
+        })?,
+    };
+    let search = super::registered::ParameterSearch { name: "scale", at: &at, v0: p[0], step };
+    let (m, chi2, v) = super::registered::refine(data, current, &search, start, progress);
+    Some((m, chi2, v, rotation_and_scale(1.0 + v, p[1]).1))
+}
+
+/// The step of the scale searches ([`Deferred::Scale`], [`Deferred::GatedScale`]):
+/// [`SCALE_STEP_CORNER_PX`] at the corners of `current`'s image.
+fn scale_step(current: &Fit) -> f64 {
+    let (w, h) = (current.normalized[0].width as f64, current.normalized[0].height as f64);
+    SCALE_STEP_CORNER_PX / (0.5 * w.hypot(h))
 }
 
 /// The χ² gate of a candidate's parameter search (docs/notes/diagnosis-history.md, "Gated
@@ -523,8 +540,7 @@ fn misregistration_candidate(data: &Data, current: &Fit, a: &Analysis, gate: &St
     let p0 = sim.p;
     let (info0, init0, corner0) = similarity_model(current, &data.base_registration, p0);
     let corr0 = Corrections { misregistration: Some(info0), ..current.model.corrections.clone() };
-    let (w, h) = (current.normalized[0].width as f64, current.normalized[0].height as f64);
-    let step = SCALE_STEP_CORNER_PX / (0.5 * w.hypot(h));
+    let step = scale_step(current);
     let defer = |cmp: &super::registered::Comparison| Deferred::Scale { p: p0, step, chi2: cmp.with_map };
     let c = super::registered::MapCandidate {
         name: "misregistration",
@@ -573,8 +589,6 @@ fn rotation_and_scale(a11: f64, a21: f64) -> (f64, f64) {
 fn similarity_candidate(data: &Data, current: &Fit, a: &Analysis, p0: [f64; 2]) -> Option<Candidate> {
     let q = refine_similarity(data, current, p0);
     let (info, init, corner) = similarity_model(current, &data.base_registration, q);
-    let (w, h) = (current.normalized[0].width as f64, current.normalized[0].height as f64);
-    let step = SCALE_STEP_CORNER_PX / (0.5 * w.hypot(h));
     let (rot, scale) = rotation_and_scale(info.matrix[0], info.matrix[2]);
     if corner < 0.25 {
         return None;
@@ -588,7 +602,7 @@ fn similarity_candidate(data: &Data, current: &Fit, a: &Analysis, p0: [f64; 2]) 
         corrections: Corrections { misregistration: Some(info), ..current.model.corrections.clone() },
         location: location(data, a, "growing towards the corners"),
         init: Some(init),
-        deferred: Some(Deferred::GatedScale { p: [p0[0], q[1]], step }),
+        deferred: Some(Deferred::GatedScale { p: [p0[0], q[1]], step: scale_step(current) }),
     })
 }
 

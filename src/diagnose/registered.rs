@@ -293,12 +293,12 @@ pub fn refine(data: &Data, current: &Fit, s: &ParameterSearch, start: (Model, f6
         return (tried.remove(0).2, start.1, s.v0);
     }
     let probe = |v: f64, tried: &mut Vec<(f64, f64, Model)>| eval(v).map(|t| tried.push(t)).is_some();
+    let values = |tried: &[(f64, f64, Model)]| tried.iter().map(|t| (t.0, t.1)).collect::<Vec<_>>();
     let both = probe(s.v0 - s.step, &mut tried) & probe(s.v0 + s.step, &mut tried);
     if both {
         // each step adds a value beyond those tried, at most `MAX_STEPS` from `v0`
-        loop {
-            let grid: Vec<(f64, f64)> = tried.iter().map(|t| (t.0, t.1)).collect();
-            if !next_step(&grid, s.v0, s.step).is_some_and(|v| probe(v, &mut tried)) {
+        while let Some(v) = next_step(&values(&tried), s.v0, s.step) {
+            if !probe(v, &mut tried) {
                 break;
             }
         }
@@ -312,8 +312,7 @@ pub fn refine(data: &Data, current: &Fit, s: &ParameterSearch, start: (Model, f6
             probe(v, &mut tried);
         }
     }
-    let grid: Vec<(f64, f64)> = tried.iter().map(|t| (t.0, t.1)).collect();
-    let located = located(&grid, s.v0, s.step);
+    let located = located(&values(&tried), s.v0, s.step);
     if progress && !located {
         eprintln!("registered start, {}: the values tried do not locate a χ² below the start's (none lower, or a drop under {:.0} % on a profile no parabola explains); the start's {:+.5} kept", s.name, 100.0 * MIN_DROP, s.v0);
     }
@@ -360,28 +359,8 @@ pub fn parabola_residual(tried: &[(f64, f64)], v0: f64, step: f64) -> Option<f64
     if tried.len() < 4 || step <= 0.0 || !step.is_finite() {
         return None;
     }
-    let xs: Vec<f64> = tried.iter().map(|t| (t.0 - v0) / step).collect();
-    // the normal equations of c(x) = a·x² + b·x + c, by Gauss–Jordan with partial pivoting
-    let s = |k: i32| xs.iter().map(|x| x.powi(k)).sum::<f64>();
-    let t = |k: i32| xs.iter().zip(tried).map(|(x, p)| x.powi(k) * p.1).sum::<f64>();
-    let mut m = [[s(4), s(3), s(2), t(2)], [s(3), s(2), s(1), t(1)], [s(2), s(1), s(0), t(0)]];
-    let scale = s(4).max(1.0);
-    for i in 0..3 {
-        let p = (i..3).max_by(|&a, &b| m[a][i].abs().total_cmp(&m[b][i].abs()))?;
-        m.swap(i, p);
-        if m[i][i].abs() < 1e-12 * scale {
-            return None;
-        }
-        for r in (0..3).filter(|&r| r != i) {
-            let f = m[r][i] / m[i][i];
-            for j in 0..4 {
-                m[r][j] -= f * m[i][j];
-            }
-        }
-    }
-    let (a, b, c) = (m[0][3] / m[0][0], m[1][3] / m[1][1], m[2][3] / m[2][2]);
-    let rss: f64 = xs.iter().zip(tried).map(|(x, p)| (p.1 - (a * x * x + b * x + c)).powi(2)).sum();
-    Some((rss / (tried.len() - 3) as f64).sqrt())
+    let rows: Vec<([f64; 3], f64)> = tried.iter().map(|&(v, c)| ((v - v0) / step, c)).map(|(x, c)| ([x * x, x, 1.0], c)).collect();
+    crate::solve::dense::least_squares(&rows, 1e-9).map(|f| f.s2.sqrt())
 }
 
 /// The farthest a [`refine`] walk goes from its start, in steps: with

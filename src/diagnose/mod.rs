@@ -894,7 +894,10 @@ fn search_round(data: &Data, current: &Fit, analysis: &Analysis, round: Round, o
         consider(&mut best, &mut near, verdict, cand, f, dbic);
     }
     // a provisional candidate's deferred search runs only where its provisional score could
-    // decide the round ([`in_contention`]); its completed candidate is screened again
+    // decide the round ([`in_contention`]); its completed candidate is screened again. The
+    // strongest goes first ([`strongest_first`]), so that its completed score is the bar the
+    // weaker ones must reach before their searches run
+    strongest_first(&mut provisional, |p| p.2);
     for (cand, verdict, dbic, entry, fallback) in provisional {
         if !in_contention(verdict, dbic, best.as_ref().map(|b| b.2)) {
             scores[entry].note += "; its parameter search skipped: cannot decide the round";
@@ -955,6 +958,19 @@ fn in_contention(provisional: Screened, dbic: f64, best: Option<f64>) -> bool {
 /// The share of the round's best ΔBIC a provisional candidate must reach to have its search
 /// run ([`in_contention`]).
 const CONTENTION: f64 = 0.25;
+
+/// Orders a round's provisional candidates by their provisional ΔBIC (`dbic`), the lowest (the
+/// strongest) first, so that the deferred searches run in that order. A search only sharpens a
+/// start the screen located ([`in_contention`]), so the strongest candidate's completed score
+/// is the bar a weaker one must be within [`CONTENTION`] of. In the order proposed, the pair
+/// misregistration + pinhole_diffraction at 1024×768 (seed 41) ran misregistration's scale
+/// search first (no complete candidate had won, so it was in contention: 51.5 s, then a
+/// screening fit), which took its ΔBIC from −2 239 420 to −2 520 139, while diffraction's went
+/// from −9 493 224 to −9 985 445 and won the round (docs/notes/diagnosis-history.md, "Session 49").
+/// Ties keep the proposal order.
+fn strongest_first<T>(provisional: &mut [T], dbic: impl Fn(&T) -> f64) {
+    provisional.sort_by(|a, b| dbic(a).total_cmp(&dbic(b)));
+}
 
 /// The share of the null refit's χ² (the noise law's term included) that `f` removes.
 fn chi2_gain(null: &Fit, f: &Fit) -> f64 {
@@ -1272,6 +1288,21 @@ mod tests {
         assert!(in_contention(Screened::NearMiss, -1.0e3, None), "a near miss with no winner");
         assert!(!in_contention(Screened::NearMiss, -1.0e3, Some(-1.3e7)));
         assert!(!in_contention(Screened::Rejected, 5.0, None), "rejected even before its search");
+    }
+
+    /// The deferred searches run strongest first ([`strongest_first`]): with the figures of the
+    /// pair misregistration + pinhole_diffraction at 1024×768 (seed 41, round 1; no complete
+    /// candidate won), misregistration proposed first is in contention only as long as
+    /// diffraction's search has not run; after it (−9 985 445) it is not, so its search is
+    /// skipped. Ties keep the order proposed.
+    #[test]
+    fn the_strongest_provisional_candidate_is_searched_first() {
+        let mut provisional = vec![("misregistration", -2_239_420.0), ("pinhole_diffraction", -9_493_224.0), ("target_tilt", -2_239_420.0)];
+        assert!(in_contention(Screened::Winner, provisional[0].1, None), "first in the proposal order, it would be searched");
+        strongest_first(&mut provisional, |p| p.1);
+        assert_eq!(provisional.iter().map(|p| p.0).collect::<Vec<_>>(), ["pinhole_diffraction", "misregistration", "target_tilt"]);
+        let best_after_search = Some(-9_985_445.0);
+        assert!(!in_contention(Screened::Winner, provisional[1].1, best_after_search), "behind the completed diffraction: no search");
     }
 
     /// The base stage's budgets ([`base_budget`]): where the subset screens, the provisional

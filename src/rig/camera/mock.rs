@@ -322,7 +322,9 @@ impl MockCamera {
         if let Some(v) = std::env::var("LENSRIG_MOCK_PANIC_AFTER_CAPTURES").ok().and_then(|v| v.parse().ok()) {
             faults.panic_after_captures.store(v, Ordering::SeqCst);
         }
-        let format = FrameFormat { width: cfg.camera.width, height: cfg.camera.height, fourcc: FourCc(*b"Y16 "), transfer: Transfer::Linear };
+        // the configured FourCC is recorded on every frame (the config's promise); the planes are
+        // rendered linear whatever it names, and the frames say so (`transfer`)
+        let format = FrameFormat { width: cfg.camera.width, height: cfg.camera.height, fourcc: FourCc(cfg.camera.fourcc()), transfer: Transfer::Linear };
         Ok(Self {
             rng: Rng::new(optics.seed.wrapping_mul(7919) + 17),
             optics,
@@ -560,6 +562,9 @@ mod tests {
         let f = c.capture(1).unwrap();
         assert!(f.image.planes[0].data.iter().filter(|&&v| v >= 1.0).count() > 100);
         assert_eq!(f.meta.frames_discarded, 2);
+        // the configured pixel format (rig-configs/mock.toml: BYR2) is what the frames record
+        assert_eq!(f.meta.fourcc, FourCc(*b"BYR2"));
+        assert_eq!(f.meta.transfer, Transfer::Linear);
     }
 
     /// The temporal variance over averaged frames is the sensor's Poisson–Gaussian law

@@ -21,6 +21,7 @@ use crate::image::Transfer;
 use serde_json::json;
 
 /// A candidate model: the current corrections plus one effect.
+#[derive(Clone)]
 pub struct Candidate {
     pub name: &'static str,
     pub corrections: Corrections,

@@ -884,10 +884,7 @@ fn search_round(data: &Data, current: &Fit, analysis: &Analysis, round: Round, o
         let verdict = screened(dbic, gain, opts.min_gain, subset);
         if cand.deferred.is_some() {
             // decided below, against the round's best complete candidate
-            let fallback = matches!(cand.deferred, Some(candidates::Deferred::GatedScale { .. })).then(|| {
-                let c = candidates::Candidate { name: cand.name, corrections: cand.corrections.clone(), evidence: cand.evidence.clone(), location: cand.location.clone(), init: cand.init.clone(), deferred: None };
-                (c, f)
-            });
+            let fallback = matches!(cand.deferred, Some(candidates::Deferred::GatedScale { .. })).then(|| (candidates::Candidate { deferred: None, ..cand.clone() }, f));
             provisional.push((cand, verdict, dbic, scores.len() - 1, fallback));
             continue;
         }

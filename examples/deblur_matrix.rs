@@ -77,7 +77,7 @@ static BASE: std::sync::OnceLock<DeconvOptions> = std::sync::OnceLock::new();
 const SEED: u64 = 2013;
 /// Version of the peer code and of the cell's input (scene, forward model, noise sampler):
 /// part of every cache key.
-const PEER_VERSION: &str = "peers-v1:rl10-30-100:wiener7:fieldblur:seed-noise-v1";
+const PEER_VERSION: &str = "peers-v2:rl10-30-100-nonpos-out:wiener7:fieldblur:seed-noise-v1";
 
 /// The peers' figures of one cell: blurred PSNR, RL PSNR and iterations, Wiener PSNR and balance.
 #[derive(Clone, Copy)]

@@ -408,8 +408,11 @@ fn propose_all(data: &Data, current: &Fit, a: &Analysis, wanted: &dyn Fn(&str) -
     if c0.saturation.is_none() && wanted("saturation") {
         add("saturation", saturation_candidate(data, current, a), &mut out);
     }
-    if c0.pinhole_diffraction.is_none() && wanted("pinhole_diffraction") {
-        add("pinhole_diffraction", diffraction_candidate(data, current, a), &mut out);
+    if wanted("pinhole_diffraction") {
+        match &c0.pinhole_diffraction {
+            None => add("pinhole_diffraction", diffraction_candidate(data, current, a), &mut out),
+            Some(d) => add("pinhole_diffraction (radius re-searched)", diffraction_refinement(data, current, a, d), &mut out),
+        }
     }
     if wanted("psf_field_variation") {
         add("psf_field_variation", field_candidate(data, current, a), &mut out);
@@ -876,6 +879,88 @@ impl DiffractionSearch<'_> {
         }
         (best_r, best_sa)
     }
+}
+
+/// The factor of one step of [`DiffractionSearch::descend`] (a radius 15 % smaller or larger).
+const DESCENT_STEP: f64 = 0.85;
+
+/// Most steps [`DiffractionSearch::descend`] takes (a factor 0.85⁵ = 0.44 either way).
+const DESCENT_MAX_STEPS: usize = 5;
+
+impl DiffractionSearch<'_> {
+    /// A fit at `(r, σ_a)` continued from `m`'s kernels ([`SEARCH_FIT`]), each kernel first
+    /// carried from `m`'s restoration to the new one so that the prediction starts where `m`'s
+    /// was ([`super::diffraction::rerestored_kernel`]): its χ² and model.
+    fn continued(&self, m: &Model, r: f64, sa: f64) -> (f64, Model) {
+        let corr = self.corrections(r, sa);
+        let mut start = Model { corrections: corr.clone(), ..m.clone() };
+        if let (Some(from), Some(to)) = (&m.corrections.pinhole_diffraction, &corr.pinhole_diffraction) {
+            for (c, ks) in start.grid.kernels.iter_mut().enumerate() {
+                let ((pf, ef), (pt, _)) = (from.channel(c), to.channel(c));
+                ks.iter_mut().for_each(|k| *k = super::diffraction::rerestored_kernel(k, (&pf, ef), &pt));
+            }
+        }
+        let f = fit(self.data, &corr, &start, SEARCH_FIT);
+        (f.chi2(), f.model)
+    }
+
+    /// The radius `r` (at `σ_a`) walked by paired fits from the search's best kernels: fits at
+    /// `r`, `r·s` and `r/s` (`s` = [`DESCENT_STEP`]), each continued from the same kernels with
+    /// the same budget, and while a neighbour beats `r`, one more step that way (its fit's
+    /// kernels the next start, at most [`DESCENT_MAX_STEPS`]). The golden sections compare fits
+    /// that each go on from the best one before them, so a later fit is favoured for having run
+    /// longer, and kernels that have not shed the sharpening the unrestored reference forced on
+    /// them make a stronger restoration look better; pairing removes both. On the pair
+    /// misregistration + pinhole_diffraction at 512×384 (seed 41) the golden sections ended at a
+    /// green radius of 3.38 px, and fits of 2 × 300 from the model adopted there reached a χ²
+    /// 18 % lower at 0.7 of it (rendered: 0.63; docs/notes/diagnosis-history.md, "Session 50").
+    /// Returns the radius and, where it moved, the last accepted fit's model.
+    fn descend(&self, r: f64, sa: f64) -> (f64, Option<Model>) {
+        let Some(m) = self.best.borrow().as_ref().map(|(_, m)| m.clone()) else { return (r, None) };
+        let here = self.continued(&m, r, sa);
+        let down = self.continued(&m, r * DESCENT_STEP, sa);
+        let up = self.continued(&m, r / DESCENT_STEP, sa);
+        let (factor, mut next) = if down.0 < here.0 && down.0 <= up.0 {
+            (DESCENT_STEP, down)
+        } else if up.0 < here.0 {
+            (1.0 / DESCENT_STEP, up)
+        } else {
+            return (r, None);
+        };
+        let mut r = r * factor;
+        for _ in 1..DESCENT_MAX_STEPS {
+            let here = self.continued(&next.1, r, sa);
+            let further = self.continued(&next.1, r * factor, sa);
+            if further.0 >= here.0 {
+                break;
+            }
+            (r, next) = (r * factor, further);
+        }
+        (r, Some(next.1))
+    }
+}
+
+/// An adopted `pinhole_diffraction` re-searched in a later round: its green radius walked from
+/// the current model's kernels ([`DiffractionSearch::descend`]), which the winner's polish and
+/// the later rounds have converged further than the search that chose the radius; proposed
+/// where the walk moves it. On the pair misregistration + pinhole_diffraction at 512×384 (seed
+/// 41) the first search's radius stood 1.6× the rendered one, and from the round-2 model fits
+/// of 2 × 300 reached a χ² 18 % lower at 0.7 of it (docs/notes/diagnosis-history.md,
+/// "Session 50").
+fn diffraction_refinement(data: &Data, current: &Fit, a: &Analysis, d: &super::model::DiffractionCorrection) -> Option<Candidate> {
+    let name = data.open.channels.first().map_or("Y", |s| s.as_str());
+    let r0 = d.airy_radius_px.first().copied()? * 0.55 / super::diffraction::channel_wavelength_um(name);
+    let search = DiffractionSearch { data, current, best: std::cell::RefCell::new(Some((current.chi2(), current.model.clone()))) };
+    let (r, m) = search.descend(r0, d.aberration_sigma_px);
+    let m = m?;
+    Some(Candidate {
+        name: "pinhole_diffraction",
+        corrections: m.corrections.clone(),
+        evidence: format!("re-searched from the current model: the reference's Airy radius (green) {r0:.2} → {r:.2} px, by fits continued from the same kernels; residual against image gradient: {}", curve_text(a, "gradient")),
+        init: Some(m),
+        deferred: None,
+        location: format!("fine detail everywhere; channels {}; {}", channel_list(data), where_text(a)),
+    })
 }
 
 /// Golden-section search for a minimum of `f` on `[lo, hi]`: `iterations` shrinking steps,

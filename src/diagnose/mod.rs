@@ -569,7 +569,12 @@ fn adopt(data: &mut Data, s: &mut Search, (cand, f, dbic): (candidates::Candidat
         }
     }
     let (before, after) = (Figures::of(&previous), Figures::of(&current));
-    s.effects.push(FoundEffect { name: cand.name.to_string(), evidence, location: cand.location, parameters, before, after, delta_bic: dbic });
+    let found = FoundEffect { name: cand.name.to_string(), evidence, location: cand.location, parameters, before, after, delta_bic: dbic };
+    // an effect re-searched in a later round (`pinhole_diffraction`'s radius) keeps its place
+    match s.effects.iter_mut().find(|e| e.name == found.name) {
+        Some(e) => *e = FoundEffect { before: e.before.clone(), delta_bic: e.delta_bic + found.delta_bic, ..found },
+        None => s.effects.push(found),
+    }
     // the models no longer needed go before the refit (each holds whole-image planes): the
     // rescored winner too, whose degrees of freedom the refit inherits (in round 1 the
     // current model until the refit replaces it shares its planes with `diagnose`'s base)

@@ -904,22 +904,19 @@ impl DiffractionSearch<'_> {
         (f.chi2(), f.model)
     }
 
-    /// The radius `r` (at `σ_a`) walked by paired fits from the search's best kernels: fits at
-    /// `r`, `r·s` and `r/s` (`s` = [`DESCENT_STEP`]), each continued from the same kernels with
-    /// the same budget, and while a neighbour beats `r`, one more step that way (its fit's
-    /// kernels the next start, at most [`DESCENT_MAX_STEPS`]). The golden sections compare fits
-    /// that each go on from the best one before them, so a later fit is favoured for having run
-    /// longer, and kernels that have not shed the sharpening the unrestored reference forced on
-    /// them make a stronger restoration look better; pairing removes both. On the pair
-    /// misregistration + pinhole_diffraction at 512×384 (seed 41) the golden sections ended at a
-    /// green radius of 3.38 px, and fits of 2 × 300 from the model adopted there reached a χ²
-    /// 18 % lower at 0.7 of it (rendered: 0.63; docs/notes/diagnosis-history.md, "Session 50").
-    /// Returns the radius and, where it moved, the last accepted fit's model.
-    fn descend(&self, r: f64, sa: f64) -> (f64, Option<Model>) {
-        let Some(m) = self.best.borrow().as_ref().map(|(_, m)| m.clone()) else { return (r, None) };
-        let here = self.continued(&m, r, sa);
-        let down = self.continued(&m, r * DESCENT_STEP, sa);
-        let up = self.continued(&m, r / DESCENT_STEP, sa);
+    /// The radius `r` (at `σ_a`) walked by paired fits from `m`'s kernels: fits at `r`, `r·s`
+    /// and `r/s` (`s` = [`DESCENT_STEP`]), each continued from the same kernels with the same
+    /// budget ([`Self::continued`]), and while a neighbour beats `r`, one more step that way
+    /// (its fit's kernels the next start, at most [`DESCENT_MAX_STEPS`]). Pairing keeps a later
+    /// fit from winning for having run longer (the golden sections' fits each go on from the
+    /// best one before them); carrying the kernels to each radius's restoration keeps kernels
+    /// fitted at `r` from favouring `r` (without it the walk never moved on the case of
+    /// [`diffraction_refinement`]). Returns the radius and, where it moved, the last accepted
+    /// fit's model.
+    fn descend(&self, m: &Model, r: f64, sa: f64) -> (f64, Option<Model>) {
+        let here = self.continued(m, r, sa);
+        let down = self.continued(m, r * DESCENT_STEP, sa);
+        let up = self.continued(m, r / DESCENT_STEP, sa);
         let (factor, mut next) = if down.0 < here.0 && down.0 <= up.0 {
             (DESCENT_STEP, down)
         } else if up.0 < here.0 {
@@ -950,8 +947,8 @@ impl DiffractionSearch<'_> {
 fn diffraction_refinement(data: &Data, current: &Fit, a: &Analysis, d: &super::model::DiffractionCorrection) -> Option<Candidate> {
     let name = data.open.channels.first().map_or("Y", |s| s.as_str());
     let r0 = d.airy_radius_px.first().copied()? * 0.55 / super::diffraction::channel_wavelength_um(name);
-    let search = DiffractionSearch { data, current, best: std::cell::RefCell::new(Some((current.chi2(), current.model.clone()))) };
-    let (r, m) = search.descend(r0, d.aberration_sigma_px);
+    let search = DiffractionSearch { data, current, best: Default::default() };
+    let (r, m) = search.descend(&current.model, r0, d.aberration_sigma_px);
     let m = m?;
     Some(Candidate {
         name: "pinhole_diffraction",

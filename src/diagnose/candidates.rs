@@ -85,7 +85,7 @@ pub fn complete(data: &Data, current: &Fit, cand: Candidate, progress: bool) -> 
             Candidate { corrections: m.corrections.clone(), init: Some(m), deferred: None, evidence: format!("{}; a start re-estimated at {how}, pre-fitted to χ² {chi2:.0} against the moved start's {moved:.0}: {scale:+.5}", cand.evidence), ..cand }
         }
         Some(Deferred::Diffraction { radius_px }) => {
-            let search = DiffractionSearch { data, current, best: Default::default() };
+            let search = DiffractionSearch::new(data, current);
             let (r, v) = search.radius(radius_px);
             let (best_r, best_sa) = search.aberration(r, v);
             Candidate {
@@ -719,7 +719,7 @@ fn diffraction_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Can
         // every band within what a non-negative kernel can pass: nothing for this effect
         return None;
     }
-    let search = DiffractionSearch { data, current, best: Default::default() };
+    let search = DiffractionSearch::new(data, current);
     let r = search.screened_radius();
     Some(Candidate {
         name: "pinhole_diffraction",
@@ -761,6 +761,10 @@ fn worst_excess_detail(data: &Data, current: &Fit) -> (f64, f64) {
 struct DiffractionSearch<'a> {
     data: &'a Data<'a>,
     current: &'a Fit,
+    /// The registered linear reference planes before any restoration: what each channel's
+    /// Wiener ratio ε is measured on ([`Self::correction`]). The current model's own planes,
+    /// unless it restores them already (a re-search, [`diffraction_refinement`]).
+    unrestored: std::sync::Arc<Vec<crate::image::Plane>>,
     /// The search's lowest χ² so far and its fitted model: the start of the next search fit
     /// ([`Self::refined`]).
     best: std::cell::RefCell<Option<(f64, Model)>>,
@@ -774,19 +778,39 @@ struct DiffractionSearch<'a> {
 /// `σ_a` as cold fits of 2 × 100 (docs/notes/diagnosis-history.md, "Session 29").
 const SEARCH_FIT: FitSettings = FitSettings { rounds: 1, kernel_iterations: 100 };
 
-impl DiffractionSearch<'_> {
+impl<'a> DiffractionSearch<'a> {
+    fn new(data: &'a Data<'a>, current: &'a Fit) -> Self {
+        let c = &current.model.corrections;
+        let unrestored = if c.pinhole_diffraction.is_some() {
+            let registration = c.misregistration.clone().unwrap_or_else(|| data.base_registration.clone());
+            std::sync::Arc::new(super::model::reference_planes(data.pinhole, current.transfer, &registration))
+        } else {
+            current.reference.clone()
+        };
+        Self { data, current, unrestored, best: Default::default() }
+    }
+
+    /// The green Airy radius of `d` (its first channel's radius scaled by wavelength, as
+    /// [`Self::correction`] scales the green radius to each channel).
+    fn green_radius(&self, d: &super::model::DiffractionCorrection) -> Option<f64> {
+        Some(d.airy_radius_px.first().copied()? * 0.55 / super::diffraction::channel_wavelength_um(self.channel_name(0)))
+    }
+
+    fn channel_name(&self, c: usize) -> &str {
+        self.data.open.channels.get(c).map_or("Y", |s| s.as_str())
+    }
+
     /// The correction for green Airy radius `r` (channels scaled by wavelength) and `σ_a`,
     /// with each channel's Wiener regularisation from the reference's noise.
     fn correction(&self, r: f64, sa: f64) -> super::model::DiffractionCorrection {
         let (data, current) = (self.data, self.current);
         let nch = data.open.channel_count();
         let transfer = current.transfer;
-        let name = |c: usize| data.open.channels.get(c).map_or("Y", |s| s.as_str());
-        let radii: Vec<f64> = (0..nch).map(|c| r * super::diffraction::channel_wavelength_um(name(c)) / 0.55).collect();
-        let bandwidth: Vec<f64> = (0..nch).map(|c| super::diffraction::channel_bandwidth(name(c))).collect();
+        let radii: Vec<f64> = (0..nch).map(|c| r * super::diffraction::channel_wavelength_um(self.channel_name(c)) / 0.55).collect();
+        let bandwidth: Vec<f64> = (0..nch).map(|c| super::diffraction::channel_bandwidth(self.channel_name(c))).collect();
         let eps: Vec<f64> = (0..nch)
             .map(|c| {
-                let p = &current.reference[c];
+                let p = &self.unrestored[c];
                 let vp = data.pinhole_variance_scale * data.curves[c].linear_variance(p.mean() as f32, transfer) as f64;
                 let psf = super::diffraction::ReferencePsf { radius_px: radii[c], aberration_px: sa, bandwidth: bandwidth[c] };
                 super::diffraction::epsilon(p, vp, &psf)
@@ -809,10 +833,7 @@ impl DiffractionSearch<'_> {
     fn init(&self, r: f64, sa: f64) -> Model {
         let d = self.correction(r, sa);
         let mut m = self.current.model.clone();
-        for (c, ks) in m.grid.kernels.iter_mut().enumerate() {
-            let psf = d.channel(c).0;
-            ks.iter_mut().for_each(|k| *k = super::diffraction::blur_kernel(k, &psf));
-        }
+        map_kernels(&mut m, |c, k| super::diffraction::blur_kernel(k, &d.channel(c).0));
         m.corrections = self.with_correction(d);
         m
     }
@@ -881,11 +902,9 @@ impl DiffractionSearch<'_> {
     }
 }
 
-/// The factor of one step of [`DiffractionSearch::descend`] (a radius 15 % smaller or larger).
-const DESCENT_STEP: f64 = 0.85;
-
-/// Most steps [`DiffractionSearch::descend`] takes (a factor 0.85⁵ = 0.44 either way).
-const DESCENT_MAX_STEPS: usize = 5;
+/// The factor between an adopted radius and the neighbours [`diffraction_refinement`] tries (a
+/// radius 15 % smaller or larger).
+const REFINE_STEP: f64 = 0.85;
 
 impl DiffractionSearch<'_> {
     /// A fit at `(r, σ_a)` continued from `m`'s kernels ([`SEARCH_FIT`]), each kernel first
@@ -895,61 +914,50 @@ impl DiffractionSearch<'_> {
         let corr = self.corrections(r, sa);
         let mut start = Model { corrections: corr.clone(), ..m.clone() };
         if let (Some(from), Some(to)) = (&m.corrections.pinhole_diffraction, &corr.pinhole_diffraction) {
-            for (c, ks) in start.grid.kernels.iter_mut().enumerate() {
-                let ((pf, ef), (pt, _)) = (from.channel(c), to.channel(c));
-                ks.iter_mut().for_each(|k| *k = super::diffraction::rerestored_kernel(k, (&pf, ef), &pt));
-            }
+            // at the same PSF the carry would only filter the kernels (`D̂²/(D̂² + ε)`)
+            let moved = |c: usize| (from.channel(c).0.radius_px / to.channel(c).0.radius_px - 1.0).abs() > 1e-9 || from.aberration_sigma_px != to.aberration_sigma_px;
+            map_kernels(&mut start, |c, k| if moved(c) { super::diffraction::rerestored_kernel(k, (&from.channel(c).0, from.channel(c).1), &to.channel(c).0) } else { k.clone() });
         }
         let f = fit(self.data, &corr, &start, SEARCH_FIT);
         (f.chi2(), f.model)
     }
 
-    /// The radius `r` (at `σ_a`) walked by paired fits from `m`'s kernels: fits at `r`, `r·s`
-    /// and `r/s` (`s` = [`DESCENT_STEP`]), each continued from the same kernels with the same
-    /// budget ([`Self::continued`]), and while a neighbour beats `r`, one more step that way
-    /// (its fit's kernels the next start, at most [`DESCENT_MAX_STEPS`]). Pairing keeps a later
-    /// fit from winning for having run longer (the golden sections' fits each go on from the
-    /// best one before them); carrying the kernels to each radius's restoration keeps kernels
-    /// fitted at `r` from favouring `r` (without it the walk never moved on the case of
-    /// [`diffraction_refinement`]). Returns the radius and, where it moved, the last accepted
-    /// fit's model.
-    fn descend(&self, m: &Model, r: f64, sa: f64) -> (f64, Option<Model>) {
-        let here = self.continued(m, r, sa);
-        let down = self.continued(m, r * DESCENT_STEP, sa);
-        let up = self.continued(m, r / DESCENT_STEP, sa);
-        let (factor, mut next) = if down.0 < here.0 && down.0 <= up.0 {
-            (DESCENT_STEP, down)
-        } else if up.0 < here.0 {
-            (1.0 / DESCENT_STEP, up)
+    /// The better of the radii `r·s` and `r/s` (`s` = [`REFINE_STEP`], at `σ_a`) by fits
+    /// continued from `m`'s kernels with the same budget ([`Self::continued`]): its radius and
+    /// model.
+    fn neighbour(&self, m: &Model, r: f64, sa: f64) -> (f64, Model) {
+        let (down, up) = (self.continued(m, r * REFINE_STEP, sa), self.continued(m, r / REFINE_STEP, sa));
+        if down.0 <= up.0 {
+            (r * REFINE_STEP, down.1)
         } else {
-            return (r, None);
-        };
-        let mut r = r * factor;
-        for _ in 1..DESCENT_MAX_STEPS {
-            let here = self.continued(&next.1, r, sa);
-            let further = self.continued(&next.1, r * factor, sa);
-            if further.0 >= here.0 {
-                break;
-            }
-            (r, next) = (r * factor, further);
+            (r / REFINE_STEP, up.1)
         }
-        (r, Some(next.1))
     }
 }
 
-/// An adopted `pinhole_diffraction` re-searched in a later round: its green radius walked from
-/// the current model's kernels ([`DiffractionSearch::descend`]), which the winner's polish and
-/// the later rounds have converged further than the search that chose the radius; proposed
-/// where the walk moves it. On the pair misregistration + pinhole_diffraction at 512×384 (seed
-/// 41) the first search's radius stood 1.6× the rendered one, and from the round-2 model fits
-/// of 2 × 300 reached a χ² 18 % lower at 0.7 of it (docs/notes/diagnosis-history.md,
-/// "Session 50").
+/// Every kernel of `m` replaced by `f(channel, kernel)`.
+fn map_kernels(m: &mut Model, f: impl Fn(usize, &crate::image::Plane) -> crate::image::Plane) {
+    for (c, ks) in m.grid.kernels.iter_mut().enumerate() {
+        ks.iter_mut().for_each(|k| *k = f(c, k));
+    }
+}
+
+/// An adopted `pinhole_diffraction` re-searched in a later round: the better neighbour of its
+/// green radius ([`DiffractionSearch::neighbour`]: 15 % smaller or larger) from the current
+/// model's kernels, each carried to the neighbour's restoration so that its fit starts from the
+/// current prediction ([`super::diffraction::rerestored_kernel`]). The round's screening then
+/// judges it against the null refit, which goes on from the current model with the same
+/// budget: a step a round, while it wins. Why: the first search's fits run from kernels that
+/// have not shed the sharpening the unrestored reference forced on them, and each of its
+/// golden-section fits continues from the best one before it (a later fit has run longer), so
+/// it can settle on too strong a restoration. On the pair misregistration + pinhole_diffraction
+/// at 512×384 (seed 41) it ended at a green radius of 3.38 px (rendered 2.12), and from the
+/// round-2 model fits of 2 × 300 reached a χ² 18 % lower at 0.7 of it
+/// (docs/notes/diagnosis-history.md, "Session 50").
 fn diffraction_refinement(data: &Data, current: &Fit, a: &Analysis, d: &super::model::DiffractionCorrection) -> Option<Candidate> {
-    let name = data.open.channels.first().map_or("Y", |s| s.as_str());
-    let r0 = d.airy_radius_px.first().copied()? * 0.55 / super::diffraction::channel_wavelength_um(name);
-    let search = DiffractionSearch { data, current, best: Default::default() };
-    let (r, m) = search.descend(&current.model, r0, d.aberration_sigma_px);
-    let m = m?;
+    let search = DiffractionSearch::new(data, current);
+    let r0 = search.green_radius(d)?;
+    let (r, m) = search.neighbour(&current.model, r0, d.aberration_sigma_px);
     Some(Candidate {
         name: "pinhole_diffraction",
         corrections: m.corrections.clone(),
@@ -1121,7 +1129,7 @@ mod tests {
     #[test]
     fn the_diffraction_search_continues_from_its_best_fit() {
         let (data, current) = super::super::registered::tests::small_case(Some("pinhole_diffraction"), 1);
-        let search = DiffractionSearch { data: &data, current: &current, best: Default::default() };
+        let search = DiffractionSearch::new(&data, &current);
         let r = search.screened_radius();
         let (first, cold) = (search.refined(r, 0.0), search.chi2(r, 0.0, SEARCH_FIT));
         assert!((first - cold).abs() <= 1e-6 * cold, "the first search fit starts from the warm start K * D: {first} against {cold}");

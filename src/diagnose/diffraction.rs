@@ -315,7 +315,7 @@ pub fn blur_kernel(kernel: &Plane, psf: &ReferencePsf) -> Plane {
 pub fn rerestored_kernel(kernel: &Plane, from: (&ReferencePsf, f64), to: &ReferencePsf) -> Plane {
     filter_kernel(kernel, |fx, fy| {
         let d = from.0.transfer(fx, fy);
-        to.transfer(fx, fy) * d / (d * d + from.1)
+        to.transfer(fx, fy) * d / (d * d + from.1.max(1e-12))
     })
 }
 
@@ -469,8 +469,8 @@ mod tests {
 
     /// [`rerestored_kernel`]: a kernel carried from the restoration at one radius to another
     /// keeps the prediction `K * W * P` (the search's fits at a neighbouring radius start where
-    /// the last one stood) to within half the error of the kernel left as it was (measured: 0.026
-    /// and 0.015 against 0.087; the 31-px crop, the clamp at zero and `1/Ŵ_to ≈ D̂_to` keep it
+    /// the last one stood) to within half the error of the kernel left as it was (measured: 0.030
+    /// and 0.011 against 0.090 and 0.082; the 31-px crop, the clamp at zero and `1/Ŵ_to ≈ D̂_to` keep it
     /// from exact). Both ways: to a smaller radius (the kernel sharpens) and to a larger one.
     #[test]
     fn a_kernel_carried_to_another_restoration_keeps_the_prediction() {
@@ -494,11 +494,12 @@ mod tests {
             })
         };
         for (r_from, r_to) in [(3.0, 2.0), (2.0, 3.0)] {
-            let (from, to, eps) = (ReferencePsf::airy(r_from), ReferencePsf::airy(r_to), 1e-3);
+            // the new restoration's own ε differs (it is measured per radius)
+            let (from, to, eps, eps_to) = (ReferencePsf::airy(r_from), ReferencePsf::airy(r_to), 1e-3, 3e-3);
             let want = predict(&kernel, &from, eps);
             let carried = rerestored_kernel(&kernel, (&from, eps), &to);
             assert!((carried.sum() - kernel.sum()).abs() < 1e-5 && carried.data.iter().all(|v| *v >= 0.0), "{r_from} → {r_to}: sum {} or a negative value", carried.sum());
-            let (e_carried, e_kept) = (interior_error(&predict(&carried, &to, eps), &want, 16), interior_error(&predict(&kernel, &to, eps), &want, 16));
+            let (e_carried, e_kept) = (interior_error(&predict(&carried, &to, eps_to), &want, 16), interior_error(&predict(&kernel, &to, eps_to), &want, 16));
             assert!(e_carried < 0.5 * e_kept, "{r_from} → {r_to}: carried kernel misses the prediction by {e_carried:.4}, the kept kernel by {e_kept:.4}");
         }
     }

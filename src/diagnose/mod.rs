@@ -240,7 +240,9 @@ pub struct FoundEffect {
     /// one ran).
     pub before: Figures,
     pub after: Figures,
-    /// BIC of the model with the effect minus the null refit's.
+    /// BIC of the model with the effect minus the null refit's; for an effect found again in a
+    /// later round (`pinhole_diffraction`'s radius re-searched, `psf_field_variation` on a finer
+    /// grid), summed over its adoptions.
     pub delta_bic: f64,
 }
 
@@ -442,6 +444,17 @@ struct Search {
     /// The current model is an adopted winner as `adopt` left it (polished, refitted on every
     /// pixel) and nothing changed it since: the final polish would polish it again.
     polished: bool,
+    /// The effect adopted last, where it is not the list's last entry (an effect found again
+    /// keeps its place): the one whose "after" the final model is.
+    last_found: Option<String>,
+}
+
+impl Search {
+    /// The entry whose "after" is the current model's: the effect adopted last.
+    fn last_adopted(&mut self) -> Option<&mut FoundEffect> {
+        let i = self.last_found.as_ref().and_then(|n| self.effects.iter().position(|e| &e.name == n)).or(self.effects.len().checked_sub(1))?;
+        self.effects.get_mut(i)
+    }
 }
 
 /// Adds catalogue effects while the fit is not consistent with noise, or misregistration alone
@@ -449,8 +462,9 @@ struct Search {
 /// then polishes the final model with a larger budget where backward elimination changed it
 /// since the last adoption ([`needs_final_polish`]; an adopted winner is polished already).
 fn add_effects(data: &mut Data, base: Fit, base_analysis: Analysis, repeat_noise: bool, opts: &DiagnoseOptions) -> Search {
-    let mut s = Search { current: base, analysis: base_analysis, effects: Vec::new(), rounds: Vec::new(), polished: false };
-    while let Some(round) = next_round(&s.current, opts).filter(|_| s.effects.len() < opts.max_effects) {
+    let mut s = Search { current: base, analysis: base_analysis, effects: Vec::new(), rounds: Vec::new(), polished: false, last_found: None };
+    // every round but the last adopts an effect (or finds one again): the rounds count them
+    while let Some(round) = next_round(&s.current, opts).filter(|_| s.rounds.len() < opts.max_effects) {
         let mut lap = crate::estimate::stage_clock();
         if let (Round::Rotation, Some(c), true) = (round, kernel_rotation(&s.current), opts.progress) {
             eprintln!("round {}: the fit is consistent, but the kernels' centroids rotate by {:.3}° about the centre (t = {:.0}): misregistration alone is screened", s.rounds.len() + 1, c.p[1].to_degrees(), c.rotation_t());
@@ -477,6 +491,7 @@ fn add_effects(data: &mut Data, base: Fit, base_analysis: Analysis, repeat_noise
             eprintln!("{name} is redundant with the effects found after it: removed (reduced χ² {:.3} → {:.3})", s.current.reduced_chi2(), f.reduced_chi2());
         }
         s.effects.retain(|e| e.name != name);
+        s.last_found = None;
         // a screening refit scores only the subset: the current model is scored on every pixel
         s.current = if f.share < 1.0 { rescore(data, &f) } else { f };
         s.analysis = analyse(&s.current);
@@ -490,13 +505,17 @@ fn add_effects(data: &mut Data, base: Fit, base_analysis: Analysis, repeat_noise
         if polished.chi2() < s.current.chi2() {
             s.current = polished;
             s.analysis = analyse(&s.current);
-            if let Some(e) = s.effects.last_mut() {
-                e.after = Figures::of(&s.current);
+            let after = Figures::of(&s.current);
+            if let Some(e) = s.last_adopted() {
+                e.after = after;
             }
         }
-    } else if let Some(e) = s.effects.last_mut() {
+    } else {
         // no final polish: the last effect's "after" is the final model (the adoption's refit)
-        e.after = Figures::of(&s.current);
+        let after = Figures::of(&s.current);
+        if let Some(e) = s.last_adopted() {
+            e.after = after;
+        }
     }
     s
 }
@@ -570,9 +589,15 @@ fn adopt(data: &mut Data, s: &mut Search, (cand, f, dbic): (candidates::Candidat
     }
     let (before, after) = (Figures::of(&previous), Figures::of(&current));
     let found = FoundEffect { name: cand.name.to_string(), evidence, location: cand.location, parameters, before, after, delta_bic: dbic };
-    // an effect re-searched in a later round (`pinhole_diffraction`'s radius) keeps its place
+    // an effect found again (`pinhole_diffraction`'s radius re-searched, `psf_field_variation`
+    // on a finer grid) keeps its place, its first "before" and its evidence, which the new one
+    // extends: the order of the list is the order in which effects were first named
+    s.last_found = Some(found.name.clone());
     match s.effects.iter_mut().find(|e| e.name == found.name) {
-        Some(e) => *e = FoundEffect { before: e.before.clone(), delta_bic: e.delta_bic + found.delta_bic, ..found },
+        Some(e) => {
+            e.evidence = format!("{}; then {}", e.evidence, found.evidence);
+            (e.parameters, e.after, e.delta_bic) = (found.parameters, found.after, e.delta_bic + found.delta_bic);
+        }
         None => s.effects.push(found),
     }
     // the models no longer needed go before the refit (each holds whole-image planes): the

@@ -497,21 +497,23 @@ fn add_effects(data: &mut Data, base: Fit, base_analysis: Analysis, repeat_noise
         s.analysis = analyse(&s.current);
         s.polished = false;
     }
-    if needs_final_polish(s.effects.len(), s.polished, consistent(&s.current, opts)) {
+    // the effect adopted last states the final model as its "after": the polished one where
+    // the polish lowered χ², otherwise (no final polish) the adoption's refit
+    let state_final = if needs_final_polish(s.effects.len(), s.polished, consistent(&s.current, opts)) {
         // a last polish of the final model with a larger budget
         let mut lap = crate::estimate::stage_clock();
         let polished = final_polish(data, &s.current, opts);
         progress_lap(opts, lap("final polish"));
-        if polished.chi2() < s.current.chi2() {
+        let lower = polished.chi2() < s.current.chi2();
+        if lower {
             s.current = polished;
             s.analysis = analyse(&s.current);
-            let after = Figures::of(&s.current);
-            if let Some(e) = s.last_adopted() {
-                e.after = after;
-            }
         }
+        lower
     } else {
-        // no final polish: the last effect's "after" is the final model (the adoption's refit)
+        true
+    };
+    if state_final {
         let after = Figures::of(&s.current);
         if let Some(e) = s.last_adopted() {
             e.after = after;

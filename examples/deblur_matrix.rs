@@ -455,6 +455,18 @@ fn main() -> anyhow::Result<()> {
     if a.first().is_some_and(|x| x == "scenes") {
         return write_scenes(Path::new(a.get(1).map_or("data/scenes-extra", |s| s.as_str())));
     }
+    if a.first().is_some_and(|x| x == "tilerr") {
+        for l in ["synth1", "synth2", "sf11", "achromat", "lac9"] {
+            let g = lens(l)?;
+            let row: Vec<String> = [32, 48, 64, 80, 96, 128, 160, 192, 256].iter().map(|&c| format!("{c}:{:.3}", lensrig::deconv::tiles::tile_kernel_error(&g, SENSOR.0, SENSOR.1, c, 32))).collect();
+            println!("{l} ({}x{} k{}): {}", g.columns, g.rows, g.kernel_size, row.join(" "));
+            for c in 0..3 {
+                let r: Vec<String> = (0..g.columns).map(|t| { let (x, y) = lensrig::optics::lens::centroid(&g.kernels[c][t + g.columns * (g.rows / 2)]); let w = (lensrig::deconv::second_moment(&g.kernels[c][t + g.columns * (g.rows / 2)])).sqrt(); format!("({:.2},{:.2} s{:.2})", x - (g.kernel_size / 2) as f64, y - (g.kernel_size / 2) as f64, w) }).collect();
+                println!("   ch{c} middle row: {}", r.join(" "));
+            }
+        }
+        return Ok(());
+    }
     if a.first().is_some_and(|x| x == "regions") && a.len() >= 4 {
         return regions(&a[1], &a[2], &a[3]);
     }
@@ -478,7 +490,7 @@ fn main() -> anyhow::Result<()> {
         _ => DeconvOptions::default().positivity,
     };
     let mut base = DeconvOptions { cross_weight, local_noise, coloured_windows, positivity, coloured_noise: coloured, ..DeconvOptions::default() };
-    // experiment overrides: `--set key=value,…` (denoise, kappa, tile, no_harm, iterations, kappa7, sure, lawdata, texture, rwp, rwe, steps, thr)
+    // experiment overrides: `--set key=value,…` (denoise, kappa, tile, no_harm, iterations, kappa7, sure, lawdata, texture, rwp, rwe, steps, field, lmin, thr)
     // every comma-separated pair (`list` has split them already; taking only the first dropped the rest)
     for kv in list("--set", &[""]).iter().filter(|kv| !kv.is_empty()) {
         let (k, v) = kv.split_once('=').ok_or_else(|| anyhow::anyhow!("--set {kv}: key=value"))?;
@@ -501,6 +513,8 @@ fn main() -> anyhow::Result<()> {
             "rwp" => base.reweight_power = v.parse()?,
             "rwe" => base.reweight_eps = v.parse()?,
             "steps" => base.residual_steps = v.parse()?,
+            "field" => base.field_passes = v.parse()?,
+            "lmin" => base.lambda_min = v.parse()?,
             "texture" => base.texture_return = v == "on",
             "thr" => base.denoiser.threshold = v.parse()?,
             _ => anyhow::bail!("--set: unknown key {k}"),

@@ -145,10 +145,12 @@ pub fn run(args: &DeblurArgs) -> Result<()> {
     }
     if !args.quiet {
         eprintln!(
-            "deblur: {} tiles of {}x{}, noise σ {:?}, λ {:?}, {} CP / {} CG iterations, {} saturated px -> {}",
+            "deblur: {} tiles of {}x{} (core {} px, tile-centre kernel error {:.1} %), noise σ {:?}, λ {:?}, {} CP / {} CG iterations, {} saturated px -> {}",
             report.tiles,
             report.window[0],
             report.window[1],
+            report.tile_core,
+            100.0 * report.tile_kernel_error,
             report.noise_sigma,
             report.lambda,
             report.cp_iterations,

@@ -32,6 +32,10 @@
 //!    profile's PSF interpolated at the tile centre ([`PsfGrid::kernel_at`]) on a mirrored,
 //!    FFT-sized window, then cropped and blended with a partition of unity. Tiles run in
 //!    parallel; only the input, the output and the tiles in flight are held in memory.
+//!    The core is the largest whose tile-centre kernel error `e(c)`
+//!    ([`tiles::tile_kernel_error`]: the blend-weighted RMS of `‖K(p) − K(centre)‖ / ‖K(p)‖`)
+//!    is at most [`TILE_KERNEL_ERROR`] = 5 %, from the grid-spacing rule down to
+//!    `max(48, k rounded up to 16)` px (docs/deconvolution.md "Tile size").
 //!    Optionally ([`DeconvOptions::field_passes`]) the finest level is refined by defect
 //!    correction with the exact field-varying operator `A` ([`FieldOperator`]): solve with the
 //!    tile kernel `B` against `j − (A − B) x_k`, whose fixed point differs from the exact
@@ -385,6 +389,10 @@ pub struct DeconvReport {
     /// Channel names (the grid's).
     pub channels: Vec<String>,
     pub tiles: usize,
+    /// The tile core (px) and the relative kernel error of restoring each tile with its
+    /// centre's PSF ([`tiles::tile_kernel_error`]; docs/deconvolution.md "Tile size").
+    pub tile_core: usize,
+    pub tile_kernel_error: f64,
     pub window: [usize; 2],
     pub levels: usize,
     pub cp_iterations: usize,
@@ -456,16 +464,27 @@ pub fn deblur(
     let layout = tile_layout(planes[0].width, planes[0].height, grid, opts);
     let (out, st, ops) = restore_tiles(planes, grid, opts, &layout, &noise, &order, progress);
     let (out, no_harm) = finish(planes, out, &noise, opts, (grid, &order), &TileOps { layout: &layout, ops: &ops });
+    let mut warnings = noise.warnings;
+    if layout.kernel_error > 2.0 * TILE_KERNEL_ERROR {
+        warnings.push(format!(
+            "the PSF changes across the field faster than tiles of {} px follow: restoring each tile with its centre's PSF is {:.1} % off in kernel L2 (more than twice the {:.0} % allowed); a smaller --tile follows it more closely, at more cost",
+            layout.core,
+            100.0 * layout.kernel_error,
+            100.0 * TILE_KERNEL_ERROR
+        ));
+    }
     let report = DeconvReport {
         noise_sigma: noise.sigma,
         estimated_sigma: noise.estimated,
         noise_law: noise.law,
-        warnings: noise.warnings,
+        warnings,
         no_harm,
         channels: grid.channels.clone(),
         lambda: noise.lambda,
         order,
         tiles: layout.xs.len() * layout.ys.len(),
+        tile_core: layout.core,
+        tile_kernel_error: layout.kernel_error,
         window: [layout.pw, layout.ph],
         levels: st.levels,
         cp_iterations: st.cp_iterations,
@@ -515,12 +534,15 @@ fn lambda_for(opts: &DeconvOptions, c: usize, variance: f32) -> f32 {
     }
 }
 
-/// The tiles of [`deblur`]: spans along x and y and the FFT window size.
+/// The tiles of [`deblur`]: spans along x and y, the FFT window size, the core and its
+/// tile-centre kernel error ([`tiles::tile_kernel_error`]).
 struct TileLayout {
     xs: Vec<tiles::Span>,
     ys: Vec<tiles::Span>,
     pw: usize,
     ph: usize,
+    core: usize,
+    kernel_error: f64,
 }
 
 /// Tile-layout stage of [`deblur`]: margin, core size, spans and FFT-sized windows.
@@ -530,14 +552,17 @@ fn tile_layout(w: usize, h: usize, grid: &PsfGrid, opts: &DeconvOptions) -> Tile
     // extends past the used data by the kernel radius
     let margin = opts.margin.unwrap_or(if opts.unknown_boundary { (3 * k / 4).max(16) } else { (2 * k).max(16) });
     let levels = opts.max_levels.max(1);
-    let core = opts.tile_core.unwrap_or_else(|| default_core(grid, opts, margin)).max(16);
+    let (core, kernel_error) = match opts.tile_core {
+        Some(c) => (c.max(16), tiles::tile_kernel_error(grid, w, h, c.max(16), opts.overlap)),
+        None => default_core(grid, opts, margin, w, h),
+    };
     let mut xs = tiles::spans(w, core, opts.overlap);
     let mut ys = tiles::spans(h, core, opts.overlap);
     let pw = fft_size(tiles::max_keep(&xs) + 2 * margin, levels);
     let ph = fft_size(tiles::max_keep(&ys) + 2 * margin, levels);
     tiles::place_windows(&mut xs, pw);
     tiles::place_windows(&mut ys, ph);
-    TileLayout { xs, ys, pw, ph }
+    TileLayout { xs, ys, pw, ph, core, kernel_error }
 }
 
 /// Tile stage of [`deblur`]: restores and blends every tile (in parallel if asked); returns
@@ -555,7 +580,7 @@ fn restore_tiles(
 ) -> (Vec<Plane>, TileStats, Vec<TileOperators>) {
     let nch = planes.len();
     let (w, h) = (planes[0].width, planes[0].height);
-    let TileLayout { xs, ys, pw, ph } = layout;
+    let TileLayout { xs, ys, pw, ph, .. } = layout;
     let keep = keeps_tile_operators(opts);
     let kept: Mutex<Vec<Option<TileOperators>>> = Mutex::new((0..xs.len() * ys.len()).map(|_| None).collect());
     let (pw, ph) = (*pw, *ph);
@@ -667,7 +692,7 @@ fn finish(planes: &[Plane], mut out: Vec<Plane>, noise: &NoiseStage, opts: &Deco
 fn return_texture(planes: &[Plane], mut out: Vec<Plane>, tiles: &TileOps, noise: &NoiseStage, opts: &DeconvOptions) -> Vec<Plane> {
     let nch = planes.len();
     let (w, h) = (planes[0].width, planes[0].height);
-    let TileLayout { xs, ys, pw, ph } = tiles.layout;
+    let TileLayout { xs, ys, pw, ph, .. } = tiles.layout;
     let (pw, ph) = (*pw, *ph);
     assert_eq!(tiles.ops.len(), xs.len() * ys.len(), "texture return: the tile stage kept no operators");
     let tile_list: Vec<(usize, usize)> = (0..ys.len()).flat_map(|j| (0..xs.len()).map(move |i| (i, j))).collect();
@@ -795,15 +820,40 @@ fn check_inputs(planes: &[Plane], grid: &PsfGrid, opts: &DeconvOptions) -> Resul
     Ok(())
 }
 
-/// The default tile core (px) from the PSF grid spacing and the FFT budget (512 px windows).
-fn default_core(grid: &PsfGrid, opts: &DeconvOptions, margin: usize) -> usize {
+/// The largest kernel error the tile-centre approximation may add, relative
+/// (`tiles::tile_kernel_error`): issue 16's goal for the median error of an estimated kernel,
+/// so that restoring a tile with one kernel costs no more than the calibration is allowed to.
+pub const TILE_KERNEL_ERROR: f64 = 0.05;
+
+/// The smallest default tile core (px): the kernel side rounded up to a multiple of 16, and
+/// at least 48 px; below it the solve windows are mostly margin (the cost per restored pixel
+/// grows as `(c + o + 2m)² / c²`, `o` the blend band, `m ∝ k` the margin).
+fn core_floor(grid: &PsfGrid) -> usize {
+    grid.kernel_size.next_multiple_of(16).max(48)
+}
+
+/// The default tile core (px) and its tile-centre kernel error (docs/deconvolution.md "Tile
+/// size"): the largest core, in 16-px steps from the spacing rule (the PSF grid spacing and the
+/// FFT budget of 512-px windows) down to [`core_floor`], whose error is at most
+/// [`TILE_KERNEL_ERROR`]; the floor when none is (the report warns above twice the bound).
+fn default_core(grid: &PsfGrid, opts: &DeconvOptions, margin: usize, w: usize, h: usize) -> (usize, f64) {
     let budget = 512usize.saturating_sub(2 * margin + opts.overlap).max(96);
     let spacing = |v: &[f64]| if v.len() > 1 { (v[1] - v[0]).abs() as usize } else { usize::MAX };
     let gs = spacing(&grid.column_xs()).min(spacing(&grid.row_ys()));
     // small cores follow a quickly varying PSF; on a sparse grid (12-MP captures, spacing
     // ~1000 px) a core of a sixth of the spacing loses ~0.04 dB and saves a quarter of the work
     let cap = if opts.unknown_boundary { budget.min((gs / 6).max(96)) } else { budget };
-    (gs.saturating_mul(3) / 2).clamp(48, cap)
+    let spaced = (gs.saturating_mul(3) / 2).clamp(48, cap);
+    let floor = core_floor(grid).min(spaced);
+    let error = |c: usize| tiles::tile_kernel_error(grid, w, h, c, opts.overlap);
+    let mut core = spaced;
+    loop {
+        let e = error(core);
+        if e <= TILE_KERNEL_ERROR || core <= floor {
+            return (core, e);
+        }
+        core = core.saturating_sub(16).max(floor);
+    }
 }
 
 /// Adds a restored tile's kept part (window of width `pw`), weighted by the spans' blending

@@ -35,7 +35,7 @@
 //!    The core is the largest whose tile-centre kernel error `e(c)`
 //!    ([`tiles::tile_kernel_error`]: the blend-weighted RMS of `‖K(p) − K(centre)‖ / ‖K(p)‖`)
 //!    is at most [`TILE_KERNEL_ERROR`] = 5 %, from the grid-spacing rule down to
-//!    `max(48, k rounded up to 16)` px (docs/deconvolution.md "Tile size").
+//!    `max(48, k rounded up to 16)` px, else that floor (docs/deconvolution.md "Tile size").
 //!    Optionally ([`DeconvOptions::field_passes`]) the finest level is refined by defect
 //!    correction with the exact field-varying operator `A` ([`FieldOperator`]): solve with the
 //!    tile kernel `B` against `j − (A − B) x_k`, whose fixed point differs from the exact
@@ -229,8 +229,9 @@ pub struct DeconvOptions {
     pub step_balance: f32,
     /// Linear values at or above this are saturated and dropped from the data term.
     pub saturation: Option<f32>,
-    /// Largest tile core (pixels); `None` picks one from the kernel size and the PSF grid
-    /// (1.5 grid spacings, at most max(96, spacing / 6) with [`DeconvOptions::unknown_boundary`]).
+    /// Largest tile core (pixels); `None` picks one from the PSF grid: the largest, from 1.5
+    /// grid spacings (at most max(96, spacing / 6) with [`DeconvOptions::unknown_boundary`]) down
+    /// to a floor, whose tile-centre kernel error is within [`TILE_KERNEL_ERROR`] (`default_core`).
     pub tile_core: Option<usize>,
     /// Width of the blending band between tiles.
     pub overlap: usize,
@@ -552,12 +553,13 @@ fn tile_layout(w: usize, h: usize, grid: &PsfGrid, opts: &DeconvOptions) -> Tile
     // extends past the used data by the kernel radius
     let margin = opts.margin.unwrap_or(if opts.unknown_boundary { (3 * k / 4).max(16) } else { (2 * k).max(16) });
     let levels = opts.max_levels.max(1);
-    let (core, kernel_error) = match opts.tile_core {
-        Some(c) => (c.max(16), tiles::tile_kernel_error(grid, w, h, c.max(16), opts.overlap)),
+    let (core, kernel_error) = match opts.tile_core.map(|c| c.max(16)) {
+        Some(c) => (c, tiles::tile_kernel_error(grid, w, h, c, opts.overlap)),
         None => default_core(grid, opts, margin, w, h),
     };
     let mut xs = tiles::spans(w, core, opts.overlap);
     let mut ys = tiles::spans(h, core, opts.overlap);
+    let core = tiles::actual_core(&xs, &ys);
     let pw = fft_size(tiles::max_keep(&xs) + 2 * margin, levels);
     let ph = fft_size(tiles::max_keep(&ys) + 2 * margin, levels);
     tiles::place_windows(&mut xs, pw);
@@ -592,8 +594,7 @@ fn restore_tiles(
     let run = |&(i, j): &(usize, usize)| {
         let (sx, sy) = (&xs[i], &ys[j]);
         let windows: Vec<Vec<f32>> = planes.iter().map(|p| p.window_reflect(sx.window0, sy.window0, pw, ph).data).collect();
-        let (cx, cy) = ((sx.core0 + sx.core1) as f64 / 2.0 - 0.5, (sy.core0 + sy.core1) as f64 / 2.0 - 0.5);
-        let kernels: Vec<Plane> = (0..nch).map(|c| grid.kernel_at(c, cx, cy)).collect();
+        let kernels: Vec<Plane> = (0..nch).map(|c| grid.kernel_at(c, sx.centre(), sy.centre())).collect();
         let field = FieldWindow { grid, x0: sx.window0, y0: sy.window0, image_width: w, image_height: h };
         // with a noise law, λ follows the tile's own signal level
         let tile_lambda: Vec<f32> = match &noise.law {
@@ -821,8 +822,9 @@ fn check_inputs(planes: &[Plane], grid: &PsfGrid, opts: &DeconvOptions) -> Resul
 }
 
 /// The largest kernel error the tile-centre approximation may add, relative
-/// (`tiles::tile_kernel_error`): issue 16's goal for the median error of an estimated kernel,
-/// so that restoring a tile with one kernel costs no more than the calibration is allowed to.
+/// (`tiles::tile_kernel_error`, a blend-weighted RMS of relative L2 errors): issue 16's bound on
+/// the median relative L2 error of an estimated kernel, so that the tiling adds an error of
+/// about the size the calibration is allowed (a rule of thumb: the two do not simply add).
 pub const TILE_KERNEL_ERROR: f64 = 0.05;
 
 /// The smallest default tile core (px): the kernel side rounded up to a multiple of 16, and
@@ -834,8 +836,9 @@ fn core_floor(grid: &PsfGrid) -> usize {
 
 /// The default tile core (px) and its tile-centre kernel error (docs/deconvolution.md "Tile
 /// size"): the largest core, in 16-px steps from the spacing rule (the PSF grid spacing and the
-/// FFT budget of 512-px windows) down to [`core_floor`], whose error is at most
-/// [`TILE_KERNEL_ERROR`]; the floor when none is (the report warns above twice the bound).
+/// FFT budget of 512-px windows) down to [`core_floor`] (or the spacing rule's core where that
+/// is smaller), whose error is at most [`TILE_KERNEL_ERROR`]; the floor when none is (the
+/// report warns above twice the bound).
 fn default_core(grid: &PsfGrid, opts: &DeconvOptions, margin: usize, w: usize, h: usize) -> (usize, f64) {
     let budget = 512usize.saturating_sub(2 * margin + opts.overlap).max(96);
     let spacing = |v: &[f64]| if v.len() > 1 { (v[1] - v[0]).abs() as usize } else { usize::MAX };
@@ -845,13 +848,19 @@ fn default_core(grid: &PsfGrid, opts: &DeconvOptions, margin: usize, w: usize, h
     let cap = if opts.unknown_boundary { budget.min((gs / 6).max(96)) } else { budget };
     let spaced = (gs.saturating_mul(3) / 2).clamp(48, cap);
     let floor = core_floor(grid).min(spaced);
-    let error = |c: usize| tiles::tile_kernel_error(grid, w, h, c, opts.overlap);
+    // cores that give the same tiles have the same error: evaluate each layout once
+    let layout = |c: usize| (w.div_ceil(c), h.div_ceil(c));
     let mut core = spaced;
+    let mut last: Option<((usize, usize), f64)> = None;
     loop {
-        let e = error(core);
+        let e = match last {
+            Some((l, e)) if l == layout(core) => e,
+            _ => tiles::tile_kernel_error(grid, w, h, core, opts.overlap),
+        };
         if e <= TILE_KERNEL_ERROR || core <= floor {
             return (core, e);
         }
+        last = Some((layout(core), e));
         core = core.saturating_sub(16).max(floor);
     }
 }

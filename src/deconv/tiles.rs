@@ -74,31 +74,44 @@ pub fn max_keep(spans: &[Span]) -> usize {
     spans.iter().map(|s| s.keep1 - s.keep0).max().unwrap_or(0)
 }
 
-/// The tile-centre approximation's kernel error for cores of `core` px (blend band `overlap`)
-/// on a `width × height` image:
+impl Span {
+    /// The core's centre in pixel coordinates (pixel `i` at `i`): where the restoration takes
+    /// the tile's PSF.
+    pub fn centre(&self) -> f64 {
+        (self.core0 + self.core1) as f64 / 2.0 - 0.5
+    }
+}
+
+/// The tile-centre approximation's kernel error for cores of at most `core` px (blend band
+/// `overlap`) on a `width × height` image:
 ///
-/// `e = √( Σ w(p) ‖K(p) − K(c)‖² / ‖K(p)‖²  /  Σ w(p) )`,
+/// `e = √( Σ_t Σ_p w_t(p) ‖K(p) − K(c_t)‖² / ‖K(p)‖²  /  Σ_t Σ_p w_t(p) )`,
 ///
-/// over channels, tiles and kept pixels `p` (weighted by the blend `w`), `K(p)` the profile's
-/// interpolated PSF at `p` and `K(c)` the one at the tile's centre, which restores the whole
-/// tile. Evaluated on a 5 × 5 lattice over each tile's kept range, on at most 6 × 6 tiles
-/// spread over the image (tiles in parallel).
+/// over channels, tiles `t` and their kept pixels `p` (weighted by the tile's blend `w_t`), `K(p)`
+/// the profile's interpolated PSF at `p` and `K(c_t)` the one at the tile's centre, which
+/// restores the whole tile. The sums are sampled: 5 × 5 pixels per tile, each standing for its
+/// share of the kept range, on at most 6 × 6 tiles spread over the image from the first to the
+/// last row and column (tiles in parallel, summed in order).
 pub fn tile_kernel_error(grid: &crate::optics::psf_grid::PsfGrid, width: usize, height: usize, core: usize, overlap: usize) -> f64 {
     use rayon::prelude::*;
     let (xs, ys) = (spans(width, core, overlap), spans(height, core, overlap));
-    let pick = |n: usize| -> Vec<usize> { (0..n.min(6)).map(|i| i * n / n.min(6)).collect() };
+    let pick = |n: usize| -> Vec<usize> {
+        let m = n.min(6);
+        (0..m).map(|i| if m > 1 { i * (n - 1) / (m - 1) } else { 0 }).collect()
+    };
+    // (pixel, blend weight × the pixel's share of the kept range)
     let lattice = |s: &Span| -> Vec<(f64, f64)> {
-        (0..5).map(|i| s.keep0 as f64 + (i as f64 + 0.5) * (s.keep1 - s.keep0) as f64 / 5.0).map(|p| (p, s.weight(p as usize) as f64)).collect()
+        let len = s.keep1 - s.keep0;
+        (0..5).map(|i| s.keep0 + ((2 * i + 1) * len / 10).min(len.saturating_sub(1))).map(|q| (q as f64, s.weight(q) as f64 * len as f64 / 5.0)).collect()
     };
     let tiles: Vec<(usize, usize)> = pick(ys.len()).into_iter().flat_map(|j| pick(xs.len()).into_iter().map(move |i| (i, j))).collect();
-    let (num, den) = tiles
+    let sums: Vec<(f64, f64)> = tiles
         .par_iter()
         .map(|&(i, j)| {
             let (sx, sy) = (&xs[i], &ys[j]);
-            let (cx, cy) = ((sx.core0 + sx.core1) as f64 / 2.0 - 0.5, (sy.core0 + sy.core1) as f64 / 2.0 - 0.5);
             let (mut num, mut den) = (0.0f64, 0.0f64);
             for c in 0..grid.channels.len() {
-                let kc = grid.kernel_at(c, cx, cy);
+                let kc = grid.kernel_at(c, sx.centre(), sy.centre());
                 for &(y, wy) in &lattice(sy) {
                     for &(x, wx) in &lattice(sx) {
                         let kp = grid.kernel_at(c, x, y);
@@ -107,7 +120,7 @@ pub fn tile_kernel_error(grid: &crate::optics::psf_grid::PsfGrid, width: usize, 
                             d2 += ((a - b) as f64).powi(2);
                             n2 += (*a as f64).powi(2);
                         }
-                        if n2 > 0.0 {
+                        if n2 > 0.0 && d2.is_finite() {
                             num += wx * wy * d2 / n2;
                             den += wx * wy;
                         }
@@ -116,8 +129,14 @@ pub fn tile_kernel_error(grid: &crate::optics::psf_grid::PsfGrid, width: usize, 
             }
             (num, den)
         })
-        .reduce(|| (0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1));
+        .collect();
+    let (num, den) = sums.iter().fold((0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1));
     if den > 0.0 { (num / den).sqrt() } else { 0.0 }
+}
+
+/// The largest core of [`spans`] along either axis (what a requested largest core becomes).
+pub fn actual_core(xs: &[Span], ys: &[Span]) -> usize {
+    xs.iter().chain(ys).map(|s| s.core1 - s.core0).max().unwrap_or(0)
 }
 
 #[cfg(test)]

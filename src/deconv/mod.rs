@@ -546,6 +546,13 @@ struct TileLayout {
     kernel_error: f64,
 }
 
+/// The tile core (px) [`deblur`] takes by default for `grid` on a `width × height` image, and
+/// its tile-centre kernel error ([`tiles::tile_kernel_error`]; the calibration report shows both).
+pub fn default_tile_core(grid: &PsfGrid, width: usize, height: usize) -> (usize, f64) {
+    let layout = tile_layout(width, height, grid, &DeconvOptions::default());
+    (layout.core, layout.kernel_error)
+}
+
 /// Tile-layout stage of [`deblur`]: margin, core size, spans and FFT-sized windows.
 fn tile_layout(w: usize, h: usize, grid: &PsfGrid, opts: &DeconvOptions) -> TileLayout {
     let k = grid.kernel_size;

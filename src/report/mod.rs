@@ -99,6 +99,10 @@ pub struct ProfileReport {
     /// [`crate::estimate::bootstrap::predicted_error`]) when the profile has uncertainty
     /// mosaics ([`crate::profile::uncertainty`]); `None` otherwise.
     pub uncertainty: Option<Vec<Vec<f64>>>,
+    /// The tile core (px) `deblur` restores this profile with by default, and the relative
+    /// kernel error of restoring each tile with its centre's PSF
+    /// ([`crate::deconv::default_tile_core`]; docs/deconvolution.md "Tile size").
+    pub restoration_tiles: (usize, f64),
 }
 
 /// Unit radial direction of a field point (x when on axis).
@@ -169,7 +173,8 @@ pub fn analyse(g: &PsfGrid, width: usize, height: usize, pitch_um: Option<f64>) 
         })
         .collect();
     let reference = g.channels.iter().position(|c| c == "G").unwrap_or(0);
-    ProfileReport { channels: g.channels.clone(), width, height, columns: g.columns, rows: g.rows, pitch_um, tiles, curves, axis_tile: nearest_tile(g, xm, ym), reference, uncertainty: None }
+    let restoration_tiles = crate::deconv::default_tile_core(g, width, height);
+    ProfileReport { channels: g.channels.clone(), width, height, columns: g.columns, rows: g.rows, pitch_um, tiles, curves, axis_tile: nearest_tile(g, xm, ym), reference, uncertainty: None, restoration_tiles }
 }
 
 impl ProfileReport {
@@ -374,6 +379,13 @@ pub fn html_section(r: &ProfileReport, prefix: &str) -> String {
             .fold(0.0, f64::max);
         let _ = write!(h, "<h4>Lateral colour</h4><p>Centroid of each channel minus {}'s, per tile (largest {} px); arrows magnified as labelled.</p><img src=\"{prefix}lateral-colour.svg\" alt=\"lateral colour arrows\">", r.channels[r.reference], fixed(mx, 2));
     }
+    let (core, e) = r.restoration_tiles;
+    let _ = write!(
+        h,
+        "<h4>Restoration tiles</h4><p><code>lensrig deblur</code> restores this lens in tiles of {core} px, each with the PSF at its centre; across a tile the PSF differs from that by {} % (relative L2, blend-weighted RMS; docs/deconvolution.md \"Tile size\"){}.</p>",
+        fixed(e * 100.0, 1),
+        if e > 2.0 * crate::deconv::TILE_KERNEL_ERROR { ": the PSF changes faster across the field than the smallest default tiles follow, so restorations are approximate there (a smaller <code>--tile</code> follows it more closely, at more cost)" } else { "" }
+    );
     h
 }
 
@@ -508,6 +520,24 @@ mod tests {
     }
 
     /// The report replaces its own earlier files but never another command's `index.html`.
+    #[test]
+    fn restoration_tiles_follow_the_field_and_warn_when_it_changes_fast() {
+        // a slowly varying lens keeps the spacing rule's tiles, without a warning
+        let slow = crate::deconv::synth::SyntheticLens { field_growth: 0.1, lateral_shift: 0.2, ..crate::deconv::synth::SyntheticLens::new(13, 3) }.grid(192, 192, 3, 3, 3);
+        let r = analyse(&slow, 192, 192, None);
+        assert_eq!(r.restoration_tiles, crate::deconv::default_tile_core(&slow, 192, 192));
+        assert_eq!(r.restoration_tiles.0, 96);
+        let html = html_section(&r, "");
+        assert!(html.contains("Restoration tiles") && html.contains("tiles of 96 px") && !html.contains("approximate there"), "{html}");
+        // sharp kernels with 3 px of lateral colour: the smallest default tiles, and a warning
+        let fast = crate::deconv::synth::SyntheticLens { base_radius: 1.0, chromatic: 0.4, field_growth: 1.5, lateral_shift: 3.0, ..crate::deconv::synth::SyntheticLens::new(13, 3) }.grid(192, 192, 3, 3, 3);
+        let r = analyse(&fast, 192, 192, None);
+        assert_eq!(r.restoration_tiles.0, 48);
+        assert!(r.restoration_tiles.1 > 2.0 * crate::deconv::TILE_KERNEL_ERROR);
+        let html = html_section(&r, "");
+        assert!(html.contains("tiles of 48 px") && html.contains("approximate there"), "{html}");
+    }
+
     #[test]
     fn report_refuses_a_directory_holding_another_report() {
         use crate::image::{SampleFormat, Transfer};

@@ -107,8 +107,13 @@ struct Case {
 }
 
 fn case(w: usize, h: usize, channels: usize, kernel: usize, sigma: f32, seed: u64) -> Case {
+    lens_case(&SyntheticLens::new(kernel, channels), w, h, channels, sigma, seed)
+}
+
+/// [`scene`] through `lens` on a 3 × 3 grid, plus Gaussian noise of `sigma`.
+fn lens_case(lens: &SyntheticLens, w: usize, h: usize, channels: usize, sigma: f32, seed: u64) -> Case {
     let sharp = scene(w, h, channels, seed);
-    let grid = SyntheticLens::new(kernel, channels).grid(w, h, channels, 3, 3);
+    let grid = lens.grid(w, h, channels, 3, 3);
     let mut noise = GaussianNoise::new(seed + 100);
     let blurred = sharp
         .iter()
@@ -833,19 +838,7 @@ fn coloured_scale_probe() {
 /// channel step at the corners.
 fn fast_field_case(w: usize, h: usize, seed: u64) -> Case {
     let lens = SyntheticLens { base_radius: 1.0, chromatic: 0.4, field_growth: 1.5, lateral_shift: 3.0, ..SyntheticLens::new(13, 3) };
-    let sharp = scene(w, h, 3, seed);
-    let grid = lens.grid(w, h, 3, 3, 3);
-    let mut noise = GaussianNoise::new(seed + 100);
-    let blurred = sharp
-        .iter()
-        .enumerate()
-        .map(|(c, p)| {
-            let mut b = blur_channel(p, &grid, c);
-            noise.add_to(&mut b, 0.002);
-            b
-        })
-        .collect();
-    Case { sharp, blurred, grid }
+    lens_case(&lens, w, h, 3, 0.002, seed)
 }
 
 #[test]

@@ -86,6 +86,8 @@ fn errors_are_one_line_and_name_the_file() {
     assert!(e.contains("odd"), "{e}");
     let e = fails_one_line(&["simulate", "--profile", d.path().join("nope").to_str().unwrap(), "--sharp", a.to_str().unwrap(), "--out", out.to_str().unwrap()]);
     assert!(e.contains("profile.toml"), "{e}");
+    let e = fails_one_line(&["deblur", "--profile", d.path().join("nope").to_str().unwrap(), "--in", a.to_str().unwrap(), "--out", out.to_str().unwrap(), "--tile", "8"]);
+    assert!(e.contains("--tile 8") && e.contains("16"), "{e}");
     assert!(!out.exists(), "nothing is written on error");
 }
 

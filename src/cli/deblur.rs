@@ -87,7 +87,9 @@ pub struct DeblurArgs {
     /// return model mismatch as texture (−0.04 to −0.74 dB on a 32-px grid).
     #[arg(long)]
     pub texture_return: bool,
-    /// Largest tile core in pixels (default: from the kernel size and the PSF grid).
+    /// Largest tile core in pixels, at least 16 (default: the largest whose tile-centre kernel
+    /// error is within 5 %, from the PSF grid's spacing down to max(48, kernel side); see
+    /// docs/deconvolution.md "Tile size").
     #[arg(long)]
     pub tile: Option<usize>,
     /// No progress bar.
@@ -116,11 +118,17 @@ impl DeblurArgs {
     }
 }
 
+/// The smallest `--tile` accepted (the solver's own lower bound on a core).
+const MIN_TILE: usize = 16;
+
 /// Runs `lensrig deblur`.
 ///
 /// # Errors
 /// An existing output without `--force`, and every [`lensrig::deconv::capture::RestoreError`].
 pub fn run(args: &DeblurArgs) -> Result<()> {
+    if let Some(t) = args.tile.filter(|&t| t < MIN_TILE) {
+        anyhow::bail!("--tile {t}: a tile core must be at least {MIN_TILE} px");
+    }
     refuse_existing(&args.out, args.force)?;
     let job = RestoreFile {
         profile: &args.profile,

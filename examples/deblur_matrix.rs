@@ -462,8 +462,16 @@ fn main() -> anyhow::Result<()> {
             let error = |c: usize| lensrig::deconv::tiles::tile_kernel_error(&g, SENSOR.0, SENSOR.1, c, overlap);
             let row: Vec<String> = [32, 48, 64, 80, 96, 128, 160, 192, 256].iter().map(|&c| format!("{c}:{:.3}", error(c))).collect();
             println!("{l} ({}x{} k{}): {}", g.columns, g.rows, g.kernel_size, row.join(" "));
-            for c in 0..3 {
-                let r: Vec<String> = (0..g.columns).map(|t| { let (x, y) = lensrig::optics::lens::centroid(&g.kernels[c][t + g.columns * (g.rows / 2)]); let w = (lensrig::deconv::second_moment(&g.kernels[c][t + g.columns * (g.rows / 2)])).sqrt(); format!("({:.2},{:.2} s{:.2})", x - (g.kernel_size / 2) as f64, y - (g.kernel_size / 2) as f64, w) }).collect();
+            // the middle grid row's kernels: centroid offset (px) and RMS radius
+            let middle = g.columns * (g.rows / 2);
+            for (c, ks) in g.kernels.iter().enumerate() {
+                let r: Vec<String> = ks[middle..middle + g.columns]
+                    .iter()
+                    .map(|k| {
+                        let (x, y) = lensrig::optics::lens::centroid(k);
+                        format!("({x:.2},{y:.2} s{:.2})", lensrig::deconv::second_moment(k).sqrt())
+                    })
+                    .collect();
                 println!("   ch{c} middle row: {}", r.join(" "));
             }
         }

@@ -118,16 +118,13 @@ impl DeblurArgs {
     }
 }
 
-/// The smallest `--tile` accepted (the solver's own lower bound on a core).
-const MIN_TILE: usize = 16;
-
 /// Runs `lensrig deblur`.
 ///
 /// # Errors
 /// An existing output without `--force`, and every [`lensrig::deconv::capture::RestoreError`].
 pub fn run(args: &DeblurArgs) -> Result<()> {
-    if let Some(t) = args.tile.filter(|&t| t < MIN_TILE) {
-        anyhow::bail!("--tile {t}: a tile core must be at least {MIN_TILE} px");
+    if let Some(t) = args.tile.filter(|&t| t < lensrig::deconv::MIN_TILE_CORE) {
+        anyhow::bail!("--tile {t}: a tile core must be at least {} px", lensrig::deconv::MIN_TILE_CORE);
     }
     refuse_existing(&args.out, args.force)?;
     let job = RestoreFile {

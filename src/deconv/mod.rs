@@ -466,7 +466,7 @@ pub fn deblur(
     let (out, st, ops) = restore_tiles(planes, grid, opts, &layout, &noise, &order, progress);
     let (out, no_harm) = finish(planes, out, &noise, opts, (grid, &order), &TileOps { layout: &layout, ops: &ops });
     let mut warnings = noise.warnings;
-    if layout.kernel_error > 2.0 * TILE_KERNEL_ERROR {
+    if tile_error_warns(layout.kernel_error) {
         warnings.push(format!(
             "the PSF changes across the field faster than tiles of {} px follow: restoring each tile with its centre's PSF is {:.1} % off in kernel L2 (more than twice the {:.0} % allowed); a smaller --tile follows it more closely, at more cost",
             layout.core,
@@ -560,7 +560,7 @@ fn tile_layout(w: usize, h: usize, grid: &PsfGrid, opts: &DeconvOptions) -> Tile
     // extends past the used data by the kernel radius
     let margin = opts.margin.unwrap_or(if opts.unknown_boundary { (3 * k / 4).max(16) } else { (2 * k).max(16) });
     let levels = opts.max_levels.max(1);
-    let (core, kernel_error) = match opts.tile_core.map(|c| c.max(16)) {
+    let (core, kernel_error) = match opts.tile_core.map(|c| c.max(MIN_TILE_CORE)) {
         Some(c) => (c, tiles::tile_kernel_error(grid, w, h, c, opts.overlap)),
         None => default_core(grid, opts, margin, w, h),
     };
@@ -833,6 +833,16 @@ fn check_inputs(planes: &[Plane], grid: &PsfGrid, opts: &DeconvOptions) -> Resul
 /// the median relative L2 error of an estimated kernel, so that the tiling adds an error of
 /// about the size the calibration is allowed (a rule of thumb: the two do not simply add).
 pub const TILE_KERNEL_ERROR: f64 = 0.05;
+
+/// Whether a tile-centre kernel error is worth a warning: above twice [`TILE_KERNEL_ERROR`]
+/// (`deblur`'s report and the calibration report say the restoration is approximate).
+pub fn tile_error_warns(error: f64) -> bool {
+    error > 2.0 * TILE_KERNEL_ERROR
+}
+
+/// The smallest tile core (px) the restoration takes; a smaller `tile_core` is raised to it
+/// (`lensrig deblur --tile` refuses one).
+pub const MIN_TILE_CORE: usize = 16;
 
 /// The smallest default tile core (px): the kernel side rounded up to a multiple of 16, and
 /// at least 48 px; below it the solve windows are mostly margin (the cost per restored pixel

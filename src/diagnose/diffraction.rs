@@ -444,6 +444,12 @@ mod tests {
         Plane { width: sharp.width, height: sharp.height, data: fft.inverse(spec) }
     }
 
+    /// Uniform noise of seed `seed` smoothed by a Gaussian of `sigma` px: a textured sharp image.
+    fn smooth_noise(w: usize, h: usize, seed: u64, sigma: f64) -> Plane {
+        let mut r = Rng::new(seed);
+        crate::image::filter::gaussian_blur(&Plane::from_fn(w, h, |_, _| r.uniform() as f32), sigma)
+    }
+
     /// L2 distance of `a` and `b` away from a border of `m` pixels.
     fn interior_error(a: &Plane, b: &Plane, m: usize) -> f64 {
         let mut s = 0.0f64;
@@ -458,8 +464,7 @@ mod tests {
     #[test]
     fn restore_undoes_the_blur_where_the_otf_is_strong() {
         let (w, h) = (96, 80);
-        let mut r = Rng::new(5);
-        let sharp = crate::image::filter::gaussian_blur(&Plane::from_fn(w, h, |_, _| r.uniform() as f32), 1.2);
+        let sharp = smooth_noise(w, h, 5, 1.2);
         // blur with D by FFT on a large periodic grid (periodic sharp image)
         let blurred = periodic_blur(&sharp, |fx, fy| transfer(fx, fy, 2.0));
         let restored = restore(&blurred, &ReferencePsf::airy(2.0), 1e-4);
@@ -475,8 +480,7 @@ mod tests {
     #[test]
     fn a_kernel_carried_to_another_restoration_keeps_the_prediction() {
         let (w, h) = (96, 80);
-        let mut r = Rng::new(7);
-        let sharp = crate::image::filter::gaussian_blur(&Plane::from_fn(w, h, |_, _| r.uniform() as f32), 1.0);
+        let sharp = smooth_noise(w, h, 7, 1.0);
         let reference = periodic_blur(&sharp, |fx, fy| transfer(fx, fy, 2.5));
         let kernel = {
             let k = Plane::from_fn(31, 31, |x, y| (-((x as f32 - 15.0).powi(2) + (y as f32 - 15.0).powi(2)) / 18.0).exp());
@@ -512,8 +516,7 @@ mod tests {
         let want = transfer(0.2, 0.0, 1.5) * (-2.0 * std::f64::consts::PI.powi(2) * 0.49 * 0.04f64).exp();
         assert!((reference_transfer(0.2, 0.0, 1.5, 0.7) - want).abs() < 1e-12);
         let (w, h) = (96, 80);
-        let mut r = Rng::new(6);
-        let sharp = crate::image::filter::gaussian_blur(&Plane::from_fn(w, h, |_, _| r.uniform() as f32), 1.0);
+        let sharp = smooth_noise(w, h, 6, 1.0);
         let blurred = periodic_blur(&sharp, |fx, fy| reference_transfer(fx, fy, 1.5, 0.7));
         let err = |a: &Plane| interior_error(a, &sharp, 16);
         let (with, without) = (err(&restore(&blurred, &ReferencePsf { aberration_px: 0.7, ..ReferencePsf::airy(1.5) }, 1e-4)), err(&restore(&blurred, &ReferencePsf::airy(1.5), 1e-4)));

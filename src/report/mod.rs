@@ -384,7 +384,7 @@ pub fn html_section(r: &ProfileReport, prefix: &str) -> String {
         h,
         "<h4>Restoration tiles</h4><p><code>lensrig deblur</code> restores this lens in tiles of {core} px, each with the PSF at its centre; across a tile the PSF differs from that by {} % (relative L2, blend-weighted RMS; docs/deconvolution.md \"Tile size\"){}.</p>",
         fixed(e * 100.0, 1),
-        if e > 2.0 * crate::deconv::TILE_KERNEL_ERROR { ": the PSF changes faster across the field than the smallest default tiles follow, so restorations are approximate there (a smaller <code>--tile</code> follows it more closely, at more cost)" } else { "" }
+        if crate::deconv::tile_error_warns(e) { ": the PSF changes faster across the field than the smallest default tiles follow, so restorations are approximate there (a smaller <code>--tile</code> follows it more closely, at more cost)" } else { "" }
     );
     h
 }
@@ -519,7 +519,6 @@ mod tests {
         assert!(html.contains("no uncertainty (estimate with --bootstrap N)"));
     }
 
-    /// The report replaces its own earlier files but never another command's `index.html`.
     #[test]
     fn restoration_tiles_follow_the_field_and_warn_when_it_changes_fast() {
         // a slowly varying lens keeps the spacing rule's tiles, without a warning
@@ -533,11 +532,12 @@ mod tests {
         let fast = crate::deconv::synth::SyntheticLens { base_radius: 1.0, chromatic: 0.4, field_growth: 1.5, lateral_shift: 3.0, ..crate::deconv::synth::SyntheticLens::new(13, 3) }.grid(192, 192, 3, 3, 3);
         let r = analyse(&fast, 192, 192, None);
         assert_eq!(r.restoration_tiles.0, 48);
-        assert!(r.restoration_tiles.1 > 2.0 * crate::deconv::TILE_KERNEL_ERROR);
+        assert!(crate::deconv::tile_error_warns(r.restoration_tiles.1));
         let html = html_section(&r, "");
         assert!(html.contains("tiles of 48 px") && html.contains("approximate there"), "{html}");
     }
 
+    /// The report replaces its own earlier files but never another command's `index.html`.
     #[test]
     fn report_refuses_a_directory_holding_another_report() {
         use crate::image::{SampleFormat, Transfer};

@@ -668,22 +668,24 @@ fn needs_final_polish(effects: usize, polished: bool, consistent: bool) -> bool 
     effects > 0 && (!polished || !consistent)
 }
 
-/// The final model polished with twice the base budget per round, two rounds; where the
-/// screening subset thins the data ([`screens`]) those rounds run on the subset, then rounds
-/// of the base budget on every pixel follow while they still lower χ² by more than its noise
-/// ([`final_polish_rule`]).
+/// The final model polished. Where the screening subset thins the data ([`screens`]), rounds of
+/// the base budget on every pixel, from `current` and its solver state, while they still lower
+/// χ² by more than its noise ([`final_polish_rule`]); otherwise two rounds of twice the base
+/// budget on every pixel. The screened path ran two subset rounds first until session 52: they
+/// raised the whole-pixel χ² of misregistration seed 41 at 1024×768 from 2 490 841 to 3 219 802
+/// (the kernels fitted ~2 pixels per value, docs/diagnosis.md "Adoption, the stop rule and the
+/// polishes"), which six whole-pixel rounds then had to undo (71.8 s, χ² 2 102 013); from the
+/// current model five rounds reach 2 096 233 in 52.6 s.
 fn final_polish(data: &Data, current: &Fit, opts: &DiagnoseOptions) -> Fit {
-    let settings = FitSettings { rounds: 2, kernel_iterations: 2 * opts.base_fit.kernel_iterations };
     let mut polished = if screens(data, opts) {
-        // only the subset fit's model and solver state go on (its planes are dropped here)
-        let fit::Fit { model, warm, .. } = fit::fit_subset_from(data, &current.model.corrections, &current.model, settings, opts.screen_pixels, &current.warm);
-        let (f, trace) = fit::fit_converging(data, &model.corrections, &model, final_polish_rule(current.n(), opts), Some(&warm));
+        let (f, trace) = fit::fit_converging(data, &current.model.corrections, &current.model, final_polish_rule(current.n(), opts), Some(&current.warm));
         if opts.progress {
             let falls: Vec<String> = trace.windows(2).map(|w| format!("{:.0}", w[0] - w[1])).collect();
             eprintln!("final polish on every pixel: {} rounds, χ² {:.0} → {:.0} (falls {}; noise {:.0})", trace.len() - 1, trace[0], trace[trace.len() - 1], falls.join(", "), (2.0 * current.n() as f64).sqrt());
         }
         f
     } else {
+        let settings = FitSettings { rounds: 2, kernel_iterations: 2 * opts.base_fit.kernel_iterations };
         fit::fit_from(data, &current.model.corrections, &current.model, settings, &current.warm)
     };
     polished.inherit_dof(current);

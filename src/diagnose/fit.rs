@@ -1330,12 +1330,12 @@ impl<'a> Setup<'a> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     /// A small clean case (128×96, monochrome, 9-px kernels on 3×2 tiles) with its data and the
     /// model to start from: the rendered PSFs blurred (so that rounds still lower χ²).
-    fn small_case() -> (Data<'static>, Model) {
+    pub(crate) fn small_case() -> (Data<'static>, Model) {
         let spec = super::super::proof::CaseSpec { width: 128, height: 96, kernel_size: 9, ..Default::default() };
         let case = super::super::proof::render_case(None, 5, &spec).expect("a clean case renders");
         // the data borrow the captures for the test's whole run

@@ -459,8 +459,8 @@ impl Search {
 
 /// Adds catalogue effects while the fit is not consistent with noise, or misregistration alone
 /// while a consistent fit's kernels rotate ([`next_round`]; module docs, step 3),
-/// then polishes the final model with a larger budget where backward elimination changed it
-/// since the last adoption ([`needs_final_polish`]; an adopted winner is polished already).
+/// then polishes the final model ([`final_polish`]) where backward elimination changed it since
+/// the last adoption or it is not consistent ([`needs_final_polish`]).
 fn add_effects(data: &mut Data, base: Fit, base_analysis: Analysis, repeat_noise: bool, opts: &DiagnoseOptions) -> Search {
     let mut s = Search { current: base, analysis: base_analysis, effects: Vec::new(), rounds: Vec::new(), polished: false, last_found: None };
     // every round but the last adopts an effect (or finds one again): the rounds count them
@@ -500,7 +500,7 @@ fn add_effects(data: &mut Data, base: Fit, base_analysis: Analysis, repeat_noise
     // the effect adopted last states the final model as its "after": the polished one where
     // the polish lowered χ², otherwise (no final polish) the adoption's refit
     let state_final = if needs_final_polish(s.effects.len(), s.polished, consistent(&s.current, opts)) {
-        // a last polish of the final model with a larger budget
+        // a last polish of the final model: more rounds, or (unthinned) a larger budget
         let mut lap = crate::estimate::stage_clock();
         let polished = final_polish(data, &s.current, opts);
         progress_lap(opts, lap("final polish"));
@@ -1363,6 +1363,27 @@ mod tests {
         assert!(needs_final_polish(1, true, false), "polished but not consistent yet");
         assert!(needs_final_polish(1, false, true), "backward elimination changed the model");
         assert!(!needs_final_polish(0, false, false), "no effect: the base model is final");
+    }
+
+    /// Where the screening subset thins the data, the final polish runs whole-pixel rounds from
+    /// the current model and never ends above it. The two subset rounds it ran first until
+    /// session 52 fit the kernels on ≈ 1.6 pixels per value here (the 1024×768 cases: ≈ 2) and
+    /// raise the whole-pixel χ² of a model fitted on every pixel, which is why they went.
+    #[test]
+    fn the_thinned_final_polish_starts_from_the_current_model() {
+        let (data, init) = fit::tests::small_case();
+        let corr = model::Corrections::default();
+        let (w, h) = (data.open.width(), data.open.height());
+        let opts = DiagnoseOptions { screen_pixels: w * h / 8, base_fit: FitSettings { rounds: 3, kernel_iterations: 20 }, ..DiagnoseOptions::default() };
+        assert!(screens(&data, &opts));
+        let current = fit::fit(&data, &corr, &init, FitSettings { rounds: 3, kernel_iterations: 20 });
+        let polished = final_polish(&data, &current, &opts);
+        assert!(polished.chi2() <= current.chi2(), "polished {} current {}", polished.chi2(), current.chi2());
+        let settings = FitSettings { rounds: 2, kernel_iterations: 2 * opts.base_fit.kernel_iterations };
+        let subset = fit::fit_subset_from(&data, &corr, &current.model, settings, opts.screen_pixels, &current.warm);
+        let whole = rescore(&data, &subset);
+        eprintln!("χ² on every pixel: current {:.1}, after two subset rounds {:.1}, polished {:.1}", current.chi2(), whole.chi2(), polished.chi2());
+        assert!(whole.chi2() > current.chi2(), "two subset rounds raise the whole-pixel χ²: {} vs {}", whole.chi2(), current.chi2());
     }
 
     /// A Gaussian kernel of standard deviation `sigma` (px), `±3σ`, summing to 1.

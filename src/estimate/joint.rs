@@ -330,8 +330,9 @@ pub fn significant_gain(r1: &[f32], r: &[f32]) -> Option<f64> {
 pub const JOINT_DATA_PIXELS: usize = 2_500_000;
 
 /// Inner iterations of the TV–simplex prox per outer step (warm-started dual: the previous
-/// step's duals are nearly optimal, so 4 give the tuning lenses' test-bed figures of 6 and 12
-/// to the printed digit; 2 moved held-out lac9's median 4.8 → 5.1 %; docs/estimation.md "Speed").
+/// step's duals are nearly optimal: against 6, 4 moved only simulator ×1's median and p90 and
+/// lac9's max, by 0.1 point each; 2 moved held-out lac9's median 4.8 → 5.1 %; docs/estimation.md
+/// "Speed").
 const PROX_ITERATIONS: usize = 4;
 
 /// The stall rule of the joint fit: stop when the data term `½‖M r‖²` (∝ χ²) fell by less

@@ -113,7 +113,7 @@ fn pair_section(out: &Path, session_dir: &Path, p: &PairRecord, est: &Estimate, 
         html.push_str(&format!("<p>Against the simulator's truth at the tile centres: median relative L2 kernel error <b>{:.1}%</b> (max {:.1}%).</p>", med * 100.0, max * 100.0));
     }
     let (w, h) = (prof.meta.source.width, prof.meta.source.height);
-    let rep = lensrig::report::analyse(g, w, h, facts.pixel_pitch_um);
+    let rep = lensrig::report::analyse(g, w, h, facts.pixel_pitch_um).with_restoration_tiles(g);
     lensrig::report::write_assets(&dir, g, &rep)?;
     let mtf_truth = truth_grid.map(|t| mtf50_vs_truth(&rep, &lensrig::report::analyse(&truth_at_centres(t, g), w, h, None)));
     if let Some(d) = &mtf_truth {

@@ -25,6 +25,12 @@ pub struct Span {
 }
 
 impl Span {
+    /// The core's centre in pixel coordinates (pixel `i` at `i`): where the restoration takes
+    /// the tile's PSF.
+    pub fn centre(&self) -> f64 {
+        (self.core0 + self.core1) as f64 / 2.0 - 0.5
+    }
+
     /// The blend weight of pixel `x` (0 outside the kept range).
     pub fn weight(&self, x: usize) -> f32 {
         if x < self.keep0 || x >= self.keep1 {
@@ -72,14 +78,6 @@ pub fn place_windows(spans: &mut [Span], window: usize) {
 /// The largest kept range.
 pub fn max_keep(spans: &[Span]) -> usize {
     spans.iter().map(|s| s.keep1 - s.keep0).max().unwrap_or(0)
-}
-
-impl Span {
-    /// The core's centre in pixel coordinates (pixel `i` at `i`): where the restoration takes
-    /// the tile's PSF.
-    pub fn centre(&self) -> f64 {
-        (self.core0 + self.core1) as f64 / 2.0 - 0.5
-    }
 }
 
 /// The tile-centre approximation's kernel error for cores of at most `core` px (blend band

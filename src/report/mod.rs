@@ -101,8 +101,9 @@ pub struct ProfileReport {
     pub uncertainty: Option<Vec<Vec<f64>>>,
     /// The tile core (px) `deblur` restores this profile with by default, and the relative
     /// kernel error of restoring each tile with its centre's PSF
-    /// ([`crate::deconv::default_tile_core`]; docs/deconvolution.md "Tile size").
-    pub restoration_tiles: (usize, f64),
+    /// ([`crate::deconv::default_tile_core`]; docs/deconvolution.md "Tile size"), when a report
+    /// shows them ([`ProfileReport::with_restoration_tiles`]); `None` otherwise.
+    pub restoration_tiles: Option<(usize, f64)>,
 }
 
 /// Unit radial direction of a field point (x when on axis).
@@ -173,8 +174,7 @@ pub fn analyse(g: &PsfGrid, width: usize, height: usize, pitch_um: Option<f64>) 
         })
         .collect();
     let reference = g.channels.iter().position(|c| c == "G").unwrap_or(0);
-    let restoration_tiles = crate::deconv::default_tile_core(g, width, height);
-    ProfileReport { channels: g.channels.clone(), width, height, columns: g.columns, rows: g.rows, pitch_um, tiles, curves, axis_tile: nearest_tile(g, xm, ym), reference, uncertainty: None, restoration_tiles }
+    ProfileReport { channels: g.channels.clone(), width, height, columns: g.columns, rows: g.rows, pitch_um, tiles, curves, axis_tile: nearest_tile(g, xm, ym), reference, uncertainty: None, restoration_tiles: None }
 }
 
 impl ProfileReport {
@@ -183,6 +183,14 @@ impl ProfileReport {
     pub fn with_uncertainty(mut self, g: &PsfGrid, unc: &[Vec<Plane>]) -> Self {
         let e = unc.iter().zip(&g.kernels).map(|(us, ks)| us.iter().zip(ks).map(|(u, k)| crate::estimate::bootstrap::predicted_error(u, k)).collect()).collect();
         self.uncertainty = Some(e);
+        self
+    }
+
+    /// Adds the tile core `deblur` takes by default for `g` and its tile-centre kernel error
+    /// ([`crate::deconv::default_tile_core`]): a few hundred kernel interpolations, left out of
+    /// the analyses that only compare MTFs (the truth's, the lensfun export's).
+    pub fn with_restoration_tiles(mut self, g: &PsfGrid) -> Self {
+        self.restoration_tiles = Some(crate::deconv::default_tile_core(g, self.width, self.height));
         self
     }
 
@@ -379,13 +387,14 @@ pub fn html_section(r: &ProfileReport, prefix: &str) -> String {
             .fold(0.0, f64::max);
         let _ = write!(h, "<h4>Lateral colour</h4><p>Centroid of each channel minus {}'s, per tile (largest {} px); arrows magnified as labelled.</p><img src=\"{prefix}lateral-colour.svg\" alt=\"lateral colour arrows\">", r.channels[r.reference], fixed(mx, 2));
     }
-    let (core, e) = r.restoration_tiles;
-    let _ = write!(
-        h,
-        "<h4>Restoration tiles</h4><p><code>lensrig deblur</code> restores this lens in tiles of {core} px, each with the PSF at its centre; across a tile the PSF differs from that by {} % (relative L2, blend-weighted RMS; docs/deconvolution.md \"Tile size\"){}.</p>",
-        fixed(e * 100.0, 1),
-        if crate::deconv::tile_error_warns(e) { ": the PSF changes faster across the field than the smallest default tiles follow, so restorations are approximate there (a smaller <code>--tile</code> follows it more closely, at more cost)" } else { "" }
-    );
+    if let Some((core, e)) = r.restoration_tiles {
+        let _ = write!(
+            h,
+            "<h4>Restoration tiles</h4><p><code>lensrig deblur</code> restores this lens in tiles of {core} px, each with the PSF at its centre; across a tile the PSF differs from that by {} % (relative L2, blend-weighted RMS; docs/deconvolution.md \"Tile size\"){}.</p>",
+            fixed(e * 100.0, 1),
+            if crate::deconv::tile_error_warns(e) { ": the PSF changes faster across the field than the smallest default tiles follow, so restorations are approximate there (a smaller <code>--tile</code> follows it more closely, at more cost)" } else { "" }
+        );
+    }
     h
 }
 
@@ -427,7 +436,7 @@ pub fn write_report(dir: &Path, p: &Profile, uncertainty: Option<&[Vec<Plane>]>,
     }
     std::fs::create_dir_all(dir).map_err(io(dir))?;
     let g = &p.grid;
-    let mut r = analyse(g, p.meta.source.width, p.meta.source.height, pitch_um);
+    let mut r = analyse(g, p.meta.source.width, p.meta.source.height, pitch_um).with_restoration_tiles(g);
     if let Some(u) = uncertainty {
         r = r.with_uncertainty(g, u);
     }
@@ -523,16 +532,18 @@ mod tests {
     fn restoration_tiles_follow_the_field_and_warn_when_it_changes_fast() {
         // a slowly varying lens keeps the spacing rule's tiles, without a warning
         let slow = crate::deconv::synth::SyntheticLens { field_growth: 0.1, lateral_shift: 0.2, ..crate::deconv::synth::SyntheticLens::new(13, 3) }.grid(192, 192, 3, 3, 3);
-        let r = analyse(&slow, 192, 192, None);
-        assert_eq!(r.restoration_tiles, crate::deconv::default_tile_core(&slow, 192, 192));
-        assert_eq!(r.restoration_tiles.0, 96);
+        let r = analyse(&slow, 192, 192, None).with_restoration_tiles(&slow);
+        assert_eq!(r.restoration_tiles, Some(crate::deconv::default_tile_core(&slow, 192, 192)));
+        let (core, _) = r.restoration_tiles.expect("added");
+        assert_eq!(core, 96);
         let html = html_section(&r, "");
         assert!(html.contains("Restoration tiles") && html.contains("tiles of 96 px") && !html.contains("approximate there"), "{html}");
         // sharp kernels with 3 px of lateral colour: the smallest default tiles, and a warning
         let fast = crate::deconv::synth::SyntheticLens { base_radius: 1.0, chromatic: 0.4, field_growth: 1.5, lateral_shift: 3.0, ..crate::deconv::synth::SyntheticLens::new(13, 3) }.grid(192, 192, 3, 3, 3);
-        let r = analyse(&fast, 192, 192, None);
-        assert_eq!(r.restoration_tiles.0, 48);
-        assert!(crate::deconv::tile_error_warns(r.restoration_tiles.1));
+        let r = analyse(&fast, 192, 192, None).with_restoration_tiles(&fast);
+        let (core, e) = r.restoration_tiles.expect("added");
+        assert_eq!(core, 48);
+        assert!(crate::deconv::tile_error_warns(e));
         let html = html_section(&r, "");
         assert!(html.contains("tiles of 48 px") && html.contains("approximate there"), "{html}");
     }

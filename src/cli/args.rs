@@ -31,7 +31,7 @@ pub struct EstimateArgs {
     pub tolerance: f64,
     /// Iterations of the joint refinement of all kernels with the interpolated forward model
     /// (at most; it stops when χ² stalls); 0 keeps the per-window fits.
-    #[arg(long, default_value_t = 40)]
+    #[arg(long, default_value_t = 32)]
     pub joint_iterations: usize,
     /// Keep the rule's TV weight in the joint refinement instead of choosing its multiplier
     /// (×0.5, ×1, ×2) per channel on held-out pixels.
@@ -83,17 +83,17 @@ mod tests {
     }
 
     /// The shared flags keep each command's former defaults: calibrate fits windows with 300
-    /// iterations, diagnose's base estimate has no joint refinement, the others 150 and 40.
+    /// iterations, diagnose's base estimate has no joint refinement, the others 150 and 32.
     #[test]
     fn each_command_keeps_its_estimation_defaults() {
         let Command::Calibrate(c) = parse(&["calibrate", "--rig", "r.toml", "--out", "o"]) else { panic!("calibrate") };
-        assert_eq!((c.estimation.max_iterations, c.estimation.joint_iterations), (300, 40));
+        assert_eq!((c.estimation.max_iterations, c.estimation.joint_iterations), (300, 32));
         let Command::Diagnose(d) = parse(&["diagnose", "--open", "a", "--pinhole", "b", "--out", "o"]) else { panic!("diagnose") };
         let o = d.options().estimate;
         assert_eq!((o.max_iterations, o.joint_iterations, o.kernel_size), (150, 0, None));
         let Command::Estimate(e) = parse(&["estimate", "--open", "a", "--pinhole", "b", "--out", "o", "--kernel", "21", "--black-level", "0.0625"]) else { panic!("estimate") };
         let o = e.options();
-        assert_eq!((o.max_iterations, o.joint_iterations, o.kernel_size, o.black_level.clone(), o.tolerance, o.lambda_scale), (150, 40, Some(21), vec![0.0625], 1e-3, 1.0));
+        assert_eq!((o.max_iterations, o.joint_iterations, o.kernel_size, o.black_level.clone(), o.tolerance, o.lambda_scale), (150, 32, Some(21), vec![0.0625], 1e-3, 1.0));
         let Command::Demo(m) = parse(&["demo", "--out", "o", "--joint-iterations", "0"]) else { panic!("demo") };
         assert_eq!((m.estimation.options().joint_iterations, m.estimation.options().max_iterations), (0, 150));
     }

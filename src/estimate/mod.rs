@@ -111,7 +111,7 @@ impl Default for EstimateOptions {
             lambda_scale: 1.0,
             mu_relative: 1.0,
             max_iterations: 150,
-            joint_iterations: 40,
+            joint_iterations: 32,
             select_lambda: true,
             tolerance: 1e-3,
             registration: RegistrationModel::Translation,

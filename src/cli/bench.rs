@@ -9,7 +9,7 @@
 //! simulator's PSFs on a coarse field grid (rendering is not what is timed), with an ideal
 //! pinhole reference; only `estimate` is timed, on all cores rayon sees. Each case is timed with
 //! the per-window fits alone (`--joint-iterations 0`) and with the joint refinement
-//! ([`lensrig::estimate::joint`], the default pipeline: at most 40 FISTA iterations, stopping
+//! ([`lensrig::estimate::joint`], the default pipeline: at most 32 FISTA iterations, stopping
 //! when χ² stalls; on the 12-megapixel case on a subsample of the image's blocks,
 //! [`lensrig::estimate::joint::JOINT_DATA_PIXELS`]). `--kernel` and `--tile` replace a case's
 //! 63-pixel kernel and its tile side. The criterion benches (`benches/`) time the kernels

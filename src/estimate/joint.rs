@@ -772,9 +772,9 @@ mod tests {
         // the two predictions differ by float rounding (≈ 4e-7 here); the law's variance
         // `g·x + r²` then agrees to 1e-4 over the signal range, while `g` alone, a twentieth of
         // the variance at this read noise, moves by about 1e-3
-        for x in [0.05, 0.25, 0.5, 1.0] {
-            let var = |l: &crate::profile::noise::NoiseLaw| l.gain[0] * x + l.read[0] * l.read[0];
-            assert!((var(&stored) - var(&forward)).abs() <= 1e-4 * var(&forward), "{stored:?} against {forward:?}");
+        for x in [0.05f32, 0.25, 0.5, 1.0] {
+            let (a, b) = (stored.variance(0, x) as f64, forward.variance(0, x) as f64);
+            assert!((a - b).abs() <= 1e-4 * b, "{stored:?} against {forward:?}");
         }
     }
 

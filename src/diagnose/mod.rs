@@ -457,6 +457,14 @@ struct Search {
 }
 
 impl Search {
+    /// Makes `f` the current model, changed since any convergence: `polished` when it is an
+    /// adopted winner as `adopt` leaves it. Its analysis is the caller's to redo (after a dof
+    /// probe, where one follows).
+    fn replace(&mut self, f: Fit, polished: bool) {
+        self.current = f;
+        (self.polished, self.converged) = (polished, false);
+    }
+
     /// The entry whose "after" is the current model's: the effect adopted last.
     fn last_adopted(&mut self) -> Option<&mut FoundEffect> {
         let i = self.last_found.as_ref().and_then(|n| self.effects.iter().position(|e| &e.name == n)).or(self.effects.len().checked_sub(1))?;
@@ -502,9 +510,8 @@ fn add_effects(data: &mut Data, base: Fit, base_analysis: Analysis, repeat_noise
         s.effects.retain(|e| e.name != name);
         s.last_found = None;
         // a screening refit scores only the subset: the current model is scored on every pixel
-        s.current = if f.share < 1.0 { rescore(data, &f) } else { f };
+        s.replace(if f.share < 1.0 { rescore(data, &f) } else { f }, false);
         s.analysis = analyse(&s.current);
-        (s.polished, s.converged) = (false, false);
     }
     // the effect adopted last states the final model as its "after": the polished one where
     // the polish lowered χ², otherwise (no final polish) the adoption's refit
@@ -647,8 +654,7 @@ fn adopt(data: &mut Data, s: &mut Search, (cand, f, dbic): (candidates::Candidat
     drop(current);
     let mut refit = fit::fit_from(data, &model.corrections, &model, FitSettings { rounds: 1, kernel_iterations: opts.candidate_fit.kernel_iterations }, &warm);
     refit.inherit(&dof);
-    s.current = refit;
-    (s.polished, s.converged) = (true, false);
+    s.replace(refit, true);
     if changes_kernel_operator(cand.name) {
         measure_dof(data, &mut s.current, opts, s.rounds.len() as u64);
     }
@@ -1446,6 +1452,15 @@ mod tests {
         let figures = Figures::of(&current);
         let found = FoundEffect { name: "vignetting".into(), evidence: String::new(), location: String::new(), parameters: serde_json::Value::Null, before: figures.clone(), after: figures, delta_bic: -1.0 };
         let search = |f: &Fit| Search { current: f.clone(), analysis: analyse(f), effects: vec![found.clone()], rounds: vec![], polished: true, converged: false, last_found: None };
+        // a converged search whose model is replaced (an adoption, backward elimination) is
+        // converged no longer
+        let mut r = search(&current);
+        r.converged = true;
+        r.replace(current.clone(), true);
+        assert!(!r.converged && r.polished);
+        r.converged = true;
+        r.replace(current.clone(), false);
+        assert!(!r.converged && !r.polished);
         let chi2 = current.chi2();
         // a model the thinned full round leaves alone: consistent by the bounds it is judged on
         let lenient = DiagnoseOptions { consistent: current.reduced_chi2() + 1.0, consistent_noise: f64::INFINITY, ..thinned.clone() };

@@ -465,6 +465,14 @@ impl Search {
         (self.polished, self.converged) = (polished, false);
     }
 
+    /// States the current model as the "after" of the effect adopted last.
+    fn state_after(&mut self) {
+        let after = Figures::of(&self.current);
+        if let Some(e) = self.last_adopted() {
+            e.after = after;
+        }
+    }
+
     /// The entry whose "after" is the current model's: the effect adopted last.
     fn last_adopted(&mut self) -> Option<&mut FoundEffect> {
         let i = self.last_found.as_ref().and_then(|n| self.effects.iter().position(|e| &e.name == n)).or(self.effects.len().checked_sub(1))?;
@@ -514,28 +522,27 @@ fn add_effects(data: &mut Data, base: Fit, base_analysis: Analysis, repeat_noise
         s.analysis = analyse(&s.current);
     }
     // the effect adopted last states the final model as its "after": the polished one where
-    // the polish lowered χ², otherwise (no final polish) the adoption's refit
-    let state_final = if needs_final_polish(s.effects.len(), s.polished, consistent(&s.current, opts), s.converged) {
+    // the polish lowered χ², otherwise (no final polish) the adoption's refit or its convergence
+    if needs_final_polish(s.effects.len(), s.polished, consistent(&s.current, opts), s.converged) {
         // a last polish of the final model: more rounds, or (unthinned) a larger budget
-        let mut lap = crate::estimate::stage_clock();
-        let polished = final_polish(data, &s.current, opts, "final polish");
-        progress_lap(opts, lap("final polish"));
-        let lower = polished.chi2() < s.current.chi2();
-        if lower {
-            s.current = polished;
-            s.analysis = analyse(&s.current);
-        }
-        lower
+        polish_current(data, &mut s, opts, "final polish");
     } else {
-        true
-    };
-    if state_final {
-        let after = Figures::of(&s.current);
-        if let Some(e) = s.last_adopted() {
-            e.after = after;
-        }
+        s.state_after();
     }
     s
+}
+
+/// The current model polished ([`final_polish`], progress under `label`) and kept where that
+/// lowered χ², as the last adopted effect's "after".
+fn polish_current(data: &Data, s: &mut Search, opts: &DiagnoseOptions, label: &'static str) {
+    let mut lap = crate::estimate::stage_clock();
+    let polished = final_polish(data, &s.current, opts, label);
+    progress_lap(opts, lap(label));
+    if polished.chi2() < s.current.chi2() {
+        s.current = polished;
+        s.analysis = analyse(&s.current);
+        s.state_after();
+    }
 }
 
 /// Where the screening subset thins the data ([`screens`]) and a full round's adopted model is
@@ -551,18 +558,8 @@ fn converge_before_screening(data: &Data, s: &mut Search, round: Round, opts: &D
     if round != Round::Full || !screens(data, opts) || consistent(&s.current, opts) {
         return;
     }
-    let mut lap = crate::estimate::stage_clock();
-    let converged = final_polish(data, &s.current, opts, "convergence before the next round");
-    progress_lap(opts, lap("convergence before the next round"));
-    if converged.chi2() < s.current.chi2() {
-        s.current = converged;
-        s.analysis = analyse(&s.current);
-        // the adopted effect's "after" is its model converged, as after a final polish
-        let after = Figures::of(&s.current);
-        if let Some(e) = s.last_adopted() {
-            e.after = after;
-        }
-    }
+    // the adopted effect's "after" becomes its model converged, as after a final polish
+    polish_current(data, s, opts, "convergence before the next round");
     s.converged = true;
 }
 
@@ -1416,13 +1413,19 @@ mod tests {
     /// raise the whole-pixel χ² of a model fitted on every pixel; the same whole-pixel rounds
     /// after them end higher than from the current model (1024×768 misregistration seed 41:
     /// 2 102 013 against 2 096 233, docs/diagnosis.md "Adoption, the stop rule and the polishes").
-    #[test]
-    fn the_thinned_final_polish_starts_from_the_current_model() {
+    /// The small clean case with options whose screening subset thins it (one pixel in eight)
+    /// and a short base budget.
+    fn thinned_case() -> (Data<'static>, Model, model::Corrections, DiagnoseOptions) {
         let (data, init) = fit::tests::small_case();
-        let corr = model::Corrections::default();
         let (w, h) = (data.open.width(), data.open.height());
         let opts = DiagnoseOptions { screen_pixels: w * h / 8, base_fit: FitSettings { rounds: 3, kernel_iterations: 20 }, ..DiagnoseOptions::default() };
         assert!(screens(&data, &opts));
+        (data, init, model::Corrections::default(), opts)
+    }
+
+    #[test]
+    fn the_thinned_final_polish_starts_from_the_current_model() {
+        let (data, init, corr, opts) = thinned_case();
         let current = fit::fit(&data, &corr, &init, FitSettings { rounds: 3, kernel_iterations: 20 });
         let polished = final_polish(&data, &current, &opts, "final polish");
         assert!(polished.chi2() <= current.chi2(), "polished {} current {}", polished.chi2(), current.chi2());
@@ -1442,10 +1445,7 @@ mod tests {
     /// final polish follows unless the model changes again.
     #[test]
     fn an_inconsistent_adopted_model_is_converged_before_the_next_round() {
-        let (data, init) = fit::tests::small_case();
-        let corr = model::Corrections::default();
-        let (w, h) = (data.open.width(), data.open.height());
-        let thinned = DiagnoseOptions { screen_pixels: w * h / 8, base_fit: FitSettings { rounds: 3, kernel_iterations: 20 }, ..DiagnoseOptions::default() };
+        let (data, init, corr, thinned) = thinned_case();
         // an under-fitted model: one short round, far from the noise floor
         let current = fit::fit(&data, &corr, &init, FitSettings { rounds: 1, kernel_iterations: 5 });
         assert!(!consistent(&current, &thinned), "reduced χ² {}", current.reduced_chi2());

@@ -46,7 +46,11 @@
 //!    taken up a misregistration in its kernels, which no lens does: a round screens
 //!    misregistration alone (`Round::Rotation`), and its winner is adopted where it fits as well
 //!    (χ² not raised beyond `3·√(2N)` or `min_gain` of χ², `rotation_tolerance`) and leaves kernels that no longer rotate
-//!    (`rotation_round_adopts`). A rotation that remains is stated in the verdict.
+//!    (`rotation_round_adopts`). Where the subset thins the data, the round's near miss goes to
+//!    adoption (the full round's winner rule does not apply: χ² cannot prefer the map), and a
+//!    winner refused on χ² alone with kernels that stopped rotating is converged on every pixel
+//!    before the rule is asked again (`needs_rotation_convergence`). A rotation that remains is
+//!    stated in the verdict.
 //! 4. The final model's kernels and corrections form a profile ([`model`]); [`report`] writes
 //!    `report.json`, the predictions, residual maps and `index.html`.
 //!

@@ -31,7 +31,7 @@ pub struct EstimateArgs {
     pub tolerance: f64,
     /// Iterations of the joint refinement of all kernels with the interpolated forward model
     /// (at most; it stops when χ² stalls); 0 keeps the per-window fits.
-    #[arg(long, default_value_t = 32)]
+    #[arg(long, default_value_t = EstimateOptions::default().joint_iterations)]
     pub joint_iterations: usize,
     /// Keep the rule's TV weight in the joint refinement instead of choosing its multiplier
     /// (×0.5, ×1, ×2) per channel on held-out pixels.

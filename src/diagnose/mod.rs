@@ -543,14 +543,21 @@ fn add_effects(data: &mut Data, base: Fit, base_analysis: Analysis, repeat_noise
 /// The current model polished ([`final_polish`], progress under `label`) and kept where that
 /// lowered χ², as the last adopted effect's "after".
 fn polish_current(data: &Data, s: &mut Search, opts: &DiagnoseOptions, label: &'static str) {
-    let mut lap = crate::estimate::stage_clock();
-    let polished = final_polish(data, &s.current, opts, label);
-    progress_lap(opts, lap(label));
-    if polished.chi2() < s.current.chi2() {
+    if let Some(polished) = polished_lower(data, &s.current, opts, label) {
         s.current = polished;
         s.analysis = analyse(&s.current);
         s.state_after();
     }
+}
+
+/// `f` polished ([`final_polish`], timed under `label`) where that lowered χ², `None` otherwise:
+/// the one convergence step of the convergence before the next round, the final polish and a
+/// rotation round's winner ([`needs_rotation_convergence`]).
+fn polished_lower(data: &Data, f: &Fit, opts: &DiagnoseOptions, label: &'static str) -> Option<Fit> {
+    let mut lap = crate::estimate::stage_clock();
+    let polished = final_polish(data, f, opts, label);
+    progress_lap(opts, lap(label));
+    (polished.chi2() < f.chi2()).then_some(polished)
 }
 
 /// Where the screening subset thins the data ([`screens`]) and a full round's adopted model is
@@ -563,7 +570,8 @@ fn polish_current(data: &Data, s: &mut Search, opts: &DiagnoseOptions, label: &'
 /// Only a model that stays inconsistent once converged goes on to the next full round. The
 /// unthinned proof cases keep their polishes as they were.
 fn converge_before_screening(data: &Data, s: &mut Search, round: Round, opts: &DiagnoseOptions) {
-    if round != Round::Full || !screens(data, opts) || consistent(&s.current, opts) {
+    // just adopted (polished, not converged): the final polish's own test is consistency
+    if round != Round::Full || !screens(data, opts) || !needs_final_polish(s.effects.len(), s.polished, consistent(&s.current, opts), s.converged) {
         return;
     }
     // the adopted effect's "after" becomes its model converged, as after a final polish
@@ -600,7 +608,7 @@ fn adopt(data: &mut Data, s: &mut Search, (cand, f, dbic): (candidates::Candidat
     }
     let mut current = rescore(data, &f);
     // the refit below needs only the winner's model and solver state: its planes go now
-    let fit::Fit { mut model, mut warm, .. } = f;
+    let fit::Fit { model, warm, .. } = f;
     let previous = rescore(data, &s.current);
     let noise = STOP_SIGMAS * (2.0 * current.n() as f64).sqrt();
     let mut lowered = previous.chi2() - current.chi2();
@@ -610,6 +618,8 @@ fn adopt(data: &mut Data, s: &mut Search, (cand, f, dbic): (candidates::Candidat
     drop(previous);
     let mut evidence = cand.evidence;
     let mut dbic = dbic;
+    // a rotation round's winner converged on every pixel ([`needs_rotation_convergence`])
+    let mut converged_winner = false;
     match round {
         Round::Full if lowered <= noise => {
             if opts.progress {
@@ -626,25 +636,21 @@ fn adopt(data: &mut Data, s: &mut Search, (cand, f, dbic): (candidates::Candidat
             let text = |c: &candidates::CentroidSimilarity| format!("{:.3}° (t = {:.1})", c.p[1].to_degrees(), c.rotation_t());
             let tolerance = rotation_tolerance(noise, previous_chi2, opts.min_gain);
             let mut kept = rotation_round_adopts(lowered, tolerance, now.as_ref());
-            let mut how = "polished";
             // kernels re-estimated under the map that stop rotating but fit worse may only be
             // short of the whole-pixel iterations the current model has had: converged, the
             // rule is asked again (where the subset thins the data)
-            if !kept && needs_rotation_convergence(lowered, tolerance, now.as_ref(), screens(data, opts)) {
+            if needs_rotation_convergence(lowered, tolerance, now.as_ref(), screens(data, opts)) {
                 if opts.progress {
                     eprintln!("{} polished on every pixel changes χ² by {:+.0} (tolerance {tolerance:.0}) with kernels that no longer rotate: converged on every pixel before the rule is applied", cand.name, -lowered);
                 }
-                let mut lap = crate::estimate::stage_clock();
-                let converged = final_polish(data, &current, opts, "the rotation round's winner converged");
-                progress_lap(opts, lap("the rotation round's winner converged"));
-                if converged.chi2() < current.chi2() {
+                if let Some(converged) = polished_lower(data, &current, opts, "the rotation round's winner converged") {
                     (lowered, now) = (previous_chi2 - converged.chi2(), candidates::centroid_similarity_fit(&converged));
-                    (model, warm) = (converged.model.clone(), converged.warm.clone());
                     current = converged;
                     kept = rotation_round_adopts(lowered, tolerance, now.as_ref());
-                    how = "converged";
+                    converged_winner = true;
                 }
             }
+            let how = if converged_winner { "converged" } else { "polished" };
             let (was_text, now_text) = (was.as_ref().map_or("–".into(), text), now.as_ref().map_or("–".into(), text));
             if opts.progress {
                 eprintln!(
@@ -681,7 +687,15 @@ fn adopt(data: &mut Data, s: &mut Search, (cand, f, dbic): (candidates::Candidat
     // rescored winner too, whose degrees of freedom the refit inherits (in round 1 the
     // current model until the refit replaces it shares its planes with `diagnose`'s base)
     let dof = current.dof();
-    drop(current);
+    // a converged rotation winner is refitted from its converged state, any other from the
+    // winner's (the rescore keeps the winner's model, not necessarily its exact scalars)
+    let (model, warm) = if converged_winner {
+        let fit::Fit { model, warm, .. } = current;
+        (model, warm)
+    } else {
+        drop(current);
+        (model, warm)
+    };
     let mut refit = fit::fit_from(data, &model.corrections, &model, FitSettings { rounds: 1, kernel_iterations: opts.candidate_fit.kernel_iterations }, &warm);
     refit.inherit(&dof);
     s.replace(refit, true);
@@ -1166,15 +1180,17 @@ fn rescore_near_misses(data: &Data, current: &Fit, near: Vec<(candidates::Candid
         // a rotation round's candidate is judged by its adoption rule, after its polish
         let pass = round == Round::Rotation || screened(dbic, gain, opts.min_gain, false) == Screened::Winner;
         let outcome = match (round, pass) {
-            (Round::Rotation, _) => ": judged by the rotation round's adoption rule",
+            (Round::Rotation, _) => "judged by the rotation round's adoption rule",
             (Round::Full, true) => "",
-            (Round::Full, false) => ": rejected",
+            (Round::Full, false) => "rejected",
         };
+        let sep = if outcome.is_empty() { "" } else { ", " };
         if let Some(s) = scores.iter_mut().find(|s| s.name == cand.name) {
-            s.note += &format!("; a near miss: {:.1}% on every pixel (ΔBIC {dbic:.0}){}", 100.0 * gain, outcome.replacen(':', ",", 1));
+            s.note += &format!("; a near miss: {:.1}% on every pixel (ΔBIC {dbic:.0}){sep}{outcome}", 100.0 * gain);
         }
         if opts.progress {
-            eprintln!("near miss {} on every pixel: removes {:.2}% of χ² (ΔBIC {dbic:.0}){outcome}", cand.name, 100.0 * gain);
+            let sep = if outcome.is_empty() { "" } else { ": " };
+            eprintln!("near miss {} on every pixel: removes {:.2}% of χ² (ΔBIC {dbic:.0}){sep}{outcome}", cand.name, 100.0 * gain);
         }
         if pass && best.as_ref().map_or(true, |b| dbic < b.2) {
             best = Some((cand, f, dbic));

@@ -11,7 +11,7 @@
 //! | `misregistration` | similarity (rotation, scale) between the captures | 2 beyond the base translation |
 //! | `target_tilt` | homography `ψ(d) = L·d / (1 + g·dx + h·dy)`: a keystone, the target tilted between the captures ([`super::tilt`]) | 2 |
 //! | `saturation` | clipped pixels censored, reference-clipped pixels out of the data term | 1 |
-//! | `psf_field_variation` | a finer kernel grid (twice the tiles per axis, at most one tile per two kernel widths; may be proposed again) | the extra kernels |
+//! | `psf_field_variation` | the kernel grid refitted with its outer centres on the frame's edges (`PsfGrid::edge_centers`) at its size; proposed again, twice the tiles per axis while at most one tile per two kernel widths allows | the extra kernels (none for the layout alone) |
 //! | `pinhole_diffraction` | the reference restored by the Wiener filter of its band-averaged Airy ⊛ Gaussian PSF ([`super::diffraction`]) | 2 (the Airy radius, channels scaling by wavelength; the Gaussian `σ_a` of the residual aberrations); reported with the MTF50 they imply |
 
 use super::analysis::{curve, where_text, Analysis};
@@ -639,16 +639,16 @@ fn saturation_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Cand
     })
 }
 
-/// `psf_field_variation`: a finer kernel grid, twice the tiles per axis, at most one tile per
-/// two kernel widths; proposed again while the grid can still grow.
+/// `psf_field_variation`: first the kernel grid refitted at its size with its outer centres on
+/// the frame's edges ([`crate::optics::psf_grid::PsfGrid::edge_centers`]; the estimate's
+/// tile-centred grid holds the kernels constant in the outer half tile, where a lens's PSF
+/// changes fastest), which costs no parameters; then, proposed again, twice the tiles per axis,
+/// at most one tile per two kernel widths, while the grid can still grow.
 fn field_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Candidate> {
     let g = &current.model.grid;
-    let (w, h) = (data.open.width(), data.open.height());
-    let (cmax, rmax) = ((w / (2 * g.kernel_size)).max(1), (h / (2 * g.kernel_size)).max(1));
-    let (cols, rows) = ((2 * g.columns).min(cmax).max(g.columns), (2 * g.rows).min(rmax).max(g.rows));
-    if cols <= g.columns && rows <= g.rows {
-        return None;
-    }
+    let (cols, rows) = field_step(g, data.open.width(), data.open.height(), current.model.corrections.psf_field_variation.is_some())?;
+    let grows = cols > g.columns || rows > g.rows;
+    let how = if grows { format!("refit on {cols}x{rows} tiles instead of {}x{}", g.columns, g.rows) } else { format!("{cols}x{rows} tiles as before") };
     let spread = a.tiles.iter().map(|t| t.reduced_chi2).fold(0.0f64, f64::max) - a.tiles.iter().map(|t| t.reduced_chi2).fold(f64::INFINITY, f64::min);
     Some(Candidate {
         name: "psf_field_variation",
@@ -656,8 +656,21 @@ fn field_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Candidate
         evidence: format!("residual against position inside the tile: {}; per-tile reduced χ² spans {:.2}", curve_text(a, "position_in_tile"), spread),
         init: None,
         deferred: None,
-        location: location(data, a, &format!("between tile centres; refit on {cols}x{rows} tiles instead of {}x{}", g.columns, g.rows)),
+        location: location(data, a, &format!("between tile centres and beyond the outer ones; {how}, the outer centres on the frame's edges")),
     })
+}
+
+/// The grid `psf_field_variation` proposes for a current grid `g` on a `w × h` image: `g`'s own
+/// size while its centres are the estimate's (`edge` false; the layout changes), then twice the
+/// tiles per axis, at most one tile per two kernel widths; `None` once an edge-anchored grid
+/// cannot grow.
+pub fn field_step(g: &crate::optics::psf_grid::PsfGrid, w: usize, h: usize, edge: bool) -> Option<(usize, usize)> {
+    if !edge {
+        return Some((g.columns, g.rows));
+    }
+    let (cmax, rmax) = ((w / (2 * g.kernel_size)).max(1), (h / (2 * g.kernel_size)).max(1));
+    let (cols, rows) = ((2 * g.columns).min(cmax).max(g.columns), (2 * g.rows).min(rmax).max(g.rows));
+    (cols > g.columns || rows > g.rows).then_some((cols, rows))
 }
 
 /// The fitted parameters of effect `name` as JSON.
@@ -1011,8 +1024,8 @@ fn linearised_estimate(data: &Data, current: &Fit, transfer: Transfer) -> Option
 }
 
 /// Kernels and exposure ratios estimated ([`crate::estimate`], window fits only) from `open`
-/// and `pinhole` on the current grid's centre spacing and kernel size, regridded to the current
-/// grid if the estimate's differs, with the current corrections: the re-estimated starts of
+/// and `pinhole` on the current grid's centre spacing and kernel size, resampled at the current
+/// grid's centres if the estimate's differ (an edge-anchored grid, `psf_field_variation`), with the current corrections: the re-estimated starts of
 /// `tone_curve` ([`linearised_estimate`]) and of the geometric candidates
 /// ([`super::registered::reestimate`]); stored values at or above `saturation` leave the
 /// estimate's data term; `registration` is the estimate's registration model. `None` when the
@@ -1028,10 +1041,10 @@ pub fn estimate_model(data: &Data, current: &Fit, open: &crate::image::Image, pi
         ..Default::default()
     };
     let est = crate::estimate::estimate(open, pinhole, &opts).ok()?;
-    let grid = if est.profile.grid.columns == g.columns && est.profile.grid.rows == g.rows {
+    let grid = if est.profile.grid.centers == g.centers {
         est.profile.grid
     } else {
-        super::fit::regrid(&est.profile.grid, data.open.width(), data.open.height(), g.columns, g.rows)
+        super::fit::resample(&est.profile.grid, g.centers.clone(), g.columns, g.rows)
     };
     Some(Model { corrections: current.model.corrections.clone(), grid, exposure: est.profile.meta.exposure_ratio })
 }
@@ -1064,6 +1077,20 @@ mod tests {
         let weak = sim(0.0, 0.3, 0.05, (1024.0, 768.0));
         assert!(weak.rotation_t().abs() < super::super::ROTATION_T && weak.rotation_corner_px > 1.0);
         assert_eq!(registered_bound(&weak), super::super::registered::MIN_CORNER_PX);
+    }
+
+    /// `psf_field_variation` first moves the estimate's outer centres to the frame's edges at
+    /// the same size (the mock rig at 384×288: 7 × 5 tiles of 33 px, already at one tile per
+    /// 1.8 kernel widths), then doubles the grid while one tile per two kernel widths allows,
+    /// and stops there.
+    #[test]
+    fn field_variation_moves_the_layout_first_then_grows() {
+        let g = |cols: usize, rows: usize, k: usize| PsfGrid { kernel_size: k, columns: cols, rows, centers: PsfGrid::regular_centers(384, 288, cols, rows), channels: vec![], kernels: vec![] };
+        assert_eq!(field_step(&g(7, 5, 33), 384, 288, false), Some((7, 5)));
+        assert_eq!(field_step(&g(7, 5, 33), 384, 288, true), None, "384/66 = 5 columns at most");
+        assert_eq!(field_step(&g(3, 2, 33), 384, 288, true), Some((5, 4)));
+        assert_eq!(field_step(&g(5, 4, 33), 384, 288, true), None);
+        assert_eq!(field_step(&g(4, 3, 9), 384, 288, true), Some((8, 6)));
     }
 
     /// A `cols × rows` grid of Gaussian kernels (σ 2 px, side 21) on a `w × h` image, each

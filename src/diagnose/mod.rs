@@ -1020,6 +1020,15 @@ fn search_round(data: &Data, current: &Fit, analysis: &Analysis, round: Round, o
         let gain = chi2_gain(&null, &f);
         scores.push(score(cand.name, &f, dbic, gain));
         let verdict = screened(dbic, gain, opts.min_gain, subset);
+        // a new kernel grid (`psf_field_variation`) cuts the image into other blocks, so its
+        // subset holds other pixels than the null refit's: decided on every pixel
+        if subset && cand.corrections.psf_field_variation != current.model.corrections.psf_field_variation {
+            if let Some(s) = scores.last_mut() {
+                s.note += " (other blocks than the null refit's: decided on every pixel)";
+            }
+            near.push((cand, dbic));
+            continue;
+        }
         if cand.deferred.is_some() {
             // decided below, against the round's best complete candidate
             let fallback = matches!(cand.deferred, Some(candidates::Deferred::GatedScale { .. })).then(|| (candidates::Candidate { deferred: None, ..cand.clone() }, f));
@@ -1186,11 +1195,11 @@ fn rescore_near_misses(data: &Data, current: &Fit, near: Vec<(candidates::Candid
         };
         let sep = if outcome.is_empty() { "" } else { ", " };
         if let Some(s) = scores.iter_mut().find(|s| s.name == cand.name) {
-            s.note += &format!("; a near miss: {:.1}% on every pixel (ΔBIC {dbic:.0}){sep}{outcome}", 100.0 * gain);
+            s.note += &format!("; on every pixel: removes {:.1}% (ΔBIC {dbic:.0}){sep}{outcome}", 100.0 * gain);
         }
         if opts.progress {
             let sep = if outcome.is_empty() { "" } else { ": " };
-            eprintln!("near miss {} on every pixel: removes {:.2}% of χ² (ΔBIC {dbic:.0}){sep}{outcome}", cand.name, 100.0 * gain);
+            eprintln!("{} on every pixel: removes {:.2}% of χ² (ΔBIC {dbic:.0}){sep}{outcome}", cand.name, 100.0 * gain);
         }
         if pass && best.as_ref().map_or(true, |b| dbic < b.2) {
             best = Some((cand, f, dbic));
@@ -1321,7 +1330,9 @@ fn corrected_profile(base_profile: &Profile, current: &Fit, open: &Image, verdic
     out.meta.psf.columns = g.columns;
     out.meta.psf.rows = g.rows;
     out.meta.psf.centers = g.centers.clone();
-    out.meta.psf.tile_size = Some([open.width() / g.columns, open.height() / g.rows]);
+    // the centre spacing (`psf_field_variation` puts the outer centres on the frame's edges)
+    let spacing = |cs: &[f64], len: usize| if cs.len() > 1 { (cs[1] - cs[0]).round() as usize } else { len };
+    out.meta.psf.tile_size = Some([spacing(&g.column_xs(), open.width()), spacing(&g.row_ys(), open.height())]);
     out.meta.corrections = current.model.corrections.to_table()?;
     if let Some(t) = current.model.corrections.tone_curve {
         // the captures are encoded: `deblur` and `simulate` decode with the found curve

@@ -18,8 +18,9 @@
 //!    `p − ψ(p) ≈ d·(g·dx + h·dy)` grows with the square of the distance from the centre (a
 //!    keystone), which no similarity and no tile-wise kernel follows. See [`reference_map`].
 //! 3. **blur** — `A = Σ_t w_t·(K_t * L_p)`, the profile's kernels (sum 1), hat-interpolated.
-//!    `psf_field_variation` records the finer grid (`columns`, `rows`) the kernels were refitted
-//!    on; the kernels themselves are the profile's `[psf]`.
+//!    `psf_field_variation` records the grid (`columns`, `rows`) the kernels were refitted on,
+//!    its outer centres on the frame's edges (`PsfGrid::edge_centers`: the blend holds no kernel
+//!    constant inside the frame); the kernels themselves are the profile's `[psf]`.
 //! 4. `veiling_glare` — `B = (1 − f)·A + f·(G_σ * L_p)` (`fraction f`, `sigma_px σ`, a
 //!    Gaussian, energy conserving like the simulator's).
 //! 5. **exposure and gain** — `s·V(r)·D(x̂, ŷ)·B` with `s` the profile's exposure ratio,

@@ -196,6 +196,16 @@ impl PsfGrid {
         (x0, x1, y0, y1)
     }
 
+    /// Centres on a `columns × rows` lattice whose outer centres lie **on the frame's edges**:
+    /// `x_i = i·(width − 1)/(columns − 1)` (the middle for one column), likewise in `y`. The
+    /// blend then never holds a kernel constant inside the frame, as it does in the outer half
+    /// tile of [`Self::regular_centers`]; a lens's PSF changes fastest there, towards the
+    /// corners. `diagnose`'s `psf_field_variation` refits on this layout.
+    pub fn edge_centers(width: usize, height: usize, columns: usize, rows: usize) -> Vec<[f64; 2]> {
+        let at = |n: usize, len: usize, i: usize| if n <= 1 { (len as f64 - 1.0) / 2.0 } else { i as f64 * (len as f64 - 1.0) / (n - 1) as f64 };
+        (0..rows).flat_map(|r| (0..columns).map(move |c| [at(columns, width, c), at(rows, height, r)])).collect()
+    }
+
     /// Regular tile centres for `columns × rows` tiles covering a `width × height` image.
     pub fn regular_centers(width: usize, height: usize, columns: usize, rows: usize) -> Vec<[f64; 2]> {
         let mut out = Vec::with_capacity(columns * rows);
@@ -290,6 +300,31 @@ mod tests {
             let v: f64 = hat_weights_1d(&xs, x).iter().map(|&(i, w)| w as f64 * xs[i] * xs[i]).sum();
             assert!((v - x * x).abs() < 1e-3 * x * x, "{x}: {v}");
         }
+    }
+
+    /// Edge-anchored centres put the outer kernels on the frame's edges, so a field that varies
+    /// linearly out to the corner is followed on every pixel; tile-centred ones hold the
+    /// outer half tile constant.
+    #[test]
+    fn edge_centres_follow_the_field_to_the_frame_edge() {
+        let (w, h) = (100, 60);
+        let field = |x: f64| 1.0 + 0.02 * x;
+        let make = |centers: Vec<[f64; 2]>| {
+            let kernels = vec![centers.iter().map(|&[x, _]| Plane::filled(1, 1, field(x) as f32)).collect()];
+            PsfGrid { kernel_size: 1, columns: 4, rows: 3, centers, channels: vec!["Y".into()], kernels }
+        };
+        let edge = make(PsfGrid::edge_centers(w, h, 4, 3));
+        assert_eq!(edge.centers[0], [0.0, 0.0]);
+        assert_eq!(edge.centers[11], [99.0, 59.0]);
+        assert_eq!(edge.centers[5], [33.0, 29.5]);
+        let regular = make(PsfGrid::regular_centers(w, h, 4, 3));
+        let err = |g: &PsfGrid, x: usize| (g.kernel_at(0, x as f64, 7.0).get(0, 0) as f64 - field(x as f64)).abs();
+        for x in 0..w {
+            assert!(err(&edge, x) < 1e-5, "x = {x}: {}", err(&edge, x));
+        }
+        // the regular grid's outer centre is at x = 12: the corner reads the field there
+        assert!((err(&regular, 0) - 0.24).abs() < 1e-5, "{}", err(&regular, 0));
+        assert_eq!(PsfGrid::edge_centers(w, h, 1, 1), vec![[49.5, 29.5]]);
     }
 
     #[test]

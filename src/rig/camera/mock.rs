@@ -32,6 +32,12 @@
 //! view, so the camera sees a uniform white (reflectance 1) field, unblurred (a uniform field
 //! is unchanged by any PSF), through the vignetting.
 //!
+//! The lens's PSFs are sampled on a 9 × 7 grid whose outer centres lie on the frame's edges
+//! ([`crate::optics::psf_grid::PsfGrid::edge_centers`]) and blended between them, so the blur
+//! keeps changing out to the corners as a lens's does. (A tile-centred grid holds every PSF
+//! constant in its outer half tile: a band along the frame's edges where the rendered lens stopped
+//! changing, which no real lens has.)
+//!
 //! Clean images are cached per (f-number, stage position), so repeated frames only redraw noise.
 
 use std::collections::HashMap;
@@ -242,9 +248,12 @@ impl MockOptics {
         }
     }
 
-    /// The PSF grid the camera renders with at `f_number` (the simulator's truth).
+    /// The PSF grid the camera renders with at `f_number` (the simulator's truth), its outer
+    /// centres on the frame's edges (module docs).
     pub fn truth_grid(&self, f_number: f64) -> crate::optics::psf_grid::PsfGrid {
-        self.lens.psf_grid(f_number, self.psf_columns, self.psf_rows, self.kernel_size)
+        let (w, h) = (self.lens.width, self.lens.height);
+        let centers = crate::optics::psf_grid::PsfGrid::edge_centers(w, h, self.psf_columns, self.psf_rows);
+        self.lens.psf_grid_at(f_number, centers, self.psf_columns, self.psf_rows, self.kernel_size)
     }
 
     /// Target cell coordinates `(u0, v0)` of the undistorted pixel `(0, 0)` at a stage
@@ -368,7 +377,7 @@ impl MockCamera {
             let scene = self.optics.scene(&self.target, w, h, stage);
             let scene = vec![scene; bands];
             let mut shot = match n {
-                Some(n) => Shot::lens(n, 1.0, self.optics.psf_columns, self.optics.psf_rows, self.optics.kernel_size),
+                Some(n) => Shot { blur: crate::optics::capture::Blur::Grid(self.optics.truth_grid(n)), ..Shot::lens(n, 1.0, self.optics.psf_columns, self.optics.psf_rows, self.optics.kernel_size) },
                 None => Shot::ideal(1.0),
             };
             shot.clip = false;
@@ -527,6 +536,28 @@ mod tests {
 
     fn mean(f: &Frame) -> f64 {
         f.image.planes[0].data.iter().map(|&v| v as f64).sum::<f64>() / f.image.planes[0].data.len() as f64
+    }
+
+    /// The truth grid samples the lens on the frame's edges: its corner kernel is the lens's
+    /// PSF at the corner pixel, not one half a tile inwards that the blend would hold there.
+    #[test]
+    fn the_truth_grid_follows_the_lens_to_the_corners() {
+        let (c, _) = cam();
+        let o = c.optics();
+        let g = o.truth_grid(o.f_number_open);
+        assert_eq!((g.columns, g.rows), (9, 7));
+        assert_eq!(g.centers, crate::optics::psf_grid::PsfGrid::edge_centers(96, 72, 9, 7));
+        let (last, k) = (g.tile_count() - 1, o.kernel_size);
+        for ch in 0..g.channels.len() {
+            let corner = o.lens.psf(o.f_number_open, ch, 95.0, 71.0, k);
+            assert!(g.kernel_at(ch, 95.0, 71.0).data.iter().zip(&corner.data).all(|(a, b)| (a - b).abs() < 1e-6));
+            assert_eq!(g.kernels[ch][last].data, corner.data);
+        }
+        // the old tile-centred sampling put the last centre 5 px inwards (96 / 9 / 2), where the
+        // red PSF differs from the corner's
+        let inward = o.lens.psf(o.f_number_open, 0, 90.17, 66.36, k);
+        let diff: f32 = inward.data.iter().zip(&g.kernels[0][last].data).map(|(a, b)| (a - b).abs()).sum();
+        assert!(diff > 1e-3, "{diff}");
     }
 
     #[test]

@@ -354,7 +354,8 @@ fn channel_list(data: &Data) -> String {
 }
 
 /// The candidates for extending `current`, in catalogue order (each effect only while the
-/// current model lacks it; `psf_field_variation` while the grid can still grow), without the
+/// current model lacks it; `psf_field_variation` first on the edge-anchored layout, then while
+/// the grid can still grow), without the
 /// effects named in `excluded` (e.g. to show what the diagnosis says of an effect before the
 /// catalogue models it). No progress on stderr ([`propose_timed`] has the switch).
 pub fn propose(data: &Data, current: &Fit, a: &Analysis, excluded: &[String]) -> Vec<Candidate> {
@@ -656,16 +657,17 @@ fn field_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Candidate
         evidence: format!("residual against position inside the tile: {}; per-tile reduced χ² spans {:.2}", curve_text(a, "position_in_tile"), spread),
         init: None,
         deferred: None,
-        location: location(data, a, &format!("between tile centres and beyond the outer ones; {how}, the outer centres on the frame's edges")),
+        location: location(data, a, &if grows { format!("between tile centres; {how}, the outer centres on the frame's edges") } else { format!("beyond the outer tile centres, where the kernels were held constant; {how}, the outer centres moved to the frame's edges") }),
     })
 }
 
 /// The grid `psf_field_variation` proposes for a current grid `g` on a `w × h` image: `g`'s own
-/// size while its centres are the estimate's (`edge` false; the layout changes), then twice the
-/// tiles per axis, at most one tile per two kernel widths; `None` once an edge-anchored grid
-/// cannot grow.
+/// size while its centres are the estimate's (`edge` false; the layout changes, unless the
+/// edge-anchored centres are `g`'s already: a single tile), then twice the tiles per axis, at
+/// most one tile per two kernel widths; `None` once the grid cannot grow.
 pub fn field_step(g: &crate::optics::psf_grid::PsfGrid, w: usize, h: usize, edge: bool) -> Option<(usize, usize)> {
-    if !edge {
+    // the layout step, unless the edge-anchored centres are the current ones (a single tile)
+    if !edge && crate::optics::psf_grid::PsfGrid::edge_centers(w, h, g.columns, g.rows) != g.centers {
         return Some((g.columns, g.rows));
     }
     let (cmax, rmax) = ((w / (2 * g.kernel_size)).max(1), (h / (2 * g.kernel_size)).max(1));
@@ -1024,8 +1026,9 @@ fn linearised_estimate(data: &Data, current: &Fit, transfer: Transfer) -> Option
 }
 
 /// Kernels and exposure ratios estimated ([`crate::estimate`], window fits only) from `open`
-/// and `pinhole` on the current grid's centre spacing and kernel size, resampled at the current
-/// grid's centres if the estimate's differ (an edge-anchored grid, `psf_field_variation`), with the current corrections: the re-estimated starts of
+/// and `pinhole` on the current grid's centre spacing and kernel size, moved to the current
+/// grid's centres if the estimate's differ (projected onto an edge-anchored grid,
+/// `psf_field_variation`, [`super::fit::regrid`]), with the current corrections: the re-estimated starts of
 /// `tone_curve` ([`linearised_estimate`]) and of the geometric candidates
 /// ([`super::registered::reestimate`]); stored values at or above `saturation` leave the
 /// estimate's data term; `registration` is the estimate's registration model. `None` when the
@@ -1041,8 +1044,11 @@ pub fn estimate_model(data: &Data, current: &Fit, open: &crate::image::Image, pi
         ..Default::default()
     };
     let est = crate::estimate::estimate(open, pinhole, &opts).ok()?;
+    let (w, h) = (data.open.width(), data.open.height());
     let grid = if est.profile.grid.centers == g.centers {
         est.profile.grid
+    } else if current.model.corrections.psf_field_variation.is_some() {
+        super::fit::regrid(&est.profile.grid, w, h, g.columns, g.rows)
     } else {
         super::fit::resample(&est.profile.grid, g.centers.clone(), g.columns, g.rows)
     };
@@ -1091,6 +1097,8 @@ mod tests {
         assert_eq!(field_step(&g(3, 2, 33), 384, 288, true), Some((5, 4)));
         assert_eq!(field_step(&g(5, 4, 33), 384, 288, true), None);
         assert_eq!(field_step(&g(4, 3, 9), 384, 288, true), Some((8, 6)));
+        // one tile: the layout step would change nothing, so the grid grows at once
+        assert_eq!(field_step(&g(1, 1, 33), 384, 288, false), Some((2, 2)));
     }
 
     /// A `cols × rows` grid of Gaussian kernels (σ 2 px, side 21) on a `w × h` image, each

@@ -248,8 +248,8 @@ pub struct FoundEffect {
     pub before: Figures,
     pub after: Figures,
     /// BIC of the model with the effect minus the null refit's; for an effect found again in a
-    /// later round (`pinhole_diffraction`'s radius re-searched, `psf_field_variation` on a finer
-    /// grid), summed over its adoptions.
+    /// later round (`pinhole_diffraction`'s radius re-searched, `psf_field_variation` grown from
+    /// its edge-anchored layout to a finer grid), summed over its adoptions.
     pub delta_bic: f64,
 }
 
@@ -673,7 +673,7 @@ fn adopt(data: &mut Data, s: &mut Search, (cand, f, dbic): (candidates::Candidat
     let after = Figures::of(&current);
     let found = FoundEffect { name: cand.name.to_string(), evidence, location: cand.location, parameters, before, after, delta_bic: dbic };
     // an effect found again (`pinhole_diffraction`'s radius re-searched, `psf_field_variation`
-    // on a finer grid) keeps its place, its first "before" and its evidence, which the new one
+    // grown to a finer grid) keeps its place, its first "before" and its evidence, which the new one
     // extends: the order of the list is the order in which effects were first named
     s.last_found = Some(found.name.clone());
     match s.effects.iter_mut().find(|e| e.name == found.name) {
@@ -977,7 +977,8 @@ pub fn low_band_of(power: f64, floor: f64, [w, h, nch]: [usize; 3], evaluated: f
 /// [`Round::start_rule`]) refitted from the current model;
 /// returns every score (the null refit first) and the best effect that beats the null refit's
 /// BIC and removes at least `min_gain` of its χ² (the acceptance rule, [`screened`]): on the
-/// screening subset, or, for a near miss there, on every pixel ([`rescore_near_misses`]).
+/// screening subset, or, for a near miss there and for a new kernel grid (whose blocks hold
+/// other pixels), on every pixel ([`rescore_near_misses`]) when no candidate won on the subset.
 fn search_round(data: &Data, current: &Fit, analysis: &Analysis, round: Round, opts: &DiagnoseOptions) -> (Vec<CandidateScore>, Option<(candidates::Candidate, Fit, f64)>) {
     let (proposed, times) = candidates::propose_timed(data, current, analysis, &round.excluded(opts), round.start_rule(), opts.progress);
     for t in times {
@@ -1024,7 +1025,7 @@ fn search_round(data: &Data, current: &Fit, analysis: &Analysis, round: Round, o
         // subset holds other pixels than the null refit's: decided on every pixel
         if subset && cand.corrections.psf_field_variation != current.model.corrections.psf_field_variation {
             if let Some(s) = scores.last_mut() {
-                s.note += " (other blocks than the null refit's: decided on every pixel)";
+                s.note += " (other blocks than the null refit's: for a decision on every pixel)";
             }
             near.push((cand, dbic));
             continue;
@@ -1079,10 +1080,21 @@ fn search_round(data: &Data, current: &Fit, analysis: &Analysis, round: Round, o
         consider(&mut best, &mut near, screened(dbic2, gain, opts.min_gain, subset), cand, f, dbic2);
     }
     bar.finish_and_clear();
-    if best.is_none() && !near.is_empty() {
-        let mut lap = crate::estimate::stage_clock();
-        best = rescore_near_misses(data, current, near, &mut scores, round, opts);
-        progress_lap(opts, lap("near misses rescored on every pixel"));
+    match &best {
+        None if !near.is_empty() => {
+            let mut lap = crate::estimate::stage_clock();
+            best = rescore_near_misses(data, current, near, &mut scores, round, opts);
+            progress_lap(opts, lap("near misses rescored on every pixel"));
+        }
+        // the near misses (and a new grid) wait for a later round, where they are proposed again
+        Some((winner, _, _)) => {
+            for (cand, _) in &near {
+                if let Some(s) = scores.iter_mut().find(|s| s.name == cand.name) {
+                    s.note += &format!("; not rescored: {} won the round on the subset", winner.name);
+                }
+            }
+        }
+        None => {}
     }
     (scores, best)
 }
@@ -1332,7 +1344,10 @@ fn corrected_profile(base_profile: &Profile, current: &Fit, open: &Image, verdic
     out.meta.psf.centers = g.centers.clone();
     // the centre spacing (`psf_field_variation` puts the outer centres on the frame's edges)
     let spacing = |cs: &[f64], len: usize| if cs.len() > 1 { (cs[1] - cs[0]).round() as usize } else { len };
-    out.meta.psf.tile_size = Some([spacing(&g.column_xs(), open.width()), spacing(&g.row_ys(), open.height())]);
+    out.meta.psf.tile_size = Some(match current.model.corrections.psf_field_variation {
+        Some(_) => [spacing(&g.column_xs(), open.width()), spacing(&g.row_ys(), open.height())],
+        None => [open.width() / g.columns, open.height() / g.rows],
+    });
     out.meta.corrections = current.model.corrections.to_table()?;
     if let Some(t) = current.model.corrections.tone_curve {
         // the captures are encoded: `deblur` and `simulate` decode with the found curve

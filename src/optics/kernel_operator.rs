@@ -220,7 +220,9 @@ fn block_layout(cx: &[Vec<f32>], cy: &[Vec<f32>], xs: &[f64], ys: &[f64], k: usi
     let active = |fs: &[Vec<f32>], sp: &Splits| -> usize { sp.iter().map(|&(a, l)| fs.iter().filter(|f| f[a..a + l].iter().any(|&v| v != 0.0)).count()).sum() };
     let centre_cuts = |cs: &[f64], n: usize| -> Vec<usize> {
         let mut c = vec![0];
-        c.extend(cs.iter().map(|&x| ((x + 0.5).round().max(0.0) as usize).min(n)));
+        // a centre within a kernel radius of the frame's edge (an edge-anchored grid's outer
+        // ones) would cut a strip of a pixel or two, each block a whole FFT: no cut there
+        c.extend(cs.iter().map(|&x| ((x + 0.5).round().max(0.0) as usize).min(n)).filter(|&x| x > r && x + r < n));
         c.push(n);
         c.dedup();
         c

@@ -330,10 +330,12 @@ pub fn correction_params(c: &Corrections, channels: usize) -> usize {
 /// `N = M_x · K · M_yᵀ`,  `M = (W_newᵀ W_new)⁻¹ W_newᵀ W_old`
 ///
 /// per axis (`W[x, j]` the 1-D Catmull–Rom weight of centre `j` at pixel `x`; the blend is a
-/// tensor product, so the 2-D projection is the product of the 1-D ones). Interpolating the old
-/// kernels at the new centres instead would put the held-constant outer kernel on the frame's
-/// edge and blend it inwards over a whole spacing: a start that fitted the mock rig at 768×576
-/// 7.4 % worse than the current model after the candidates' budget.
+/// tensor product, so the 2-D projection is the product of the 1-D ones): the start nearest the
+/// current model that the new blend can hold. Interpolating the old kernels at the new centres
+/// instead puts the held-constant outer kernel on the frame's edge and blends it inwards over a
+/// whole spacing (twice the field misfit in `regrid_projects_the_kernel_field_onto_the_edge_layout`).
+/// On the mock rig at 768×576 rendered with a tile-centred truth both starts ended 7.3–7.4 %
+/// above the current model after the candidates' budget: there the layout itself fits worse.
 pub fn regrid(grid: &PsfGrid, width: usize, height: usize, columns: usize, rows: usize) -> PsfGrid {
     let centers = PsfGrid::edge_centers(width, height, columns, rows);
     let new = PsfGrid { kernel_size: grid.kernel_size, columns, rows, centers, channels: grid.channels.clone(), kernels: vec![] };

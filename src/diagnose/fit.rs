@@ -383,30 +383,10 @@ fn axis_projection(old: &[f64], new: &[f64], len: usize) -> Vec<Vec<f64>> {
             }
         }
     }
-    // Gauss–Jordan with partial pivoting (n is a grid's columns or rows)
-    for col in 0..n {
-        let piv = (col..n).max_by(|&a, &b| ata[a][col].abs().total_cmp(&ata[b][col].abs())).unwrap_or(col);
-        ata.swap(col, piv);
-        atb.swap(col, piv);
-        let d = ata[col][col];
-        if d.abs() < 1e-12 {
-            continue;
-        }
-        for r in 0..n {
-            if r != col {
-                let f = ata[r][col] / d;
-                if f != 0.0 {
-                    for q in 0..n {
-                        ata[r][q] -= f * ata[col][q];
-                    }
-                    for q in 0..m {
-                        atb[r][q] -= f * atb[col][q];
-                    }
-                }
-            }
-        }
-    }
-    (0..n).map(|r| atb[r].iter().map(|v| if ata[r][r].abs() < 1e-12 { 0.0 } else { v / ata[r][r] }).collect()).collect()
+    // one small solve (n = a grid's columns or rows) per old centre; the normal matrix is
+    // positive definite wherever centres are over a pixel apart
+    let cols: Vec<Vec<f64>> = (0..m).map(|k| crate::solve::dense::solve(ata.clone(), atb.iter().map(|r| r[k]).collect(), 1e-12).unwrap_or_else(|| vec![0.0; n])).collect();
+    (0..n).map(|j| cols.iter().map(|c| c[j]).collect()).collect()
 }
 
 /// The kernels of `grid` interpolated at `centers`, a `columns × rows` lattice.

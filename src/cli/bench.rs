@@ -19,7 +19,9 @@
 //! truth lenses in DIR and the simulator's singlet at two chromatic strengths, rendered at
 //! 1024×768 RGB with Poisson–Gaussian noise (full well 15 000 e⁻, read 4 e⁻) and estimated with
 //! the default options; kernel errors (relative L2, per cent) per lens and channel against the
-//! truth blended at each estimated centre ([`lensrig::estimate::testbed`]), cross-validation
+//! truth blended at each estimated centre ([`lensrig::estimate::testbed`]) and, layout-free,
+//! at a fixed lattice reaching a kernel radius from the frame's edges
+//! ([`lensrig::estimate::testbed::field_errors_against_truth`]), cross-validation
 //! on an independent pair (residual RMS ÷ the noise RMS the true kernels leave: the wide-open
 //! capture's noise plus the pinhole's noise propagated through the true kernels,
 //! [`lensrig::estimate::testbed::CrossValidation`]; then ÷ the wide-open noise alone, the former
@@ -29,7 +31,7 @@ use anyhow::{Context, Result};
 use clap::Args;
 use lensrig::diagnose::simulate::predict;
 use lensrig::estimate::bootstrap::{bootstrap_estimate, predicted_error, BootstrapOptions, KernelUncertainty};
-use lensrig::estimate::testbed::{errors_against_truth, lens_selected, noise_target_pair, quantile, simulator_short_name, CrossValidation};
+use lensrig::estimate::testbed::{errors_against_truth, field_errors_against_truth, lens_selected, noise_target_pair, quantile, simulator_short_name, CrossValidation};
 use lensrig::estimate::{estimate, kernel_errors, median_max, process_cpu_seconds, EstimateOptions};
 use lensrig::image::{Image, Plane};
 use lensrig::optics::capture::{render, Blur, Rendered, Sensor, Shot};
@@ -177,13 +179,15 @@ struct TestLens {
 
 /// The simulator's chromatic singlet ([`LensModel::demo`]) on the truth lenses' 3.45 µm pixels
 /// at f/4, with the glass's Abbe number divided by `strength` (1: N-BK7; 2: twice the
-/// chromatic focal shift), its PSFs on a 9 × 7 grid at the simulator's suggested kernel size.
+/// chromatic focal shift), its PSFs at the simulator's suggested kernel size on a 9 × 7 lattice
+/// whose outer centres lie on the frame's edges ([`PsfGrid::edge_centers`], as the mock camera
+/// renders its lens), so the truth keeps changing out to the corners.
 fn simulator_lens(strength: f64, width: usize, height: usize) -> TestLens {
     let mut lens = LensModel::demo(width, height);
     lens.pixel_pitch_um = 3.45;
     lens.glass = Some(lensrig::optics::lens::Glass { n_d: 1.5168, abbe: 64.17 / strength });
     let k = lens.suggested_kernel_size(4.0);
-    let truth = lens.psf_grid(4.0, 9, 7, k);
+    let truth = lens.psf_grid_at(4.0, PsfGrid::edge_centers(width, height, 9, 7), 9, 7, k);
     let large = (width > 1024).then_some((width, height));
     let name = format!("simulator singlet, chromatic ×{strength}{}", large.map_or(String::new(), |(w, h)| format!(", {w}x{h}")));
     TestLens { name, short: simulator_short_name(strength, large), split: Split::Tuning, width, height, truth }
@@ -282,8 +286,8 @@ fn pct(v: Option<f64>) -> String {
 fn run_testbed(a: &BenchArgs, dir: &Path) -> Result<()> {
     let lenses = testbed_lenses(dir, a.only.as_deref(), a.large)?;
     println!("machine: {} logical cores (rayon), {}; noise: full well {} e-, read {} e-", rayon::current_num_threads(), std::env::consts::ARCH, TESTBED_SENSOR.full_well_e, TESTBED_SENSOR.read_noise_e);
-    println!("| lens | split | channel | kernel est / true | grid | median | p90 | max | cross-validation ÷ open + pinhole noise (true kernels) | ÷ open noise only (true kernels) | seconds wall / CPU |");
-    println!("| --- | --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |");
+    println!("| lens | split | channel | kernel est / true | grid | median | p90 | max | field median / p90 | cross-validation ÷ open + pinhole noise (true kernels) | ÷ open noise only (true kernels) | seconds wall / CPU |");
+    println!("| --- | --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |");
     let mut boot = Vec::new();
     for l in &lenses {
         let pair = testbed_pair(l, 1)?;
@@ -299,6 +303,8 @@ fn run_testbed(a: &BenchArgs, dir: &Path) -> Result<()> {
         eprintln!("{}: {}", l.name, stages.join(", "));
         let g = &est.profile.grid;
         let errors = errors_against_truth(g, &l.truth);
+        let field = field_errors_against_truth(g, &l.truth, l.width, l.height);
+        let field_all: Vec<f64> = field.iter().flatten().copied().collect();
         let margin = g.kernel_size.max(l.truth.kernel_size) / 2;
         let truth_profile = Profile { meta: est.profile.meta.clone(), grid: l.truth.clone() };
         let cv = cross_validation(&est.profile, &truth_profile, &pair2, margin)?;
@@ -309,11 +315,11 @@ fn run_testbed(a: &BenchArgs, dir: &Path) -> Result<()> {
             rows.iter().for_each(|r| eprintln!("{r}"));
             boot.extend(rows);
         }
-        let rows = g.channels.iter().map(String::as_str).zip(errors.iter().map(Vec::as_slice)).chain([("all", all.as_slice())]);
-        for (ch, e) in rows {
+        let rows = g.channels.iter().map(String::as_str).zip(errors.iter().map(Vec::as_slice).zip(field.iter().map(Vec::as_slice))).chain([("all", (all.as_slice(), field_all.as_slice()))]);
+        for (ch, (e, f)) in rows {
             let last = ch == "all";
             println!(
-                "| {} | {} | {ch} | {} / {} | {}×{} | {} | {} | {} | {} | {} |",
+                "| {} | {} | {ch} | {} / {} | {}×{} | {} | {} | {} | {} / {} | {} | {} |",
                 l.name,
                 l.split.name(),
                 g.kernel_size,
@@ -323,6 +329,8 @@ fn run_testbed(a: &BenchArgs, dir: &Path) -> Result<()> {
                 pct(quantile(e, 0.5)),
                 pct(quantile(e, 0.9)),
                 pct(quantile(e, 1.0)),
+                pct(quantile(f, 0.5)),
+                pct(quantile(f, 0.9)),
                 if last { format!("{:.3} ({:.3}) | {:.3} ({:.3})", cv.ratio(), cv_truth.ratio(), cv.ratio_open(), cv_truth.ratio_open()) } else { " | ".to_string() },
                 if last { format!("{wall:.1} / {}", cpu.map_or("–".into(), |c| format!("{c:.1}"))) } else { String::new() },
             );

@@ -1342,12 +1342,7 @@ fn corrected_profile(base_profile: &Profile, current: &Fit, open: &Image, verdic
     out.meta.psf.columns = g.columns;
     out.meta.psf.rows = g.rows;
     out.meta.psf.centers = g.centers.clone();
-    // the centre spacing (`psf_field_variation` puts the outer centres on the frame's edges)
-    let spacing = |cs: &[f64], len: usize| if cs.len() > 1 { (cs[1] - cs[0]).round() as usize } else { len };
-    out.meta.psf.tile_size = Some(match current.model.corrections.psf_field_variation {
-        Some(_) => [spacing(&g.column_xs(), open.width()), spacing(&g.row_ys(), open.height())],
-        None => [open.width() / g.columns, open.height() / g.rows],
-    });
+    out.meta.psf.tile_size = Some(g.tile_size(open.width(), open.height()));
     out.meta.corrections = current.model.corrections.to_table()?;
     if let Some(t) = current.model.corrections.tone_curve {
         // the captures are encoded: `deblur` and `simulate` decode with the found curve

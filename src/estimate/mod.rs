@@ -640,7 +640,7 @@ fn assemble_profile(open: &Image, layout: &Layout, kernels: Vec<Vec<Plane>>, rat
         pinhole: None,
         black_level: opts.black_level.clone(),
     };
-    let psf = PsfTable { kernel_size: k, columns: cols, rows, centers: layout.centers.clone(), tile_size: Some([w / cols, h / rows]), files: BTreeMap::new() };
+    let psf = PsfTable { kernel_size: k, columns: cols, rows, centers: layout.centers.clone(), tile_size: Some(grid.tile_size(w, h)), files: BTreeMap::new() };
     let mut meta = Profile::new_meta(source, ratio, psf);
     meta.registration = registration;
     meta.estimation = info;

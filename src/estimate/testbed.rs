@@ -24,8 +24,6 @@ use crate::optics::psf_grid::PsfGrid;
 use crate::rng::Rng;
 use crate::target::{render_noise_scene, TargetError, TargetSpec};
 
-/// `k` embedded about its centre in a `size × size` square (`size ≥ k`, both odd), zero
-/// outside; a larger `k` is cropped about its centre.
 /// A `w × h` calibration pair through `truth` as the test bed renders it: the A4 noise target
 /// of pattern `seed` (wide open: blurred by the truth grid the way `simulate` blends it;
 /// pinhole: the sharp target), both at `exposure` through `sensor`, with noise streams
@@ -44,6 +42,8 @@ pub fn noise_target_pair(truth: &PsfGrid, w: usize, h: usize, seed: u64, sensor:
     Ok((open, pin))
 }
 
+/// `k` embedded about its centre in a `size × size` square (`size ≥ k`, both odd), zero
+/// outside; a larger `k` is cropped about its centre.
 pub fn embed_centered(k: &Plane, size: usize) -> Plane {
     let off = size as isize / 2 - k.width as isize / 2;
     let mut out = Plane::new(size, size);
@@ -72,6 +72,30 @@ pub fn errors_against_truth(est: &PsfGrid, truth: &PsfGrid) -> Vec<Vec<f64>> {
                     relative_error_centered(&est.kernels[c][t], &truth.kernel_at(tc, x, y))
                 })
                 .collect(),
+            None => vec![],
+        })
+        .collect()
+}
+
+/// Points per axis of [`field_errors_against_truth`]'s lattice.
+pub const FIELD_POINTS: (usize, usize) = (13, 10);
+
+/// Per channel (as [`errors_against_truth`]), the relative L2 error of `est`'s blended kernel
+/// against `truth`'s blended kernel at the points of a fixed [`FIELD_POINTS`] lattice whose
+/// outer points lie a kernel radius `r` (the larger grid's) inside a `w × h` frame's edges:
+/// `x_i = r + i·(w − 1 − 2r)/12`, likewise in `y`. Unlike the errors at the estimated centres it
+/// does not depend on where the estimate put its centres, so two layouts compare on the same
+/// points, and it reaches into the band between the outer centres and the frame's edges that the
+/// data (valid from a kernel radius inside the edges) still see.
+pub fn field_errors_against_truth(est: &PsfGrid, truth: &PsfGrid, w: usize, h: usize) -> Vec<Vec<f64>> {
+    let r = est.kernel_size.max(truth.kernel_size) / 2;
+    let (fw, fh) = (w.saturating_sub(2 * r).max(1), h.saturating_sub(2 * r).max(1));
+    let points: Vec<[f64; 2]> = PsfGrid::edge_centers(fw, fh, FIELD_POINTS.0, FIELD_POINTS.1).into_iter().map(|[x, y]| [x + r as f64, y + r as f64]).collect();
+    est.channels
+        .iter()
+        .enumerate()
+        .map(|(c, name)| match truth.channels.iter().position(|n| n == name) {
+            Some(tc) => points.iter().map(|&[x, y]| relative_error_centered(&est.kernel_at(c, x, y), &truth.kernel_at(tc, x, y))).collect(),
             None => vec![],
         })
         .collect()
@@ -232,6 +256,32 @@ mod tests {
         });
         let nearest = nearest.map_or(0, |n| n.0);
         assert!(relative_error_centered(&est.kernels[0][1], &truth.kernels[0][nearest]) > 0.01);
+    }
+
+    /// The field errors score the blend on a fixed lattice: the truth against itself is exact
+    /// on any layout, and of two estimates of a linear field, the one that holds its kernels
+    /// constant beyond tile centres (the band between the outer centres and the frame's edges)
+    /// scores worse there than one whose outer centres lie on the edges, while both are exact
+    /// at their own centres.
+    #[test]
+    fn field_errors_count_the_band_beyond_the_outer_centres() {
+        let (w, h, k) = (700, 500, 9);
+        let (a, b) = (gauss(k, 0.0, 0.0, 1.0), gauss(k, 1.0, -0.5, 2.5));
+        let on = |centers: Vec<[f64; 2]>, cols: usize, rows: usize| {
+            let kernels = vec![centers.iter().map(|&[x, _]| mix(&a, &b, x / (w - 1) as f64)).collect()];
+            PsfGrid { kernel_size: k, columns: cols, rows, centers, channels: vec!["G".into()], kernels }
+        };
+        let truth = on(PsfGrid::edge_centers(w, h, 9, 7), 9, 7);
+        let edge = on(PsfGrid::edge_centers(w, h, 4, 3), 4, 3);
+        let tiled = on(PsfGrid::regular_centers(w, h, 4, 3), 4, 3);
+        assert!(field_errors_against_truth(&truth, &truth, w, h)[0].iter().all(|&e| e < 1e-6));
+        for g in [&edge, &tiled] {
+            assert!(errors_against_truth(g, &truth)[0].iter().all(|&e| e < 1e-5));
+        }
+        let worst = |g: &PsfGrid| field_errors_against_truth(g, &truth, w, h)[0].iter().copied().fold(0.0, f64::max);
+        assert_eq!(field_errors_against_truth(&edge, &truth, w, h)[0].len(), FIELD_POINTS.0 * FIELD_POINTS.1);
+        assert!(worst(&edge) < 1e-5, "edge-anchored: {}", worst(&edge));
+        assert!(worst(&tiled) > 0.05, "tile-centred: {}", worst(&tiled));
     }
 
     /// Kernels of different sizes compare about their centres; a one-pixel shift is an error

@@ -206,6 +206,19 @@ impl PsfGrid {
         (0..rows).flat_map(|r| (0..columns).map(move |c| [at(columns, width, c), at(rows, height, r)])).collect()
     }
 
+    /// The profile's `tile_size` for this grid on a `width × height` frame
+    /// (docs/profile-format.md): the centre spacing, rounded, when the outer centres lie on the
+    /// frame's edges ([`Self::edge_centers`]), else the tile side `width / columns`,
+    /// `height / rows` of [`Self::regular_centers`].
+    pub fn tile_size(&self, width: usize, height: usize) -> [usize; 2] {
+        if self.centers == Self::edge_centers(width, height, self.columns, self.rows) {
+            let spacing = |cs: &[f64], len: usize| if cs.len() > 1 { (cs[1] - cs[0]).round() as usize } else { len };
+            [spacing(&self.column_xs(), width), spacing(&self.row_ys(), height)]
+        } else {
+            [width / self.columns, height / self.rows]
+        }
+    }
+
     /// Regular tile centres for `columns × rows` tiles covering a `width × height` image.
     pub fn regular_centers(width: usize, height: usize, columns: usize, rows: usize) -> Vec<[f64; 2]> {
         let mut out = Vec::with_capacity(columns * rows);

@@ -197,7 +197,8 @@ fn print_details(truth: &serde_json::Value, d: &Diagnosis) {
     eprintln!("residual spectrum, final: {}", sp(&d.final_analysis));
     for r in &d.rounds {
         for c in r {
-            eprintln!("  {} {:.4} {:.1} {} {}", c.name, c.reduced_chi2, c.delta_bic, c.note, c.parameters);
+            let [chi2, dbic] = c.figures();
+            eprintln!("  {} {chi2} {dbic} {} {}", c.name, c.note, c.parameters);
         }
     }
 }

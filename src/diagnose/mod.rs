@@ -259,9 +259,21 @@ pub struct CandidateScore {
     pub name: String,
     /// The candidate's fitted parameters.
     pub parameters: serde_json::Value,
-    pub reduced_chi2: f64,
-    pub delta_bic: f64,
+    /// `None` where the candidate was not fitted: a new kernel grid, which is fitted on every
+    /// pixel only, in a round another candidate won on the screening subset ([`search_round`]).
+    pub reduced_chi2: Option<f64>,
+    /// ΔBIC against the null refit, on the pixels the candidate was scored on (`None` as
+    /// `reduced_chi2`).
+    pub delta_bic: Option<f64>,
     pub note: String,
+}
+
+impl CandidateScore {
+    /// The reduced χ² (4 decimals) and ΔBIC (1 decimal) as printed, `–` where not fitted.
+    pub fn figures(&self) -> [String; 2] {
+        let show = |v: Option<f64>, digits: usize| v.map_or("–".to_string(), |v| format!("{v:.digits$}"));
+        [show(self.reduced_chi2, 4), show(self.delta_bic, 1)]
+    }
 }
 
 /// Everything the diagnosis found.
@@ -999,37 +1011,39 @@ fn search_round(data: &Data, current: &Fit, analysis: &Analysis, round: Round, o
     };
     let null = screen("the null refit", &current.model.corrections, &current.model);
     let subset = null.share < 1.0;
-    let mut scores = vec![CandidateScore { name: "(null refit)".into(), reduced_chi2: null.reduced_chi2(), parameters: serde_json::Value::Null, delta_bic: 0.0, note: "the current model refitted with the candidates' budget".into() }];
+    let mut scores = vec![CandidateScore { name: "(null refit)".into(), reduced_chi2: Some(null.reduced_chi2()), parameters: serde_json::Value::Null, delta_bic: Some(0.0), note: "the current model refitted with the candidates' budget".into() }];
     let mut best: Option<(candidates::Candidate, Fit, f64)> = None;
-    let mut near: Vec<(candidates::Candidate, f64)> = Vec::new();
+    let mut near: Vec<candidates::Candidate> = Vec::new();
     // deferred candidates with their provisional verdict, ΔBIC and entry in `scores`, and for
     // a gated misregistration ([`candidates::Deferred::GatedScale`]) the provisional candidate
     // itself with its screening fit, which stands where the search does not improve on it
     #[allow(clippy::type_complexity)]
     let mut provisional: Vec<(candidates::Candidate, Screened, f64, usize, Option<(candidates::Candidate, Fit)>)> = Vec::new();
     let on = if subset { " on the screening subset" } else { "" };
-    let score = |name: &str, f: &Fit, dbic: f64, gain: f64| CandidateScore { name: name.to_string(), parameters: candidates::parameters_json(name, &f.model.corrections), reduced_chi2: f.reduced_chi2(), delta_bic: dbic, note: format!("removes {:.1}% of χ²{on}", 100.0 * gain) };
+    let score = |name: &str, f: &Fit, dbic: f64, gain: f64| CandidateScore { name: name.to_string(), parameters: candidates::parameters_json(name, &f.model.corrections), reduced_chi2: Some(f.reduced_chi2()), delta_bic: Some(dbic), note: format!("removes {:.1}% of χ²{on}", 100.0 * gain) };
     // a screened candidate becomes the round's best (the lowest ΔBIC among winners) or a near miss
-    let consider = |best: &mut Option<(candidates::Candidate, Fit, f64)>, near: &mut Vec<(candidates::Candidate, f64)>, verdict: Screened, cand: candidates::Candidate, f: Fit, dbic: f64| match verdict {
+    let consider = |best: &mut Option<(candidates::Candidate, Fit, f64)>, near: &mut Vec<candidates::Candidate>, verdict: Screened, cand: candidates::Candidate, f: Fit, dbic: f64| match verdict {
         Screened::Winner if best.as_ref().map_or(true, |b| dbic < b.2) => *best = Some((cand, f, dbic)),
-        Screened::NearMiss => near.push((cand, dbic)),
+        Screened::NearMiss => near.push(cand),
         _ => {}
     };
     for cand in proposed {
+        // a new kernel grid (`psf_field_variation`) cuts the image into other blocks, so a
+        // subset would hold other pixels than the null refit's: it is not screened but decided
+        // on every pixel, where no candidate wins on the subset (a screening fit would only
+        // fill its row: 4.4 s a round at 1024×768)
+        if subset && cand.corrections.psf_field_variation != current.model.corrections.psf_field_variation {
+            let parameters = candidates::parameters_json(cand.name, &cand.corrections);
+            scores.push(CandidateScore { name: cand.name.to_string(), parameters, reduced_chi2: None, delta_bic: None, note: "a new kernel grid, whose blocks hold other pixels than the null refit's: not screened, for a decision on every pixel".into() });
+            near.push(cand);
+            bar.inc(1);
+            continue;
+        }
         let f = screen(cand.name, &cand.corrections, cand.init.as_ref().unwrap_or(&current.model));
         let dbic = f.bic() - null.bic();
         let gain = chi2_gain(&null, &f);
         scores.push(score(cand.name, &f, dbic, gain));
         let verdict = screened(dbic, gain, opts.min_gain, subset);
-        // a new kernel grid (`psf_field_variation`) cuts the image into other blocks, so its
-        // subset holds other pixels than the null refit's: decided on every pixel
-        if subset && cand.corrections.psf_field_variation != current.model.corrections.psf_field_variation {
-            if let Some(s) = scores.last_mut() {
-                s.note += " (other blocks than the null refit's: for a decision on every pixel)";
-            }
-            near.push((cand, dbic));
-            continue;
-        }
         if cand.deferred.is_some() {
             // decided below, against the round's best complete candidate
             let fallback = matches!(cand.deferred, Some(candidates::Deferred::GatedScale { .. })).then(|| (candidates::Candidate { deferred: None, ..cand.clone() }, f));
@@ -1088,7 +1102,7 @@ fn search_round(data: &Data, current: &Fit, analysis: &Analysis, round: Round, o
         }
         // the near misses (and a new grid) wait for a later round, where they are proposed again
         Some((winner, _, _)) => {
-            for (cand, _) in &near {
+            for cand in &near {
                 if let Some(s) = scores.iter_mut().find(|s| s.name == cand.name) {
                     s.note += &format!("; not rescored: {} won the round on the subset", winner.name);
                 }
@@ -1186,8 +1200,9 @@ fn screened(dbic: f64, gain: f64, min_gain: f64, subset: bool) -> Screened {
 /// [`adopt`] whatever its whole-pixel gain: there χ² cannot prefer the map (the kernels took it
 /// up), and the round's own rule ([`rotation_round_adopts`], after the polish and, where needed,
 /// convergence: [`needs_rotation_convergence`]) decides. Each near miss's note in `scores` gets
-/// its whole-pixel gain.
-fn rescore_near_misses(data: &Data, current: &Fit, near: Vec<(candidates::Candidate, f64)>, scores: &mut [CandidateScore], round: Round, opts: &DiagnoseOptions) -> Option<(candidates::Candidate, Fit, f64)> {
+/// its whole-pixel gain; a row without figures (a new grid, not screened) gets the whole-pixel
+/// fit's.
+fn rescore_near_misses(data: &Data, current: &Fit, near: Vec<candidates::Candidate>, scores: &mut [CandidateScore], round: Round, opts: &DiagnoseOptions) -> Option<(candidates::Candidate, Fit, f64)> {
     let whole = |corr: &model::Corrections, init: &Model| {
         let mut f = fit::fit(data, corr, init, opts.candidate_fit);
         f.inherit_dof(current);
@@ -1195,7 +1210,7 @@ fn rescore_near_misses(data: &Data, current: &Fit, near: Vec<(candidates::Candid
     };
     let null = whole(&current.model.corrections, &current.model);
     let mut best: Option<(candidates::Candidate, Fit, f64)> = None;
-    for (cand, _) in near {
+    for cand in near {
         let f = whole(&cand.corrections, cand.init.as_ref().unwrap_or(&current.model));
         let (dbic, gain) = (f.bic() - null.bic(), chi2_gain(&null, &f));
         // a rotation round's candidate is judged by its adoption rule, after its polish
@@ -1207,6 +1222,9 @@ fn rescore_near_misses(data: &Data, current: &Fit, near: Vec<(candidates::Candid
         };
         let sep = if outcome.is_empty() { "" } else { ", " };
         if let Some(s) = scores.iter_mut().find(|s| s.name == cand.name) {
+            if s.reduced_chi2.is_none() {
+                (s.reduced_chi2, s.delta_bic, s.parameters) = (Some(f.reduced_chi2()), Some(dbic), candidates::parameters_json(cand.name, &f.model.corrections));
+            }
             s.note += &format!("; on every pixel: removes {:.1}% (ΔBIC {dbic:.0}){sep}{outcome}", 100.0 * gain);
         }
         if opts.progress {

@@ -267,7 +267,8 @@ fn html(d: &Diagnosis, src: &Sources) -> String {
     for (i, r) in d.rounds.iter().enumerate() {
         let _ = write!(h, "<h3>Round {}</h3><table><tr><th>candidate</th><th>reduced χ²</th><th>ΔBIC vs null refit</th><th>note</th></tr>", i + 1);
         for c in r {
-            let _ = write!(h, "<tr><td>{}</td><td>{:.4}</td><td>{:.1}</td><td>{}</td></tr>", esc(&c.name), c.reduced_chi2, c.delta_bic, esc(&c.note));
+            let [chi2, dbic] = c.figures();
+            let _ = write!(h, "<tr><td>{}</td><td>{chi2}</td><td>{dbic}</td><td>{}</td></tr>", esc(&c.name), esc(&c.note));
         }
         h.push_str("</table>");
     }

@@ -83,35 +83,20 @@ fn centre(width: usize, height: usize) -> (f64, f64) {
     ((width as f64 - 1.0) / 2.0, (height as f64 - 1.0) / 2.0)
 }
 
-/// Solves the normal equations of a small least-squares problem `Σ w·(a·x − y)²`.
+/// Solves the normal equations of a small weighted least-squares problem `Σ w·(a·x − y)²`
+/// ([`crate::solve::dense::solve`]); `None` when they are singular.
 fn lstsq(rows: &[(Vec<f64>, f64, f64)]) -> Option<Vec<f64>> {
     let n = rows.first()?.0.len();
-    let mut m = vec![vec![0.0f64; n + 1]; n];
+    let (mut ata, mut aty) = (vec![vec![0.0f64; n]; n], vec![0.0f64; n]);
     for (a, y, w) in rows {
         for i in 0..n {
             for j in 0..n {
-                m[i][j] += w * a[i] * a[j];
+                ata[i][j] += w * a[i] * a[j];
             }
-            m[i][n] += w * a[i] * y;
+            aty[i] += w * a[i] * y;
         }
     }
-    // Gauss-Jordan with partial pivoting
-    for col in 0..n {
-        let piv = (col..n).max_by(|&a, &b| m[a][col].abs().total_cmp(&m[b][col].abs()))?;
-        if m[piv][col].abs() < 1e-18 {
-            return None;
-        }
-        m.swap(col, piv);
-        for r in 0..n {
-            if r != col {
-                let f = m[r][col] / m[col][col];
-                for c in col..=n {
-                    m[r][c] -= f * m[col][c];
-                }
-            }
-        }
-    }
-    Some((0..n).map(|i| m[i][n] / m[i][i]).collect())
+    crate::solve::dense::solve(ata, aty, 1e-18)
 }
 
 /// Fits poly3 TCA to the report's lateral colour: for each tile off axis, the radial component

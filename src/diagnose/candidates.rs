@@ -353,9 +353,10 @@ fn channel_list(data: &Data) -> String {
     data.open.channels.join(",")
 }
 
-/// The candidates for extending `current`, in catalogue order (each effect only while the
-/// current model lacks it; `psf_field_variation` first on the edge-anchored layout, then while
-/// the grid can still grow), without the
+/// The candidates for extending `current`, in catalogue order (each effect while the current
+/// model lacks it; once adopted, `pinhole_diffraction`'s radius and `veiling_glare`'s width
+/// re-searched, `psf_field_variation` first on the edge-anchored layout, then while the grid
+/// can still grow; `target_tilt` whenever its keystone shows), without the
 /// effects named in `excluded` (e.g. to show what the diagnosis says of an effect before the
 /// catalogue models it). No progress on stderr ([`propose_timed`] has the switch).
 pub fn propose(data: &Data, current: &Fit, a: &Analysis, excluded: &[String]) -> Vec<Candidate> {
@@ -489,14 +490,19 @@ fn tone_candidate(data: &Data, current: &Fit, a: &Analysis) -> Candidate {
 /// `veiling_glare` at the width [`glare_sigma`] finds.
 fn glare_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Candidate> {
     let sigma = glare_sigma(data, current)?;
-    Some(Candidate {
+    Some(glare_at(data, current, a, GlareCorrection { fraction: 0.02, sigma_px: sigma }, ""))
+}
+
+/// The `veiling_glare` candidate `g` on top of `current`, its evidence prefixed by `how`.
+fn glare_at(data: &Data, current: &Fit, a: &Analysis, g: GlareCorrection, how: &str) -> Candidate {
+    Candidate {
         name: "veiling_glare",
-        corrections: Corrections { veiling_glare: Some(GlareCorrection { fraction: 0.02, sigma_px: sigma }), ..current.model.corrections.clone() },
-        evidence: format!("residual against the large-scale brightness of the scene: {}", curve_text(a, "large_scale_brightness")),
+        corrections: Corrections { veiling_glare: Some(g), ..current.model.corrections.clone() },
+        evidence: format!("{how}residual against the large-scale brightness of the scene: {}", curve_text(a, "large_scale_brightness")),
         init: None,
         deferred: None,
         location: location(data, a, "beyond the kernel support, around bright regions"),
-    })
+    }
 }
 
 /// An adopted `veiling_glare` re-searched in a later round: its width searched again as
@@ -505,20 +511,12 @@ fn glare_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Candidate
 /// [`GLARE_MOVE`]. Why: the first search holds the base model's kernels, which took up the
 /// halo's core within their support, so it prefers a halo wider than the one rendered (seed 41
 /// at 1024×768: 195 px against 79; seed 71: 190 against 78, which left reduced χ² 1.138 and a
-/// black level to make up the difference).
+/// black level to make up the difference). Cost: the width search's fits in every later full
+/// round (4.6–5.5 s at 1024×768), whether or not it proposes.
 fn glare_refinement(data: &Data, current: &Fit, a: &Analysis, g: &GlareCorrection) -> Option<Candidate> {
     let sigma = glare_sigma(data, current)?;
-    if (sigma / g.sigma_px).ln().abs() <= GLARE_MOVE.ln() {
-        return None;
-    }
-    Some(Candidate {
-        name: "veiling_glare",
-        corrections: Corrections { veiling_glare: Some(GlareCorrection { fraction: g.fraction, sigma_px: sigma }), ..current.model.corrections.clone() },
-        evidence: format!("re-searched from the current model: the halo's width {:.1} → {sigma:.1} px; residual against the large-scale brightness of the scene: {}", g.sigma_px, curve_text(a, "large_scale_brightness")),
-        init: None,
-        deferred: None,
-        location: location(data, a, "beyond the kernel support, around bright regions"),
-    })
+    let how = format!("re-searched from the current model: the halo's width {:.1} → {sigma:.1} px; ", g.sigma_px);
+    ((sigma / g.sigma_px).ln().abs() > GLARE_MOVE.ln()).then(|| glare_at(data, current, a, GlareCorrection { fraction: g.fraction, sigma_px: sigma }, &how))
 }
 
 /// The factor by which a re-searched glare width must differ from the adopted one to be
@@ -1116,8 +1114,8 @@ mod tests {
 
     /// An adopted glare whose width is far off is re-searched from the current model: on the
     /// proof suite's glare case (256×192, seed 21), a model fitted with the halo at 3× the
-    /// rendered width gets a proposal at a width nearer the rendered one, at the adopted
-    /// fraction and with nothing else changed.
+    /// rendered width gets a proposal (through [`propose`], the other effects excluded) at a
+    /// width nearer the rendered one.
     #[test]
     fn a_wide_glare_is_re_searched_towards_the_rendered_width() {
         let (data, base) = super::super::registered::tests::small_case(Some("veiling_glare"), 21);
@@ -1127,12 +1125,14 @@ mod tests {
         let corr = Corrections { veiling_glare: Some(wide), ..base.model.corrections.clone() };
         let current = fit(&data, &corr, &base.model, FitSettings { rounds: 2, kernel_iterations: 20 });
         let adopted = current.model.corrections.veiling_glare.expect("the glare stays in the model");
-        let cand = glare_refinement(&data, &current, &super::super::analysis::analyse(&current), &adopted).expect("a width 3x too wide is re-searched");
-        let found = cand.corrections.veiling_glare.expect("a glare");
+        let others: Vec<String> = super::super::proof::CONCEALED.iter().filter(|&&n| n != "veiling_glare").map(|n| n.to_string()).collect();
+        let proposed = propose(&data, &current, &super::super::analysis::analyse(&current), &others);
+        let found = match proposed.as_slice() {
+            [c] if c.name == "veiling_glare" => c.corrections.veiling_glare.expect("a glare"),
+            _ => panic!("one glare proposal expected, got {:?}", proposed.iter().map(|c| c.name).collect::<Vec<_>>()),
+        };
         let off = |s: f64| (s / rendered).ln().abs();
         assert!(off(found.sigma_px) < off(adopted.sigma_px) - GLARE_MOVE.ln(), "re-searched {:.1} px, adopted {:.1}, rendered {rendered:.1}", found.sigma_px, adopted.sigma_px);
-        assert_eq!(found.fraction, adopted.fraction);
-        assert_eq!(Corrections { veiling_glare: None, ..cand.corrections.clone() }, Corrections { veiling_glare: None, ..current.model.corrections.clone() });
     }
 
     /// `psf_field_variation` first moves the estimate's outer centres to the frame's edges at

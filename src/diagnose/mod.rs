@@ -248,8 +248,9 @@ pub struct FoundEffect {
     pub before: Figures,
     pub after: Figures,
     /// BIC of the model with the effect minus the null refit's; for an effect found again in a
-    /// later round (`pinhole_diffraction`'s radius re-searched, `psf_field_variation` grown from
-    /// its edge-anchored layout to a finer grid), summed over its adoptions.
+    /// later round (`pinhole_diffraction`'s radius or `veiling_glare`'s width re-searched,
+    /// `psf_field_variation` grown from its edge-anchored layout to a finer grid), summed over
+    /// its adoptions.
     pub delta_bic: f64,
 }
 
@@ -684,8 +685,8 @@ fn adopt(data: &mut Data, s: &mut Search, (cand, f, dbic): (candidates::Candidat
     }
     let after = Figures::of(&current);
     let found = FoundEffect { name: cand.name.to_string(), evidence, location: cand.location, parameters, before, after, delta_bic: dbic };
-    // an effect found again (`pinhole_diffraction`'s radius re-searched, `psf_field_variation`
-    // grown to a finer grid) keeps its place, its first "before" and its evidence, which the new one
+    // an effect found again (`pinhole_diffraction`'s radius or `veiling_glare`'s width
+    // re-searched, `psf_field_variation` grown to a finer grid) keeps its place, its first "before" and its evidence, which the new one
     // extends: the order of the list is the order in which effects were first named
     s.last_found = Some(found.name.clone());
     match s.effects.iter_mut().find(|e| e.name == found.name) {
@@ -1224,6 +1225,7 @@ fn rescore_near_misses(data: &Data, current: &Fit, near: Vec<candidates::Candida
         if let Some(s) = scores.iter_mut().find(|s| s.name == cand.name) {
             if s.reduced_chi2.is_none() {
                 (s.reduced_chi2, s.delta_bic, s.parameters) = (Some(f.reduced_chi2()), Some(dbic), candidates::parameters_json(cand.name, &f.model.corrections));
+                s.note += "; its figures are on every pixel, against the null refit on every pixel";
             }
             s.note += &format!("; on every pixel: removes {:.1}% (ΔBIC {dbic:.0}){sep}{outcome}", 100.0 * gain);
         }

@@ -187,7 +187,7 @@ fn simulator_lens(strength: f64, width: usize, height: usize) -> TestLens {
     lens.pixel_pitch_um = 3.45;
     lens.glass = Some(lensrig::optics::lens::Glass { n_d: 1.5168, abbe: 64.17 / strength });
     let k = lens.suggested_kernel_size(4.0);
-    let truth = lens.psf_grid_at(4.0, PsfGrid::edge_centers(width, height, 9, 7), 9, 7, k);
+    let truth = lens.psf_grid_to_edges(4.0, 9, 7, k);
     let large = (width > 1024).then_some((width, height));
     let name = format!("simulator singlet, chromatic ×{strength}{}", large.map_or(String::new(), |(w, h)| format!(", {w}x{h}")));
     TestLens { name, short: simulator_short_name(strength, large), split: Split::Tuning, width, height, truth }

@@ -694,7 +694,7 @@ fn field_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Candidate
 /// most one tile per two kernel widths; `None` once the grid cannot grow.
 pub fn field_step(g: &crate::optics::psf_grid::PsfGrid, w: usize, h: usize, edge: bool) -> Option<(usize, usize)> {
     // the layout step, unless the edge-anchored centres are the current ones (a single tile)
-    if !edge && crate::optics::psf_grid::PsfGrid::edge_centers(w, h, g.columns, g.rows) != g.centers {
+    if !edge && !g.is_edge_anchored(w, h) {
         return Some((g.columns, g.rows));
     }
     let (cmax, rmax) = ((w / (2 * g.kernel_size)).max(1), (h / (2 * g.kernel_size)).max(1));

@@ -686,8 +686,9 @@ fn adopt(data: &mut Data, s: &mut Search, (cand, f, dbic): (candidates::Candidat
     let after = Figures::of(&current);
     let found = FoundEffect { name: cand.name.to_string(), evidence, location: cand.location, parameters, before, after, delta_bic: dbic };
     // an effect found again (`pinhole_diffraction`'s radius or `veiling_glare`'s width
-    // re-searched, `psf_field_variation` grown to a finer grid) keeps its place, its first "before" and its evidence, which the new one
-    // extends: the order of the list is the order in which effects were first named
+    // re-searched, `psf_field_variation` grown to a finer grid) keeps its place, its first
+    // "before" and its evidence, which the new one extends: the order of the list is the order
+    // in which effects were first named
     s.last_found = Some(found.name.clone());
     match s.effects.iter_mut().find(|e| e.name == found.name) {
         Some(e) => {

@@ -306,6 +306,12 @@ impl LensModel {
         self.psf_grid_at(n, centers, columns, rows, k)
     }
 
+    /// [`Self::psf_grid`] on a lattice whose outer centres lie on the frame's edges
+    /// ([`PsfGrid::edge_centers`]), so the blend follows the lens out to the corners.
+    pub fn psf_grid_to_edges(&self, n: f64, columns: usize, rows: usize, k: usize) -> PsfGrid {
+        self.psf_grid_at(n, PsfGrid::edge_centers(self.width, self.height, columns, rows), columns, rows, k)
+    }
+
     /// PSFs of every channel at given rectilinear grid centres.
     pub fn psf_grid_at(&self, n: f64, centers: Vec<[f64; 2]>, columns: usize, rows: usize, k: usize) -> PsfGrid {
         let jobs: Vec<(usize, usize)> = (0..self.bands.len()).flat_map(|b| (0..centers.len()).map(move |t| (b, t))).collect();

@@ -206,12 +206,18 @@ impl PsfGrid {
         (0..rows).flat_map(|r| (0..columns).map(move |c| [at(columns, width, c), at(rows, height, r)])).collect()
     }
 
+    /// Whether the centres are [`Self::edge_centers`] of this grid's size on a `width × height`
+    /// frame (for one tile: the frame's middle).
+    pub fn is_edge_anchored(&self, width: usize, height: usize) -> bool {
+        self.centers == Self::edge_centers(width, height, self.columns, self.rows)
+    }
+
     /// The profile's `tile_size` for this grid on a `width × height` frame
     /// (docs/profile-format.md): the centre spacing, rounded, when the outer centres lie on the
     /// frame's edges ([`Self::edge_centers`]), else the tile side `width / columns`,
     /// `height / rows` of [`Self::regular_centers`].
     pub fn tile_size(&self, width: usize, height: usize) -> [usize; 2] {
-        if self.centers == Self::edge_centers(width, height, self.columns, self.rows) {
+        if self.is_edge_anchored(width, height) {
             let spacing = |cs: &[f64], len: usize| if cs.len() > 1 { (cs[1] - cs[0]).round() as usize } else { len };
             [spacing(&self.column_xs(), width), spacing(&self.row_ys(), height)]
         } else {

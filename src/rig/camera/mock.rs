@@ -251,9 +251,7 @@ impl MockOptics {
     /// The PSF grid the camera renders with at `f_number` (the simulator's truth), its outer
     /// centres on the frame's edges (module docs).
     pub fn truth_grid(&self, f_number: f64) -> crate::optics::psf_grid::PsfGrid {
-        let (w, h) = (self.lens.width, self.lens.height);
-        let centers = crate::optics::psf_grid::PsfGrid::edge_centers(w, h, self.psf_columns, self.psf_rows);
-        self.lens.psf_grid_at(f_number, centers, self.psf_columns, self.psf_rows, self.kernel_size)
+        self.lens.psf_grid_to_edges(f_number, self.psf_columns, self.psf_rows, self.kernel_size)
     }
 
     /// Target cell coordinates `(u0, v0)` of the undistorted pixel `(0, 0)` at a stage

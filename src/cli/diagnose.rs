@@ -190,7 +190,7 @@ fn print_details(truth: &serde_json::Value, d: &Diagnosis) {
         eprintln!("{name}: {} pixels, {} parameters, {:.0} effective; χ²/N {:.3}, χ²/(N − p) {:.3}, χ²/(N − p_eff) {:.3}", f.n(), f.params, f.effective_params(), f.chi2() / f.n().max(1) as f64, f.chi2() / (f.n() as f64 - f.params as f64).max(1.0), f.reduced_chi2());
     }
     for n in &d.noise {
-        eprintln!("noise {}: a {:.3e} b {:.3e} misfit {:.3} | linear law misfit {:.3}; bins {:?}", n.channel, n.a, n.b, n.misfit, n.misfit_linear, n.curve.bins);
+        eprintln!("noise {}: a {:.3e} b {:.3e} misfit {:.3}{} | linear law misfit {:.3}; lost detail {:.3}; bins {:?}", n.channel, n.a, n.b, n.misfit, if n.law_tested { "" } else { " (not tested)" }, n.misfit_linear, n.lost_detail, n.curve.bins);
     }
     let sp = |a: &Analysis| a.spectrum.iter().map(|(f, p)| format!("{f:.2}:{p:.2}")).collect::<Vec<_>>().join(" ");
     eprintln!("residual spectrum, base:  {}", sp(&d.base_analysis));

@@ -50,6 +50,23 @@
 //! The restored reference carries more noise: the pinhole's noise reaches the prediction
 //! through `K * W` (`Ŵ = D̂/(D̂² + ε)`), whose energy [`noise_gain`] gives.
 //!
+//! # The detail the restoration gives up
+//! Where `D̂² ≲ ε` the filter gives up the target's detail rather than amplify the noise:
+//! `S̃ − S = (ŴD̂ − 1)·Ŝ + Ŵ·n̂`. No non-negative kernel brings it back, so the wide-open
+//! detail there stays in the residual of the best model. For a white target of variance
+//! `σ²_S = σ²_P/ε` (the ratio the filter assumes) its energy through the kernel is
+//!
+//! `σ²_P · mean_f |K̂|²·|1 − ŴD̂|²/ε = σ²_P · mean_f |K̂|²·ε/(D̂² + ε)²`
+//!
+//! ([`propagated_energies`]). It is not noise: it grows with the target's contrast, as the
+//! square of the level, and a noise curve measured from the residual reads it as the wide-open
+//! capture's noise departing from a Poisson–Gaussian law (red at 1024×768 RGB, seed 71: 8× the
+//! sensor's variance in the brightest bins). Where its high-pass share is above the law's bound
+//! the residual cannot test the law in that channel ([`super::fit::LOST_DETAIL_LAW_BOUND`]).
+//! The prediction's variance does not count it: with the white target's `σ²_S` it over-counts
+//! the detail a real target holds near the cut-off, and a variance that grows with the Airy
+//! radius favours too wide a radius (docs/notes/diagnosis-history.md, "Session 57").
+//!
 //! Pixels are linear values; the FFT is mirror-padded so that no circular wrap reaches the image.
 
 use crate::image::spectrum::{band_centre, radial_power_sums, Range};
@@ -224,6 +241,13 @@ pub fn highpass_power(fx: f64, fy: f64) -> f64 {
 /// high-pass `d` — the share of the residual's high-pass that is the reference's noise, which
 /// the noise measurement must not count as the wide-open capture's own.
 pub fn propagated_energy(kernel: &Plane, reference: Option<(&ReferencePsf, f64)>, highpass: bool) -> f32 {
+    propagated_energies(kernel, reference, highpass).0
+}
+
+/// [`propagated_energy`] and, under a restoration, the **lost detail**'s energy
+/// `mean_f |K̂|²·ε/(D̂² + ε)²·(|Ĥ|² if highpass)` (module docs, "The detail the restoration
+/// gives up"; 0 without a restoration), both per unit of the reference's noise variance.
+pub fn propagated_energies(kernel: &Plane, reference: Option<(&ReferencePsf, f64)>, highpass: bool) -> (f32, f32) {
     let k = kernel.width.max(kernel.height);
     let n = good_size((4 * k).max(64));
     let fft = Fft2::plan(n, n);
@@ -235,22 +259,26 @@ pub fn propagated_energy(kernel: &Plane, reference: Option<(&ReferencePsf, f64)>
     }
     let spec = fft.forward(&buf);
     // Parseval over the half spectrum: interior columns count twice
-    let mut e = 0.0f64;
+    let (mut e, mut lost) = (0.0f64, 0.0f64);
     for (i, s) in spec.iter().enumerate() {
         let (fx, fy) = fft.frequency(i);
-        let g = match reference {
+        // (|Ŵ|², ε/(D̂² + ε)²)
+        let (g2, l2) = match reference {
             Some((psf, epsilon)) => {
                 let d = psf.transfer(fx as f64, fy as f64);
-                d / (d * d + epsilon)
+                let q = d * d + epsilon;
+                (d * d / (q * q), epsilon / (q * q))
             }
-            None => 1.0,
+            None => (1.0, 0.0),
         };
-        let g = if highpass { g * highpass_power(fx as f64, fy as f64).sqrt() } else { g };
+        let hp = if highpass { highpass_power(fx as f64, fy as f64) } else { 1.0 };
         let kx = i / n;
         let mult = if kx == 0 || (n % 2 == 0 && kx == n / 2) { 1.0 } else { 2.0 };
-        e += mult * (s.norm_sqr() as f64) * g * g;
+        let p = mult * (s.norm_sqr() as f64) * hp;
+        e += p * g2;
+        lost += p * l2;
     }
-    (e / (n * n) as f64) as f32
+    ((e / (n * n) as f64) as f32, (lost / (n * n) as f64) as f32)
 }
 
 /// Radially averaged power ratio `(|Ô|² − N_O) / (s²·(|P̂|² − N_P))` in eight frequency bands
@@ -574,6 +602,54 @@ mod tests {
         }
         let want = acc / (n * n) as f64;
         assert!((small as f64 / want - 1.0).abs() < 1e-3, "{small} vs {want}");
+    }
+    /// The detail the restoration gives up (module docs): a white target of variance
+    /// `σ²_S = σ²_P/ε` blurred by `D` and restored without noise misses `σ²_P` times the lost
+    /// energy of a delta kernel ([`propagated_energies`]); restored alone, white noise of
+    /// variance `σ²_P` comes out with the noise energy.
+    #[test]
+    fn lost_detail_and_noise_energies_match_a_restored_white_target() {
+        let n = 256;
+        let psf = ReferencePsf::airy(2.5);
+        let (var_s, var_p) = (1e-2f64, 1e-4f64);
+        let eps = var_p / var_s;
+        let mut rng = crate::rng::Rng::new(5);
+        let white = |rng: &mut crate::rng::Rng, var: f64| -> Vec<f32> { (0..n * n).map(|_| (rng.normal() * var.sqrt()) as f32).collect() };
+        let target = white(&mut rng, var_s);
+        let noise = white(&mut rng, var_p);
+        let fft = Fft2::plan(n, n);
+        let mut spec = fft.forward(&target);
+        for (i, v) in spec.iter_mut().enumerate() {
+            let (fx, fy) = fft.frequency(i);
+            *v *= psf.transfer(fx as f64, fy as f64) as f32;
+        }
+        let blurred = Plane { width: n, height: n, data: fft.inverse(spec) };
+        // mean square over the interior (the mirror padding differs from the periodic blur at the edges)
+        let interior_msq = |p: &Plane, minus: Option<&[f32]>| {
+            let m = 32;
+            let (mut acc, mut count) = (0.0f64, 0usize);
+            for y in m..n - m {
+                for x in m..n - m {
+                    let d = p.get(x, y) - minus.map_or(0.0, |t| t[y * n + x]);
+                    acc += (d as f64).powi(2);
+                    count += 1;
+                }
+            }
+            acc / count as f64
+        };
+        let lost = interior_msq(&restore(&blurred, &psf, eps), Some(&target)) / var_p;
+        let amplified = interior_msq(&restore(&Plane { width: n, height: n, data: noise }, &psf, eps), None) / var_p;
+        let mut delta = Plane::new(9, 9);
+        delta.set(4, 4, 1.0);
+        let (e, l) = propagated_energies(&delta, Some((&psf, eps)), false);
+        assert!((lost / l as f64 - 1.0).abs() < 0.08, "lost detail: measured {lost:.2}, predicted {l:.2}");
+        assert!((amplified / e as f64 - 1.0).abs() < 0.08, "noise: measured {amplified:.2}, predicted {e:.2}");
+        let (plain, none_lost) = propagated_energies(&delta, None, false);
+        assert!((plain - 1.0).abs() < 1e-5 && none_lost == 0.0, "{plain} {none_lost}");
+        let (eh, lh) = propagated_energies(&delta, Some((&psf, eps)), true);
+        // the lost detail lies beyond the pass band, where the high-pass gains more than its
+        // white-noise mean of 1; the amplified noise peaks inside it
+        assert!(lh > l && eh > 0.0 && lh / l > eh / e, "noise {e} → {eh}, lost {l} → {lh}");
     }
 }
 

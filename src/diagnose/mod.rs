@@ -232,6 +232,12 @@ pub struct NoiseReport {
     /// Where the curve comes from: `"repeated frames"` (temporal variance over the averaged
     /// frames of a session) or `"residual"` (the base model's residual, one capture).
     pub source: &'static str,
+    /// The detail a restored reference gives up, as a share of the wide-open noise in the
+    /// residual's high-pass ([`fit::Fit::lost_detail`]; 0 without `pinhole_diffraction`).
+    pub lost_detail: f64,
+    /// Whether the verdict tests this channel's law: not where a curve from the residual
+    /// holds more lost detail than [`fit::LOST_DETAIL_LAW_BOUND`].
+    pub law_tested: bool,
 }
 
 /// One effect the diagnosis added.
@@ -328,7 +334,7 @@ pub fn diagnose(open: &Image, pinhole: &Image, profile: Option<&Profile>, opts: 
     stage_seconds.push(lap("effect search"));
     let (current, final_analysis, effects, rounds) = (search.current, search.analysis, search.effects, search.rounds);
     progress_residual_checks(opts, "final", &current, &final_analysis);
-    let verdict = verdict(&effects, &current, &final_analysis, opts);
+    let verdict = verdict(&effects, &current, &final_analysis, &open.channels, opts);
     let cross_validation = cross_validate(&data, &current, opts.candidate_fit, opts.screen_pixels);
     stage_seconds.push(lap("cross-validation"));
     let noise = noise_reports(&data, &current, open, repeat_noise);
@@ -381,6 +387,7 @@ fn base_model<'a>(open: &'a Image, pinhole: &'a Image, base_profile: &Profile, o
         Some(r) => r.clone(),
         None => residual_curves(open, &provisional),
     };
+    data.curves_from_frames = repeat_noise.is_some();
     let mut base = fit::fit_from(&data, &provisional.model.corrections, &provisional.model, refit, &provisional.warm);
     base.inherit_dof(&provisional);
     progress_lap(opts, lap("base refit"));
@@ -1245,8 +1252,27 @@ fn rescore_near_misses(data: &Data, current: &Fit, near: Vec<candidates::Candida
 /// part of it: on clean 1024×768 data the base model's lowest band sits above its bound (2.28×
 /// white noise against a floor of 1.70×, bound 2.01; docs/diagnosis.md), so a note there would
 /// be a false alarm on every clean pair. It is reported beside the verdict ([`band_text`]).
-fn verdict(effects: &[FoundEffect], current: &Fit, final_analysis: &Analysis, opts: &DiagnoseOptions) -> String {
-    verdict_class(effects, current, final_analysis, opts)
+fn verdict(effects: &[FoundEffect], current: &Fit, final_analysis: &Analysis, channels: &[String], opts: &DiagnoseOptions) -> String {
+    let v = verdict_class(effects, current, final_analysis, opts);
+    match untested_law_text(current, channels) {
+        Some(t) if !v.starts_with("no mismatch") => format!("{v}; {t}"),
+        _ => v,
+    }
+}
+
+/// The verdict's note on the channels whose noise law the residual cannot test
+/// ([`Fit::law_untested`]): which, and how much lost detail their residual holds.
+fn untested_law_text(current: &Fit, channels: &[String]) -> Option<String> {
+    if current.law_untested.is_empty() {
+        return None;
+    }
+    let name = |c: usize| channels.get(c).cloned().unwrap_or_else(|| c.to_string());
+    let list: Vec<String> = current.law_untested.iter().map(|&c| format!("{} ({:.2}×)", name(c), current.lost_detail.get(c).copied().unwrap_or(0.0))).collect();
+    Some(format!(
+        "the noise law is not tested in {}: there the stopped-down reference gives up detail worth that share of the wide-open noise in the residual's high-pass (bound {:.2}), which a noise curve from the residual reads as noise",
+        list.join(", "),
+        fit::LOST_DETAIL_LAW_BOUND
+    ))
 }
 
 /// The low-band test's line for the report: measured power, floor, bound, and whether it is
@@ -1349,6 +1375,8 @@ fn noise_reports(data: &Data, current: &Fit, open: &Image, repeat_noise: bool) -
                 curve: curve.clone(),
                 floor_rms: (current.var_channel[c] / current.n_channel[c].max(1) as f64).sqrt(),
                 source: if repeat_noise { "repeated frames" } else { "residual" },
+                lost_detail: current.lost_detail.get(c).copied().filter(|v| v.is_finite()).unwrap_or(0.0),
+                law_tested: !current.law_untested.contains(&c),
             }
         })
         .collect()

@@ -254,9 +254,10 @@ fn html(d: &Diagnosis, src: &Sources) -> String {
     let normal: Vec<(f64, f64)> = d.base_analysis.histogram_edges.windows(2).zip(&d.base_analysis.histogram_normal).map(|(e, &v)| (0.5 * (e[0] + e[1]), v)).collect();
     h.push_str(&svg_plot("histogram of z against the normal law", "z", "density", &[("base", "#c0392b", hist(&d.base_analysis)), ("final", "#2471a3", hist(&d.final_analysis)), ("N(0,1)", "#555", normal)]));
     h.push_str(&svg_plot("residual power spectrum (mean over frequencies = reduced χ²; 1 = white noise at the floor)", "cycles/px", "power of z", &[("base", "#c0392b", d.base_analysis.spectrum.clone()), ("final", "#2471a3", d.final_analysis.spectrum.clone()), ("floor", "#555", d.base_analysis.spectrum.iter().map(|&(f, _)| (f, 1.0)).collect())]));
-    h.push_str("</div><h2>Noise model</h2><table><tr><th>channel</th><th>a (Var = a·L + b)</th><th>b</th><th>misfit</th><th>misfit if linear</th><th>floor RMS</th><th>measured from</th></tr>");
+    h.push_str("</div><h2>Noise model</h2><table><tr><th>channel</th><th>a (Var = a·L + b)</th><th>b</th><th>misfit</th><th>misfit if linear</th><th>floor RMS</th><th>measured from</th><th>lost detail ÷ noise</th></tr>");
     for n in &d.noise {
-        let _ = write!(h, "<tr><td>{}</td><td>{:.4e}</td><td>{:.4e}</td><td>{:.1}%</td><td>{:.1}%</td><td>{:.3e}</td><td>{}</td></tr>", esc(&n.channel), n.a, n.b, 100.0 * n.misfit, 100.0 * n.misfit_linear, n.floor_rms, n.source);
+        let tested = if n.law_tested { "" } else { " (not tested)" };
+        let _ = write!(h, "<tr><td>{}</td><td>{:.4e}</td><td>{:.4e}</td><td>{:.1}%{tested}</td><td>{:.1}%</td><td>{:.3e}</td><td>{}</td><td>{:.2}</td></tr>", esc(&n.channel), n.a, n.b, 100.0 * n.misfit, 100.0 * n.misfit_linear, n.floor_rms, n.source, n.lost_detail);
     }
     h.push_str("</table><div>");
     for n in &d.noise {

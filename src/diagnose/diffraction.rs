@@ -606,7 +606,8 @@ mod tests {
     /// The detail the restoration gives up (module docs): a white target of variance
     /// `σ²_S = σ²_P/ε` blurred by `D` and restored without noise misses `σ²_P` times the lost
     /// energy of a delta kernel ([`propagated_energies`]); restored alone, white noise of
-    /// variance `σ²_P` comes out with the noise energy.
+    /// variance `σ²_P` comes out with the noise energy; both also through the noise
+    /// measurement's high-pass.
     #[test]
     fn lost_detail_and_noise_energies_match_a_restored_white_target() {
         let n = 256;
@@ -624,32 +625,37 @@ mod tests {
             *v *= psf.transfer(fx as f64, fy as f64) as f32;
         }
         let blurred = Plane { width: n, height: n, data: fft.inverse(spec) };
-        // mean square over the interior (the mirror padding differs from the periodic blur at the edges)
-        let interior_msq = |p: &Plane, minus: Option<&[f32]>| {
+        // mean squares over the interior (the mirror padding differs from the periodic blur at
+        // the edges), of the plane and of its high-pass `d` (the noise measurement's)
+        let interior_msq = |p: &Plane| {
             let m = 32;
-            let (mut acc, mut count) = (0.0f64, 0usize);
+            let (mut acc, mut acc_hp, mut count) = (0.0f64, 0.0f64, 0usize);
             for y in m..n - m {
                 for x in m..n - m {
-                    let d = p.get(x, y) - minus.map_or(0.0, |t| t[y * n + x]);
-                    acc += (d as f64).powi(2);
+                    acc += (p.get(x, y) as f64).powi(2);
+                    acc_hp += (super::super::noise::highpass(&p.data, n, y * n + x) as f64).powi(2);
                     count += 1;
                 }
             }
-            acc / count as f64
+            (acc / count as f64 / var_p, acc_hp / count as f64 / var_p)
         };
-        let lost = interior_msq(&restore(&blurred, &psf, eps), Some(&target)) / var_p;
-        let amplified = interior_msq(&restore(&Plane { width: n, height: n, data: noise }, &psf, eps), None) / var_p;
+        let restored = restore(&blurred, &psf, eps);
+        let (lost, lost_hp) = interior_msq(&Plane { width: n, height: n, data: restored.data.iter().zip(&target).map(|(r, t)| r - t).collect() });
+        let (amplified, amplified_hp) = interior_msq(&restore(&Plane { width: n, height: n, data: noise }, &psf, eps));
         let mut delta = Plane::new(9, 9);
         delta.set(4, 4, 1.0);
+        let close = |measured: f64, predicted: f32| (measured / predicted as f64 - 1.0).abs() < 0.08;
         let (e, l) = propagated_energies(&delta, Some((&psf, eps)), false);
-        assert!((lost / l as f64 - 1.0).abs() < 0.08, "lost detail: measured {lost:.2}, predicted {l:.2}");
-        assert!((amplified / e as f64 - 1.0).abs() < 0.08, "noise: measured {amplified:.2}, predicted {e:.2}");
+        assert!(close(lost, l), "lost detail: measured {lost:.2}, predicted {l:.2}");
+        assert!(close(amplified, e), "noise: measured {amplified:.2}, predicted {e:.2}");
+        let (eh, lh) = propagated_energies(&delta, Some((&psf, eps)), true);
+        assert!(close(lost_hp, lh), "lost detail's high-pass: measured {lost_hp:.2}, predicted {lh:.2}");
+        assert!(close(amplified_hp, eh), "noise's high-pass: measured {amplified_hp:.2}, predicted {eh:.2}");
         let (plain, none_lost) = propagated_energies(&delta, None, false);
         assert!((plain - 1.0).abs() < 1e-5 && none_lost == 0.0, "{plain} {none_lost}");
-        let (eh, lh) = propagated_energies(&delta, Some((&psf, eps)), true);
         // the lost detail lies beyond the pass band, where the high-pass gains more than its
         // white-noise mean of 1; the amplified noise peaks inside it
-        assert!(lh > l && eh > 0.0 && lh / l > eh / e, "noise {e} → {eh}, lost {l} → {lh}");
+        assert!(lh > l && lh / l > eh / e, "noise {e} → {eh}, lost {l} → {lh}");
     }
 }
 

@@ -53,8 +53,9 @@ pub const CLIP: f32 = 0.995;
 
 /// Largest share of the wide-open noise in the residual's high-pass that the detail a restored
 /// reference gives up ([`Fit::lost_detail`]) may hold before a noise curve measured from that
-/// residual no longer tests the channel's Poisson–Gaussian law: the verdict's law bound
-/// ([`super::DiagnoseOptions::consistent_noise`], 10 %), which that detail alone could exceed.
+/// residual no longer tests the channel's Poisson–Gaussian law: the default law bound of the
+/// verdict ([`super::DiagnoseOptions::consistent_noise`], 10 %), which that detail alone could
+/// exceed.
 pub const LOST_DETAIL_LAW_BOUND: f64 = 0.10;
 
 /// The measured pair and what is known before any model is fitted.
@@ -302,6 +303,11 @@ impl Fit {
     /// RMS of the predicted noise (stored axis): the noise floor.
     pub fn noise_rms(&self) -> f64 {
         (self.var_channel.iter().sum::<f64>() / self.n_scored().max(1) as f64).sqrt()
+    }
+    /// The law test's figure, `noise_misfit`, or `None` when the curves test no channel's law
+    /// (every channel in `law_untested`).
+    pub fn law_misfit(&self) -> Option<f64> {
+        (self.law_untested.len() < self.chi2_channel.len()).then_some(self.noise_misfit)
     }
 }
 
@@ -1394,8 +1400,8 @@ impl<'a> Setup<'a> {
             g.data[i] * (a.data[i] + glare_amp as f32 * lp) + beta as f32
         });
         // the reference noise's share of the residual's high-pass, relative to the open noise,
-        // and the mean share of the detail a restoration gives up
-        let (mut hp, lost_detail) = {
+        // and the share of the detail a restoration gives up
+        let (mut hp, mut lost) = {
             let (psf, eps) = self.diffraction.as_ref().map(|d| d.channel(c)).unzip();
             let (e, l): (Vec<f32>, Vec<f32>) = u.iter().map(|kk| super::diffraction::propagated_energies(kk, psf.as_ref().zip(eps), true)).unzip();
             let eq = self.grid0.blend_scalars_where(&e, w, h, need);
@@ -1406,14 +1412,11 @@ impl<'a> Setup<'a> {
                 g.data[i] * g.data[i] * eq.data[i] * data.pinhole_variance_scale as f32 * self.lin_var(&data.curves[c], level) / self.lin_var(&data.curves[c], mlin.data[i])
             });
             // the lost detail's share is the noise's times the tile's ratio of the two energies
-            let lost = if self.diffraction.is_some() {
+            let lost = self.diffraction.is_some().then(|| {
                 let ratio: Vec<f32> = e.iter().zip(&l).map(|(e, l)| l / e.max(1e-30)).collect();
                 let rq = self.grid0.blend_scalars_where(&ratio, w, h, need);
-                let (sum, n) = scored.iter().enumerate().filter(|(_, &k)| k).fold((0.0f64, 0usize), |(s, n), (i, _)| (s + (hp.data[i] * rq.data[i]) as f64, n + 1));
-                sum / n.max(1) as f64
-            } else {
-                0.0
-            };
+                plane_where(w, h, need, 0.0, |x, y| hp.data[y * w + x] * rq.data[y * w + x])
+            });
             (hp, lost)
         };
         // on the wide-open geometry a subset needs its scored pixels (a reference map's taps
@@ -1431,7 +1434,13 @@ impl<'a> Setup<'a> {
             mlin = super::model::resample_map_where(&mlin, &m, out_need).0;
             vl = super::model::resample_map_where(&vl, &m, out_need).0;
             hp = super::model::resample_map_where(&hp, &m, out_need).0;
+            lost = lost.map(|l| super::model::resample_map_where(&l, &m, out_need).0);
         }
+        // its mean over the scored pixels (0 where it is not finite, as the report writes it)
+        let lost_detail = lost.map_or(0.0, |l| {
+            let (sum, n) = scored.iter().zip(&l.data).filter(|(&k, _)| k).fold((0.0f64, 0usize), |(s, n), (_, &v)| (s + v as f64, n + 1));
+            Some(sum / n.max(1) as f64).filter(|v| v.is_finite()).unwrap_or(0.0)
+        });
         let m = &self.masks;
         let sat = m.saturation.then_some((&m.clipped_open[c][..], &m.pin_clipped[c][..]));
         let score = score_channel(&mlin, &vl, self.transfer, clip, scored, &data.open.planes[c], sat, out_need);

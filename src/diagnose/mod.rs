@@ -826,7 +826,7 @@ fn rescore(data: &Data, f: &Fit) -> Fit {
 /// 1024×768 data the base model's lowest band is above its statistical bound
 /// (docs/notes/diagnosis-history.md, "Screening on the subset alone, and the low-band test").
 fn consistent(f: &Fit, opts: &DiagnoseOptions) -> bool {
-    f.reduced_chi2() <= opts.consistent && f.noise_misfit <= opts.consistent_noise
+    f.reduced_chi2() <= opts.consistent && f.law_misfit().is_none_or(|m| m <= opts.consistent_noise)
 }
 
 /// How many standard errors the rotation the kernels' centroids follow
@@ -1320,7 +1320,7 @@ fn verdict_class(effects: &[FoundEffect], current: &Fit, final_analysis: &Analys
         };
         format!(
             "unexplained: {}{partial}; {}; residual depends on {}; excess kurtosis {:.2}",
-            what_remains(current.reduced_chi2(), current.noise_misfit, opts),
+            what_remains(current.reduced_chi2(), current.law_misfit(), opts),
             analysis::where_text(final_analysis),
             if curvebits.is_empty() { "no single variable".to_string() } else { curvebits.join(", ") },
             final_analysis.excess_kurtosis
@@ -1341,16 +1341,17 @@ fn rotation_text(c: &candidates::CentroidSimilarity) -> String {
 
 /// What keeps a fit from being consistent with noise ([`consistent`]): the reduced χ² above its
 /// bound, or, when χ² is within it, the noise curve's departure from a Poisson–Gaussian law
-/// (which a χ² of 0.99 alone would not explain to the reader).
-fn what_remains(reduced_chi2: f64, noise_misfit: f64, opts: &DiagnoseOptions) -> String {
-    if reduced_chi2 <= opts.consistent {
-        format!(
+/// (which a χ² of 0.99 alone would not explain to the reader). `law_misfit`: [`Fit::law_misfit`]
+/// (`None`: no channel's law tested, which the sentence says instead of a figure).
+fn what_remains(reduced_chi2: f64, law_misfit: Option<f64>, opts: &DiagnoseOptions) -> String {
+    let law = law_misfit.map_or("noise law not tested".to_string(), |m| format!("noise law misfit {:.0}%", 100.0 * m));
+    match law_misfit {
+        Some(m) if reduced_chi2 <= opts.consistent => format!(
             "the residual is at the noise floor (reduced χ² {reduced_chi2:.3}) but the measured noise curve departs from a Poisson–Gaussian law by {:.0}% (bound {:.0}%)",
-            100.0 * noise_misfit,
+            100.0 * m,
             100.0 * opts.consistent_noise
-        )
-    } else {
-        format!("reduced χ² {reduced_chi2:.3} remains (noise law misfit {:.0}%)", 100.0 * noise_misfit)
+        ),
+        _ => format!("reduced χ² {reduced_chi2:.3} remains ({law})"),
     }
 }
 
@@ -1523,10 +1524,14 @@ mod tests {
     #[test]
     fn what_remains_names_the_failed_test() {
         let o = DiagnoseOptions::default();
-        let law = what_remains(0.994, 0.18, &o);
+        let law = what_remains(0.994, Some(0.18), &o);
         assert!(law.contains("noise floor") && law.contains("18%") && !law.contains("remains"), "{law}");
-        let chi = what_remains(1.319, 0.05, &o);
-        assert!(chi.starts_with("reduced χ² 1.319 remains"), "{chi}");
+        let chi = what_remains(1.319, Some(0.05), &o);
+        assert!(chi.starts_with("reduced χ² 1.319 remains (noise law misfit 5%)"), "{chi}");
+        // no channel's law tested (a restored reference's lost detail in every channel): no
+        // figure that nothing measured
+        let untested = what_remains(1.319, None, &o);
+        assert!(untested.starts_with("reduced χ² 1.319 remains (noise law not tested)") && !untested.contains('%'), "{untested}");
     }
 
     /// The acceptance rule: the tone-curve case's second round at 1024×768 (seed 41), where

@@ -826,7 +826,7 @@ fn rescore(data: &Data, f: &Fit) -> Fit {
 /// 1024×768 data the base model's lowest band is above its statistical bound
 /// (docs/notes/diagnosis-history.md, "Screening on the subset alone, and the low-band test").
 fn consistent(f: &Fit, opts: &DiagnoseOptions) -> bool {
-    f.reduced_chi2() <= opts.consistent && f.law_misfit().is_none_or(|m| m <= opts.consistent_noise)
+    f.reduced_chi2() <= opts.consistent && f.law_misfit().map_or(true, |m| m <= opts.consistent_noise)
 }
 
 /// How many standard errors the rotation the kernels' centroids follow

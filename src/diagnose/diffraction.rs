@@ -262,21 +262,22 @@ pub fn propagated_energies(kernel: &Plane, reference: Option<(&ReferencePsf, f64
     let (mut e, mut lost) = (0.0f64, 0.0f64);
     for (i, s) in spec.iter().enumerate() {
         let (fx, fy) = fft.frequency(i);
-        // (|Ŵ|², ε/(D̂² + ε)²)
-        let (g2, l2) = match reference {
+        // |Ŵ| and ε/(D̂² + ε)², in the order of operations `propagated_energy` always had (its
+        // figures feed the search's comparisons, and their last bits with them)
+        let (g, l2) = match reference {
             Some((psf, epsilon)) => {
                 let d = psf.transfer(fx as f64, fy as f64);
                 let q = d * d + epsilon;
-                (d * d / (q * q), epsilon / (q * q))
+                (d / q, epsilon / (q * q))
             }
             None => (1.0, 0.0),
         };
         let hp = if highpass { highpass_power(fx as f64, fy as f64) } else { 1.0 };
+        let g = if highpass { g * hp.sqrt() } else { g };
         let kx = i / n;
         let mult = if kx == 0 || (n % 2 == 0 && kx == n / 2) { 1.0 } else { 2.0 };
-        let p = mult * (s.norm_sqr() as f64) * hp;
-        e += p * g2;
-        lost += p * l2;
+        e += mult * (s.norm_sqr() as f64) * g * g;
+        lost += mult * (s.norm_sqr() as f64) * hp * l2;
     }
     ((e / (n * n) as f64) as f32, (lost / (n * n) as f64) as f32)
 }

@@ -1376,7 +1376,7 @@ fn noise_reports(data: &Data, current: &Fit, open: &Image, repeat_noise: bool) -
                 curve: curve.clone(),
                 floor_rms: (current.var_channel[c] / current.n_channel[c].max(1) as f64).sqrt(),
                 source: if repeat_noise { "repeated frames" } else { "residual" },
-                lost_detail: current.lost_detail.get(c).copied().filter(|v| v.is_finite()).unwrap_or(0.0),
+                lost_detail: current.lost_detail.get(c).copied().unwrap_or(0.0),
                 law_tested: !current.law_untested.contains(&c),
             }
         })

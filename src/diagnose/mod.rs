@@ -1185,13 +1185,19 @@ pub const NEAR_MISS: f64 = 1.0 / 3.0;
 /// near miss  ⇔  ΔBIC < 0  and  g_min / 3 ≤ gain < g_min  and  the fits screened a subset
 /// ```
 ///
+/// A fit whose χ² is not a finite non-negative sum cannot remove more than all of the null
+/// refit's: a gain above 1, or a ΔBIC or gain that is not a number, is rejected whatever its
+/// ΔBIC (session 58 saw a candidate score χ² of order 10¹⁴ and a negative reduced χ² under an
+/// experimental restoration, with ΔBIC −8.9·10¹¹; docs/notes/diagnosis-history.md).
+///
 /// `g_min` is [`DiagnoseOptions::min_gain`]. `min_gain` is a fraction of the whole image's χ²;
 /// a subset estimates it with a sampling error of its own, so a near miss is decided by the
 /// same rule on every pixel ([`rescore_near_misses`]), except in a [`Round::Rotation`], where
 /// the round's adoption rule decides. Without a subset (`subset` false) the
 /// gain is the whole image's and a near miss is rejected.
 fn screened(dbic: f64, gain: f64, min_gain: f64, subset: bool) -> Screened {
-    if dbic >= 0.0 {
+    // written so that a NaN rejects
+    if !(dbic < 0.0 && gain <= 1.0) {
         Screened::Rejected
     } else if gain >= min_gain {
         Screened::Winner
@@ -1538,7 +1544,8 @@ mod tests {
     /// `black_level` removed 0.62 % of χ² on the screening subset and 1.20 % on every pixel.
     /// The old rule (`ΔBIC < 0` and gain ≥ `min_gain` on the subset alone) rejected it; the
     /// near miss is now scored on every pixel, where it wins. Below a third of `min_gain`, or
-    /// without a subset, it is rejected; a ΔBIC ≥ 0 is never accepted.
+    /// without a subset, it is rejected; a ΔBIC ≥ 0 is never accepted, nor a gain above 1 or a
+    /// figure that is not a number.
     #[test]
     fn a_near_miss_on_the_subset_is_judged_on_every_pixel() {
         let g = DiagnoseOptions::default().min_gain;
@@ -1550,6 +1557,11 @@ mod tests {
         assert_eq!(screened(-500.0, 0.3 * g, g, true), Screened::Rejected);
         assert_eq!(screened(34_493.0, 0.02, g, true), Screened::Rejected);
         assert_eq!(screened(-1.0, NEAR_MISS * g, g, true), Screened::NearMiss);
+        // a fit that removes more than all of χ² (a negative χ² sum) or scores no number
+        assert_eq!(screened(-8.9e11, 1.0 + 1e-9, g, true), Screened::Rejected);
+        assert_eq!(screened(f64::NAN, 0.5, g, false), Screened::Rejected);
+        assert_eq!(screened(-1e6, f64::NAN, g, false), Screened::Rejected);
+        assert_eq!(screened(-1e6, 1.0, g, false), Screened::Winner);
     }
 
     /// A provisional candidate's parameter search (the Airy radius's golden sections of

@@ -1181,14 +1181,15 @@ pub const NEAR_MISS: f64 = 1.0 / 3.0;
 /// the noise law's term):
 ///
 /// ```text
-/// winner     ⇔  ΔBIC < 0  and  gain ≥ g_min
+/// winner     ⇔  ΔBIC < 0  and  g_min ≤ gain ≤ 1
 /// near miss  ⇔  ΔBIC < 0  and  g_min / 3 ≤ gain < g_min  and  the fits screened a subset
 /// ```
 ///
-/// A fit whose χ² is not a finite non-negative sum cannot remove more than all of the null
-/// refit's: a gain above 1, or a ΔBIC or gain that is not a number, is rejected whatever its
-/// ΔBIC (session 58 saw a candidate score χ² of order 10¹⁴ and a negative reduced χ² under an
-/// experimental restoration, with ΔBIC −8.9·10¹¹; docs/notes/diagnosis-history.md).
+/// A fit whose χ² is a finite non-negative sum cannot remove more than all of the null refit's,
+/// so a gain above 1, or a ΔBIC or gain that is not a number, marks a broken fit and is rejected
+/// whatever its ΔBIC (session 58: a candidate with a negative χ² sum under an experimental
+/// restoration, docs/notes/diagnosis-history.md). A negative χ² that the noise law's term
+/// outweighs is not caught here.
 ///
 /// `g_min` is [`DiagnoseOptions::min_gain`]. `min_gain` is a fraction of the whole image's χ²;
 /// a subset estimates it with a sampling error of its own, so a near miss is decided by the

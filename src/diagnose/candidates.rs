@@ -729,8 +729,8 @@ pub fn parameters_json(name: &str, c: &Corrections) -> serde_json::Value {
         "saturation" => serde_json::to_value(c.saturation),
         "pinhole_diffraction" => serde_json::to_value(&c.pinhole_diffraction).map(|mut v| {
             if let Some(d) = &c.pinhole_diffraction {
-                // the f-number this radius means at 550 nm for each micrometre of pixel pitch
-                v["f_number_per_um_pitch"] = json!(d.airy_radius_px.first().map(|r| r / (1.22 * 0.55)));
+                // the f-number the radii mean for each micrometre of pixel pitch
+                v["f_number_per_um_pitch"] = json!(d.f_number_per_um_pitch());
                 // the reference's MTF50 per channel: what the data determine (the radius and
                 // σ_a trade off; [`super::diffraction::ReferencePsf::mtf50`])
                 v["mtf50_cycles_per_px"] = json!((0..d.airy_radius_px.len()).map(|c| d.channel(c).0.mtf50()).collect::<Vec<_>>());
@@ -858,7 +858,8 @@ impl<'a> DiffractionSearch<'a> {
                 super::diffraction::epsilon(p, vp, &psf)
             })
             .collect();
-        super::model::DiffractionCorrection { airy_radius_px: radii, epsilon: eps, aberration_sigma_px: sa, bandwidth }
+        let wavelength_um = (0..nch).map(|c| super::diffraction::channel_wavelength_um(self.channel_name(c))).collect();
+        super::model::DiffractionCorrection { airy_radius_px: radii, epsilon: eps, aberration_sigma_px: sa, bandwidth, wavelength_um }
     }
 
     /// The current model's corrections with the diffraction correction at `(r, σ_a)`.

@@ -106,9 +106,20 @@ pub struct DiffractionCorrection {
     /// ([`super::diffraction::channel_bandwidth`]; empty: one wavelength).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub bandwidth: Vec<f64>,
+    /// Each channel's band-centre wavelength, µm, at which `airy_radius_px` is stated
+    /// ([`super::diffraction::channel_wavelength_um`]; empty: 0.55 µm).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub wavelength_um: Vec<f64>,
 }
 
 impl DiffractionCorrection {
+    /// The f-number per micrometre of pixel pitch that the radii mean, `N / p = r / (1.22·λ)`
+    /// (one value: the channels' radii scale with their wavelengths), from the first channel at
+    /// its own wavelength.
+    pub fn f_number_per_um_pitch(&self) -> Option<f64> {
+        let r = self.airy_radius_px.first()?;
+        Some(r / (1.22 * Self::pick(&self.wavelength_um, 0, 0.55)))
+    }
     fn pick(v: &[f64], c: usize, default: f64) -> f64 {
         v.get(c).or(v.first()).copied().unwrap_or(default)
     }
@@ -415,6 +426,18 @@ pub fn apply_corrections(profile: &Profile, sharp: &Image) -> Result<Image, Corr
 
 #[cfg(test)]
 mod tests {
+    /// The f-number a fit's radii mean does not depend on which channel comes first: red's
+    /// radius at 0.61 µm and a mono channel's at 0.55 µm give the same `N / p`.
+    #[test]
+    fn f_number_per_pitch_reads_each_radius_at_its_own_wavelength() {
+        let n_per_p = 4.0;
+        let rgb = DiffractionCorrection { airy_radius_px: [0.61, 0.55, 0.465].iter().map(|l| 1.22 * l * n_per_p).collect(), epsilon: vec![1e-4; 3], aberration_sigma_px: 0.0, bandwidth: vec![], wavelength_um: vec![0.61, 0.55, 0.465] };
+        let mono = DiffractionCorrection { airy_radius_px: vec![1.22 * 0.55 * n_per_p], epsilon: vec![1e-4], aberration_sigma_px: 0.0, bandwidth: vec![], wavelength_um: vec![] };
+        for d in [rgb, mono] {
+            assert!((d.f_number_per_um_pitch().unwrap() - n_per_p).abs() < 1e-12, "{d:?}");
+        }
+    }
+
     use super::*;
 
     #[test]

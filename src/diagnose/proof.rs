@@ -369,7 +369,11 @@ fn conceal(effect: Option<&str>, rng: &mut Rng, spec: &CaseSpec, lens: &LensMode
             s.pinhole_frames = 16;
             s.pin_sensor.full_well_e *= s.pinhole_frames as f64;
             s.pin_sensor.read_noise_e *= (s.pinhole_frames as f64).sqrt();
-            json!({"f_number": n, "airy_radius_px": airy})
+            // the truth as a fit states it: the first channel's radius at its band's mean
+            // wavelength (red in an RGB case), and the f-number per µm of pitch
+            let (l0, w0) = lens.bands.first().map_or((0.0, 0.0), |b| b.wavelengths.iter().fold((0.0, 0.0), |(a, b), (l, w)| (a + l * w, b + w)));
+            let airy0 = if w0 > 0.0 { 1.22 * l0 / w0 / 1000.0 * n / lens.pixel_pitch_um } else { airy };
+            json!({"f_number": n, "airy_radius_px": airy0, "f_number_per_um_pitch": n / lens.pixel_pitch_um})
         }
         Some("psf_field_variation") => {
             s.open_shot.blur = Blur::Lens { f_number: spec.f_number, columns: 9, rows: 7, kernel_size: k };

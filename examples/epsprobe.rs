@@ -7,7 +7,7 @@
 //! noise-to-signal ratio (`diffraction::noise_to_signal`, unbounded) each gives.
 //!
 //! `cargo run --release --example epsprobe -- SEED R,G,B` (the Airy radii in px at the bands'
-//! centres, e.g. the true ones). docs/notes/diagnosis-history.md, "Session 59".
+//! centres; the model's radii, or the nominal ones). docs/notes/diagnosis-history.md, "Session 59".
 use lensrig::diagnose::diffraction::{channel_bandwidth, noise_to_signal, ReferencePsf};
 use lensrig::diagnose::noise::measure;
 use lensrig::diagnose::proof::{render_case, CaseSpec};

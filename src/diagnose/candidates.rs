@@ -848,7 +848,8 @@ impl<'a> DiffractionSearch<'a> {
         let (data, current) = (self.data, self.current);
         let nch = data.open.channel_count();
         let transfer = current.transfer;
-        let radii: Vec<f64> = (0..nch).map(|c| r * super::diffraction::channel_wavelength_um(self.channel_name(c)) / 0.55).collect();
+        let wavelength_um: Vec<f64> = (0..nch).map(|c| super::diffraction::channel_wavelength_um(self.channel_name(c))).collect();
+        let radii: Vec<f64> = wavelength_um.iter().map(|l| r * l / 0.55).collect();
         let bandwidth: Vec<f64> = (0..nch).map(|c| super::diffraction::channel_bandwidth(self.channel_name(c))).collect();
         let eps: Vec<f64> = (0..nch)
             .map(|c| {
@@ -858,7 +859,6 @@ impl<'a> DiffractionSearch<'a> {
                 super::diffraction::epsilon(p, vp, &psf)
             })
             .collect();
-        let wavelength_um = (0..nch).map(|c| super::diffraction::channel_wavelength_um(self.channel_name(c))).collect();
         super::model::DiffractionCorrection { airy_radius_px: radii, epsilon: eps, aberration_sigma_px: sa, bandwidth, wavelength_um }
     }
 

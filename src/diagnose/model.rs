@@ -426,8 +426,10 @@ pub fn apply_corrections(profile: &Profile, sharp: &Image) -> Result<Image, Corr
 
 #[cfg(test)]
 mod tests {
-    /// The f-number a fit's radii mean does not depend on which channel comes first: red's
-    /// radius at 0.61 µm and a mono channel's at 0.55 µm give the same `N / p`.
+    use super::*;
+    /// The f-number a fit's radii mean is read at the first channel's own wavelength: an RGB
+    /// fit (red first, at 0.61 µm) and a mono one (0.55 µm) of the same stop give the same
+    /// `N / p` (reading red's radius at 0.55 µm would give 11 % more).
     #[test]
     fn f_number_per_pitch_reads_each_radius_at_its_own_wavelength() {
         let n_per_p = 4.0;
@@ -437,8 +439,6 @@ mod tests {
             assert!((d.f_number_per_um_pitch().unwrap() - n_per_p).abs() < 1e-12, "{d:?}");
         }
     }
-
-    use super::*;
 
     #[test]
     fn table_round_trip_and_unknown_names() {

@@ -369,10 +369,10 @@ fn conceal(effect: Option<&str>, rng: &mut Rng, spec: &CaseSpec, lens: &LensMode
             s.pinhole_frames = 16;
             s.pin_sensor.full_well_e *= s.pinhole_frames as f64;
             s.pin_sensor.read_noise_e *= (s.pinhole_frames as f64).sqrt();
-            // the truth as a fit states it: the first channel's radius at its band's mean
-            // wavelength (red in an RGB case), and the f-number per µm of pitch
-            let (l0, w0) = lens.bands.first().map_or((0.0, 0.0), |b| b.wavelengths.iter().fold((0.0, 0.0), |(a, b), (l, w)| (a + l * w, b + w)));
-            let airy0 = if w0 > 0.0 { 1.22 * l0 / w0 / 1000.0 * n / lens.pixel_pitch_um } else { airy };
+            // the truth as a fit states it: the first channel's radius (red in an RGB case) at
+            // the wavelength the fit states it at, and the f-number per µm of pitch
+            let lam0 = lens.bands.first().map_or(0.55, |b| crate::diagnose::diffraction::channel_wavelength_um(&b.name));
+            let airy0 = 1.22 * lam0 * n / lens.pixel_pitch_um;
             json!({"f_number": n, "airy_radius_px": airy0, "f_number_per_um_pitch": n / lens.pixel_pitch_um})
         }
         Some("psf_field_variation") => {

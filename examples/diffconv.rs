@@ -23,7 +23,7 @@ fn main() {
     let a: Vec<String> = std::env::args().collect();
     let n = |i: usize| a[i].parse::<usize>().unwrap();
     let (seed, w, h, k, rounds) = (n(1) as u64, n(2), n(3), n(4), n(5));
-    let diff = DiffractionCorrection { airy_radius_px: list(&a[6]), epsilon: list(&a[7]), aberration_sigma_px: a[8].parse().unwrap(), bandwidth: ["R", "G", "B"].iter().map(|c| channel_bandwidth(c)).collect(), wavelength_um: ["R", "G", "B"].iter().map(|c| channel_wavelength_um(c)).collect() };
+    let diff = DiffractionCorrection { airy_radius_px: list(&a[6]), epsilon: list(&a[7]), aberration_sigma_px: a[8].parse().unwrap(), bandwidth: ["R", "G", "B"].iter().map(|c| channel_bandwidth(c)).collect(), wavelength_um: ["R", "G", "B"].iter().map(|c| channel_wavelength_um(c)).collect(), spectral_stop: None };
     let spec = CaseSpec { width: w, height: h, channels: 3, kernel_size: k, grid: (7, 5), ..CaseSpec::default() };
     let case = render_case(Some("pinhole_diffraction"), seed, &spec).unwrap();
     println!("seed {seed} {w}x{h} k {k}: truth {}", case.truth);

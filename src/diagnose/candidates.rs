@@ -86,16 +86,28 @@ pub fn complete(data: &Data, current: &Fit, cand: Candidate, progress: bool) -> 
         }
         Some(Deferred::Diffraction { radius_px }) => {
             let search = DiffractionSearch::new(data, current);
-            let (r, v) = search.radius(radius_px);
-            let (best_r, best_sa) = search.aberration(r, v);
-            Candidate {
-                corrections: search.corrections(best_r, best_sa),
-                init: Some(search.init(best_r, best_sa)),
-                deferred: None,
-                ..cand
-            }
+            let ((best_r, best_sa), evidence) = match search.spectral {
+                Some(stop) => {
+                    let sa = search.aberration_at(radius_px);
+                    ((radius_px, sa), format!("{}; {}", cand.evidence, stop_text(&stop, sa)))
+                }
+                None => {
+                    let (r, v) = search.radius(radius_px);
+                    (search.aberration(r, v), cand.evidence)
+                }
+            };
+            Candidate { corrections: search.corrections(best_r, best_sa), init: Some(search.init(best_r, best_sa)), deferred: None, evidence, ..cand }
         }
     }
+}
+
+/// The stop the reference's colour spectra give ([`super::diffraction::spectral_stop`]) and the
+/// fitted `σ_a`, in words.
+fn stop_text(stop: &super::diffraction::SpectralStop, sa: f64) -> String {
+    format!(
+        "the Airy radii follow the stop the reference's colour spectra give, N/p {:.2} ± {:.2} (f-number per µm of pixel pitch; the kernels cannot bias it); residual aberrations σ_a {sa:.2} px fitted",
+        stop.f_number_per_um_pitch, stop.spread
+    )
 }
 
 /// The misregistration's scale searched by [`super::registered::refine`] at the rotation `p1`
@@ -731,6 +743,9 @@ pub fn parameters_json(name: &str, c: &Corrections) -> serde_json::Value {
             if let Some(d) = &c.pinhole_diffraction {
                 // the f-number the radii mean for each micrometre of pixel pitch
                 v["f_number_per_um_pitch"] = json!(d.f_number_per_um_pitch());
+                if let Some(stop) = d.spectral_stop {
+                    v["spectral_f_number_per_um_pitch"] = json!(stop.f_number_per_um_pitch);
+                }
                 // the reference's MTF50 per channel: what the data determine (the radius and
                 // σ_a trade off; [`super::diffraction::ReferencePsf::mtf50`])
                 v["mtf50_cycles_per_px"] = json!((0..d.airy_radius_px.len()).map(|c| d.channel(c).0.mtf50()).collect::<Vec<_>>());
@@ -762,7 +777,7 @@ fn diffraction_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Can
         return None;
     }
     let search = DiffractionSearch::new(data, current);
-    let r = search.screened_radius();
+    let r = search.spectral_radius().unwrap_or_else(|| search.screened_radius());
     Some(Candidate {
         name: "pinhole_diffraction",
         corrections: search.corrections(r, 0.0),
@@ -810,6 +825,9 @@ struct DiffractionSearch<'a> {
     /// The search's lowest χ² so far and its fitted model: the start of the next search fit
     /// ([`Self::refined`]).
     best: std::cell::RefCell<Option<(f64, Model)>>,
+    /// The stop read from `unrestored`'s colour spectra ([`super::diffraction::spectral_stop`]),
+    /// stated with every correction the search makes.
+    spectral: Option<super::diffraction::SpectralStop>,
 }
 
 /// The budget of one fit of the Airy-radius and `σ_a` searches ([`DiffractionSearch::refined`]):
@@ -829,7 +847,9 @@ impl<'a> DiffractionSearch<'a> {
         } else {
             current.reference.clone()
         };
-        Self { data, current, unrestored, best: Default::default() }
+        let names: Vec<&str> = (0..data.open.channel_count()).map(|c| data.open.channels.get(c).map_or("Y", |s| s.as_str())).collect();
+        let spectral = super::diffraction::spectral_stop(&unrestored, &names);
+        Self { data, current, unrestored, best: Default::default(), spectral }
     }
 
     /// The green Airy radius of `d` (its first channel's radius scaled by wavelength, as
@@ -859,7 +879,7 @@ impl<'a> DiffractionSearch<'a> {
                 super::diffraction::epsilon(p, vp, &psf)
             })
             .collect();
-        super::model::DiffractionCorrection { airy_radius_px: radii, epsilon: eps, aberration_sigma_px: sa, bandwidth, wavelength_um }
+        super::model::DiffractionCorrection { airy_radius_px: radii, epsilon: eps, aberration_sigma_px: sa, bandwidth, wavelength_um, spectral_stop: self.spectral }
     }
 
     /// The current model's corrections with the diffraction correction at `(r, σ_a)`.
@@ -901,6 +921,25 @@ impl<'a> DiffractionSearch<'a> {
             *self.best.borrow_mut() = Some((v, f.model));
         }
         v
+    }
+
+    /// The green Airy radius `1.22·0.55 µm·N/p` of the stop the reference's colour spectra
+    /// give ([`super::diffraction::spectral_stop`]; module docs of `diffraction`): where they
+    /// give one, the radius is not searched, only `σ_a` ([`Self::aberration_at`]).
+    fn spectral_radius(&self) -> Option<f64> {
+        self.spectral.map(|s| 1.22 * 0.55 * s.f_number_per_um_pitch)
+    }
+
+    /// `σ_a` by golden section at the green radius `r` (the spectra's,
+    /// [`Self::spectral_radius`]), kept only where its fit lowers χ² below `σ_a = 0`'s.
+    fn aberration_at(&self, r: f64) -> f64 {
+        let v0 = self.refined(r, 0.0);
+        let (sa, v) = lower(golden_section(0.1, ABERRATION_MAX_PX, 2, &|sa| self.refined(r, sa)));
+        if v < v0 {
+            sa
+        } else {
+            0.0
+        }
     }
 
     /// The radius screen (with `σ_a = 0`): the best of [`AIRY_RADII`] by χ² of a short fit
@@ -999,6 +1038,10 @@ fn map_kernels(m: &mut Model, f: impl Fn(usize, &crate::image::Plane) -> crate::
 /// (docs/notes/diagnosis-history.md, "Session 50").
 fn diffraction_refinement(data: &Data, current: &Fit, a: &Analysis, d: &super::model::DiffractionCorrection) -> Option<Candidate> {
     let search = DiffractionSearch::new(data, current);
+    if search.spectral.is_some() {
+        // the radius is the spectra's stop, not a fitted value to re-search
+        return None;
+    }
     let r0 = search.green_radius(d)?;
     let (r, m) = search.neighbour(&current.model, r0, d.aberration_sigma_px);
     Some(Candidate {
@@ -1088,6 +1131,26 @@ mod tests {
     use super::*;
     use crate::image::Plane;
     use crate::optics::psf_grid::PsfGrid;
+
+    /// A diffraction correction that carries the spectra's stop states it in its parameters
+    /// (what the bench compares with the rendered stop) and keeps it through its JSON; the
+    /// evidence states the stop, its spread and the fitted `σ_a`; a correction without one (a
+    /// monochrome capture) states none.
+    #[test]
+    fn the_spectral_stop_is_stated_beside_the_fitted_one() {
+        let stop = super::super::diffraction::SpectralStop { f_number_per_um_pitch: 4.0, spread: 0.01, bands: 77 };
+        let d = super::super::model::DiffractionCorrection { airy_radius_px: vec![1.22 * 0.61 * 4.1], epsilon: vec![1e-4], aberration_sigma_px: 0.3, bandwidth: vec![], wavelength_um: vec![0.61], spectral_stop: Some(stop) };
+        let with = Corrections { pinhole_diffraction: Some(d.clone()), ..Corrections::default() };
+        let v = parameters_json("pinhole_diffraction", &with);
+        assert_eq!(v["spectral_f_number_per_um_pitch"], 4.0);
+        assert!((v["f_number_per_um_pitch"].as_f64().unwrap() - 4.1).abs() < 1e-12, "{v}");
+        let back: super::super::model::DiffractionCorrection = serde_json::from_value(serde_json::to_value(&d).unwrap()).unwrap();
+        assert_eq!(back, d, "the correction's JSON round trip keeps the stop");
+        assert_eq!(stop_text(&stop, 0.3), "the Airy radii follow the stop the reference's colour spectra give, N/p 4.00 ± 0.01 (f-number per µm of pixel pitch; the kernels cannot bias it); residual aberrations σ_a 0.30 px fitted");
+        let without = Corrections { pinhole_diffraction: Some(super::super::model::DiffractionCorrection { spectral_stop: None, ..d }), ..Corrections::default() };
+        let v = parameters_json("pinhole_diffraction", &without);
+        assert!(v.get("spectral_f_number_per_um_pitch").is_none() && v.get("spectral_stop").is_none(), "{v}");
+    }
 
     /// The registered path's bound follows the rotation: the 256×192 misregistration seed 21's
     /// base kernels (rotation −0.326° ± 0.014°, scale +0.00135, 0.91 px at the corners) get a

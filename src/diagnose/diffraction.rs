@@ -67,6 +67,29 @@
 //! the detail a real target holds near the cut-off, and a variance that grows with the Airy
 //! radius favours too wide a radius (docs/notes/diagnosis-history.md, "Session 57").
 //!
+//! # The stop from the channels' spectra
+//! The fitted radius trades off against the kernels (a wider PSF over-restores, which
+//! non-negative kernels can blur back) and against `σ_a`. A colour reference holds a check that
+//! neither can bias. The printed target is grey, so every channel sees the same target spectrum
+//! `S(f)` up to a colour scale `a_c`; the residual aberrations' Gaussian, the pixel's sinc and
+//! the print's own blur are common to all channels; only diffraction scales with wavelength.
+//! The channels' periodograms (Hann window, radial bands, noise level `σ²_c` from the corners
+//! beyond 0.6 cycles/px subtracted) therefore obey
+//!
+//! `ln[(P_c(f) − σ²_c) / (P_G(f) − σ²_G)] = ln(a_c/a_G) + ln[D̂²_c(f; N/p) / D̂²_G(f; N/p)]`,
+//!
+//! with `D̂_c` the band-averaged Airy transfer at radius `1.22·λ_c·N/p` and no other unknown.
+//! [`spectral_stop`] fits `N/p` (f-number per µm of pixel pitch) by least squares on the bands
+//! where both channels hold at least 20 standard errors of their noise, each pair's colour
+//! scale free; the four quadrants' fits give its spread. A blur that does not scale with
+//! wavelength leaves the ratio flat and gives no stop. It rests on the channels' nominal band
+//! centres ([`channel_wavelength_um`]) and on a neutral target. Where it gives a stop, the
+//! diagnosis takes the radii from it and fits only `σ_a` (`candidates::DiffractionSearch`):
+//! a χ²-searched radius drifts wide (a wider PSF over-restores, which the kernels blur back),
+//! and on the never-used seed 72 at 1024×768 RGB the searched stop was 2.6 % wide against the
+//! spectra's 0.7 % (docs/notes/diagnosis-history.md, "Session 60"). A monochrome reference
+//! keeps the search.
+//!
 //! Pixels are linear values; the FFT is mirror-padded so that no circular wrap reaches the image.
 
 use crate::image::spectrum::{band_centre, radial_power_sums, Range};
@@ -338,6 +361,128 @@ pub fn excess_detail(open: &Plane, reference: &Plane, s: f64, var_open: f64, var
             (mp > 2.0 * var_ref * w2 && sp_ > 0.0).then(|| (band_centre(b, bands, 0.5), so_.max(0.0) / (s * s * sp_)))
         })
         .collect()
+}
+
+/// The stop measured from the reference's own colour spectra, independently of the kernels
+/// (module docs, "The stop from the channels' spectra").
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SpectralStop {
+    /// `N / p`, the f-number per micrometre of pixel pitch, fitted on the whole frame.
+    pub f_number_per_um_pitch: f64,
+    /// Standard deviation of the four quadrants' own fits (the field's consistency and the
+    /// estimate's noise together).
+    pub spread: f64,
+    /// Radial bands the whole frame's fit used, over every channel pair.
+    pub bands: usize,
+}
+
+/// Radial bands of [`spectral_stop`]'s periodograms, up to the Nyquist corner [`STOP_TOP`].
+const STOP_BANDS: usize = 64;
+const STOP_TOP: f64 = std::f64::consts::FRAC_1_SQRT_2;
+/// Bands beyond this radial frequency (cycles/px; the periodogram's corners) give the noise level.
+const STOP_NOISE_FROM: f64 = 0.6;
+/// Least excess power of a band [`spectral_stop`] uses, in standard errors of the noise's band
+/// mean (`σ²/√n` for `n` bins).
+const STOP_SNR: f64 = 20.0;
+/// Least span (natural log) of the modelled channel ratio over the bands used: below it the
+/// ratio hardly depends on the stop (the cut-offs far beyond the bands the data resolve) and
+/// the stop is not determined.
+const STOP_MIN_SPAN: f64 = 0.3;
+/// Least number of bands per channel pair.
+const STOP_MIN_BANDS: usize = 6;
+
+/// `N / p` from the ratio of the channels' power spectra (module docs, "The stop from the
+/// channels' spectra"): `planes` the registered linear reference, one per channel, `names`
+/// their channel names. `None` with fewer than two channels of known, distinct wavelengths
+/// ([`channel_wavelength_um`]: `R`, `G`, `B`), or where the ratio does not determine the stop.
+pub fn spectral_stop(planes: &[Plane], names: &[&str]) -> Option<SpectralStop> {
+    let known: Vec<usize> = (0..planes.len().min(names.len())).filter(|&c| matches!(names[c], "R" | "G" | "B")).collect();
+    let reference = known.iter().copied().find(|&c| names[c] == "G").or(known.first().copied())?;
+    let others: Vec<usize> = known.iter().copied().filter(|&c| channel_wavelength_um(names[c]) != channel_wavelength_um(names[reference])).collect();
+    if others.is_empty() {
+        return None;
+    }
+    let (w, h) = (planes[reference].width, planes[reference].height);
+    let fit = |x0: usize, y0: usize, ww: usize, hh: usize| -> Option<(f64, usize)> {
+        let spectra: Vec<(Vec<f64>, f64, Vec<usize>)> = planes.iter().map(|p| windowed_radial_power(p, x0, y0, ww, hh)).collect();
+        let pairs: Vec<(usize, Vec<(f64, f64)>)> = others
+            .iter()
+            .map(|&c| {
+                let excess = |k: usize, b: usize| spectra[k].0[b] - spectra[k].1;
+                let significant = |k: usize, b: usize| excess(k, b) > STOP_SNR * spectra[k].1 / (spectra[k].2[b].max(1) as f64).sqrt();
+                let bands = (1..STOP_BANDS).filter(|&b| spectra[c].2[b] > 0 && significant(c, b) && significant(reference, b)).map(|b| (band_centre(b, STOP_BANDS, STOP_TOP), (excess(c, b) / excess(reference, b)).ln())).collect();
+                (c, bands)
+            })
+            .filter(|(_, b): &(usize, Vec<(f64, f64)>)| b.len() >= STOP_MIN_BANDS)
+            .collect();
+        if pairs.is_empty() {
+            return None;
+        }
+        let psf = |c: usize, np: f64| ReferencePsf { radius_px: 1.22 * channel_wavelength_um(names[c]) * np, aberration_px: 0.0, bandwidth: channel_bandwidth(names[c]) };
+        // each pair's modelled log ratio at its bands, and the span over those bands
+        let model = |np: f64, c: usize, bands: &[(f64, f64)]| -> Vec<f64> {
+            let (pc, pr) = (psf(c, np), psf(reference, np));
+            bands.iter().map(|&(f, _)| (pc.transfer(f, 0.0).powi(2).max(1e-9) / pr.transfer(f, 0.0).powi(2).max(1e-9)).ln()).collect()
+        };
+        // mean square of the log ratios' misfit, each pair's colour scale (its mean) removed
+        let cost = |np: f64| -> f64 {
+            let (mut sum, mut n) = (0.0, 0usize);
+            for (c, bands) in &pairs {
+                let r: Vec<f64> = model(np, *c, bands).iter().zip(bands).map(|(m, b)| b.1 - m).collect();
+                let mean = r.iter().sum::<f64>() / r.len() as f64;
+                sum += r.iter().map(|v| (v - mean).powi(2)).sum::<f64>();
+                n += r.len();
+            }
+            sum / n as f64
+        };
+        // a log grid in steps of 0.2 %, f/1 to f/30 at 1 µm
+        let (lo, hi, step) = (1.0f64.ln(), 30.0f64.ln(), 0.002);
+        let costs: Vec<f64> = (0..=((hi - lo) / step) as usize).map(|i| cost((lo + i as f64 * step).exp())).collect();
+        let i = (0..costs.len()).filter(|&i| costs[i].is_finite()).min_by(|&a, &b| costs[a].total_cmp(&costs[b]))?;
+        // the parabola through the minimum and its neighbours, within the step
+        let offset = match (i.checked_sub(1).map(|j| costs[j]), costs.get(i + 1)) {
+            (Some(a), Some(&b)) if a.is_finite() && b.is_finite() && a + b - 2.0 * costs[i] > 0.0 => (0.5 * (a - b) / (a + b - 2.0 * costs[i])).clamp(-0.5, 0.5),
+            _ => 0.0,
+        };
+        let best = ((lo + (i as f64 + offset) * step).exp(), costs[i]);
+        let span = pairs
+            .iter()
+            .map(|(c, bands)| {
+                let m = model(best.0, *c, bands);
+                m.iter().copied().fold(f64::NEG_INFINITY, f64::max) - m.iter().copied().fold(f64::INFINITY, f64::min)
+            })
+            .fold(0.0, f64::max);
+        (span >= STOP_MIN_SPAN && best.0 > lo.exp() * 1.01 && best.0 < hi.exp() / 1.01).then(|| (best.0, pairs.iter().map(|p| p.1.len()).sum()))
+    };
+    let (np, bands) = fit(0, 0, w, h)?;
+    let quadrants: Vec<f64> = [(0, 0), (w / 2, 0), (0, h / 2), (w / 2, h / 2)].iter().filter_map(|&(x, y)| fit(x, y, w / 2, h / 2)).map(|q| q.0).collect();
+    if quadrants.len() < 2 {
+        return None;
+    }
+    let mean = quadrants.iter().sum::<f64>() / quadrants.len() as f64;
+    let spread = (quadrants.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (quadrants.len() - 1) as f64).sqrt();
+    Some(SpectralStop { f_number_per_um_pitch: np, spread, bands })
+}
+
+/// The Hann-windowed periodogram of the `ww × hh` window at `(x0, y0)` of `p` (mean removed)
+/// in [`STOP_BANDS`] radial bands up to [`STOP_TOP`], normalised so that white noise of
+/// variance `σ²` gives `σ²` in every band; the noise level (the mean beyond
+/// [`STOP_NOISE_FROM`]); and each band's bin count.
+fn windowed_radial_power(p: &Plane, x0: usize, y0: usize, ww: usize, hh: usize) -> (Vec<f64>, f64, Vec<usize>) {
+    let hann = |i: usize, n: usize| 0.5 - 0.5 * (2.0 * std::f64::consts::PI * (i as f64 + 0.5) / n as f64).cos();
+    let (hx, hy): (Vec<f64>, Vec<f64>) = ((0..ww).map(|i| hann(i, ww)).collect(), (0..hh).map(|j| hann(j, hh)).collect());
+    let win = Plane::from_fn(ww, hh, |x, y| p.get(x0 + x, y0 + y));
+    let mean = win.mean();
+    let buf: Vec<f32> = (0..ww * hh).map(|i| ((win.data[i] as f64 - mean) * hx[i % ww] * hy[i / ww]) as f32).collect();
+    let w2 = hx.iter().map(|v| v * v).sum::<f64>() * hy.iter().map(|v| v * v).sum::<f64>();
+    let fft = Fft2::plan(ww, hh);
+    let spec = fft.forward(&buf);
+    let (sums, counts) = radial_power_sums(&fft, &[&spec], STOP_BANDS, STOP_TOP, Range::All);
+    let power: Vec<f64> = sums[0].iter().zip(&counts).map(|(s, &n)| s / n.max(1) as f64 / w2).collect();
+    let beyond: Vec<usize> = (0..STOP_BANDS).filter(|&b| band_centre(b, STOP_BANDS, STOP_TOP) > STOP_NOISE_FROM && counts[b] > 0).collect();
+    let noise = beyond.iter().map(|&b| power[b] * counts[b] as f64).sum::<f64>() / beyond.iter().map(|&b| counts[b]).sum::<usize>().max(1) as f64;
+    (power, noise, counts)
 }
 
 /// `K * D` cropped to the kernel's support, clamped non-negative and rescaled to `K`'s sum: the
@@ -616,6 +761,46 @@ mod tests {
         let want = acc / (n * n) as f64;
         assert!((small as f64 / want - 1.0).abs() < 1e-3, "{small} vs {want}");
     }
+    /// Three channels of one grey target, each blurred by its band's diffraction at one stop
+    /// (`N/p` 3.2), all by a common Gaussian (residual aberrations, `σ_a` 0.5 px), with
+    /// different colour scales and white noise: [`spectral_stop`] recovers the stop within 1 %,
+    /// as the common blur and the scales cancel in the channels' ratio. A blur that does not
+    /// scale with wavelength (the same Gaussian in every channel, no diffraction) is not read
+    /// as a stop, nor is a single channel.
+    #[test]
+    fn the_stop_is_read_from_the_channels_spectra() {
+        let (w, h) = (384, 256);
+        let mut rng = crate::rng::Rng::new(17);
+        let target: Vec<f32> = (0..w * h).map(|_| rng.normal() as f32 * 0.1).collect();
+        let fft = Fft2::plan(w, h);
+        let spec = fft.forward(&target);
+        let names = ["R", "G", "B"];
+        let render = |rng: &mut crate::rng::Rng, np: Option<f64>| -> Vec<Plane> {
+            (0..3)
+                .map(|c| {
+                    let psf = ReferencePsf { radius_px: 1.22 * channel_wavelength_um(names[c]) * np.unwrap_or(1.0), aberration_px: 0.5, bandwidth: channel_bandwidth(names[c]) };
+                    let mut s = spec.clone();
+                    for (i, v) in s.iter_mut().enumerate() {
+                        let (fx, fy) = fft.frequency(i);
+                        let (fx, fy) = (fx as f64, fy as f64);
+                        let d = if np.is_some() { psf.transfer(fx, fy) } else { (-2.0 * std::f64::consts::PI.powi(2) * 1.2f64.powi(2) * (fx * fx + fy * fy)).exp() };
+                        *v *= (d * [0.8, 1.0, 0.6][c]) as f32;
+                    }
+                    let mut p = Plane { width: w, height: h, data: fft.inverse(s) };
+                    p.data.iter_mut().for_each(|v| *v += 0.3 + (rng.normal() * 1e-3) as f32);
+                    p
+                })
+                .collect()
+        };
+        let planes = render(&mut rng, Some(3.2));
+        let stop = spectral_stop(&planes, &names).expect("a stop");
+        assert!((stop.f_number_per_um_pitch / 3.2 - 1.0).abs() < 0.01, "{stop:?}");
+        assert!(stop.spread < 0.05 * 3.2 && stop.bands >= 2 * STOP_MIN_BANDS, "{stop:?}");
+        assert_eq!(spectral_stop(&render(&mut rng, None), &names), None, "a grey blur is not a stop");
+        assert_eq!(spectral_stop(&planes[1..2], &["G"]), None, "one channel");
+        assert_eq!(spectral_stop(&planes, &["Y", "Y", "Y"]), None, "no known wavelengths");
+    }
+
     /// A white target of variance `σ²_S`, blurred by `D̂` with white noise `σ²_P` added: the
     /// noise-to-signal ratio recovers `σ²_P/σ²_S` from the plane, and `epsilon` bounds it below.
     #[test]

@@ -110,6 +110,12 @@ pub struct DiffractionCorrection {
     /// ([`super::diffraction::channel_wavelength_um`]; empty: 0.55 µm).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub wavelength_um: Vec<f64>,
+    /// The stop read from the reference's colour spectra alone
+    /// ([`super::diffraction::spectral_stop`]), which the kernels cannot bias: where it is
+    /// given, `airy_radius_px` follows it (only `aberration_sigma_px` is fitted). `None` where
+    /// the channels do not determine it (a monochrome reference: the radius is fitted).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub spectral_stop: Option<super::diffraction::SpectralStop>,
 }
 
 impl DiffractionCorrection {
@@ -433,8 +439,8 @@ mod tests {
     #[test]
     fn f_number_per_pitch_reads_each_radius_at_its_own_wavelength() {
         let n_per_p = 4.0;
-        let rgb = DiffractionCorrection { airy_radius_px: [0.61, 0.55, 0.465].iter().map(|l| 1.22 * l * n_per_p).collect(), epsilon: vec![1e-4; 3], aberration_sigma_px: 0.0, bandwidth: vec![], wavelength_um: vec![0.61, 0.55, 0.465] };
-        let mono = DiffractionCorrection { airy_radius_px: vec![1.22 * 0.55 * n_per_p], epsilon: vec![1e-4], aberration_sigma_px: 0.0, bandwidth: vec![], wavelength_um: vec![] };
+        let rgb = DiffractionCorrection { airy_radius_px: [0.61, 0.55, 0.465].iter().map(|l| 1.22 * l * n_per_p).collect(), epsilon: vec![1e-4; 3], aberration_sigma_px: 0.0, bandwidth: vec![], wavelength_um: vec![0.61, 0.55, 0.465], spectral_stop: None };
+        let mono = DiffractionCorrection { airy_radius_px: vec![1.22 * 0.55 * n_per_p], epsilon: vec![1e-4], aberration_sigma_px: 0.0, bandwidth: vec![], wavelength_um: vec![], spectral_stop: None };
         for d in [rgb, mono] {
             assert!((d.f_number_per_um_pitch().unwrap() - n_per_p).abs() < 1e-12, "{d:?}");
         }

@@ -370,10 +370,11 @@ fn conceal(effect: Option<&str>, rng: &mut Rng, spec: &CaseSpec, lens: &LensMode
             s.pin_sensor.full_well_e *= s.pinhole_frames as f64;
             s.pin_sensor.read_noise_e *= (s.pinhole_frames as f64).sqrt();
             // the truth as a fit states it: the first channel's radius (red in an RGB case) at
-            // the wavelength the fit states it at, and the f-number per µm of pitch
+            // the wavelength the fit states it at, and the f-number per µm of pitch (which the
+            // reference's colour spectra are read for too, `diffraction::spectral_stop`)
             let lam0 = lens.bands.first().map_or(0.55, |b| crate::diagnose::diffraction::channel_wavelength_um(&b.name));
             let airy0 = 1.22 * lam0 * n / lens.pixel_pitch_um;
-            json!({"f_number": n, "airy_radius_px": airy0, "f_number_per_um_pitch": n / lens.pixel_pitch_um})
+            json!({"f_number": n, "airy_radius_px": airy0, "f_number_per_um_pitch": n / lens.pixel_pitch_um, "spectral_f_number_per_um_pitch": n / lens.pixel_pitch_um})
         }
         Some("psf_field_variation") => {
             s.open_shot.blur = Blur::Lens { f_number: spec.f_number, columns: 9, rows: 7, kernel_size: k };

@@ -39,9 +39,11 @@ pub struct Candidate {
 /// many search fits is worth its cost only there.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Deferred {
-    /// `pinhole_diffraction` at the radius screen's best green Airy radius (px) with `σ_a = 0`;
-    /// left: the golden sections of warm-started search fits on the radius and `σ_a`
-    /// ([`DiffractionSearch::radius`], [`DiffractionSearch::aberration`]).
+    /// `pinhole_diffraction` at a green Airy radius (px) with `σ_a = 0`: the stop the
+    /// reference's colour spectra give ([`DiffractionSearch::spectral_radius`]), else the radius
+    /// screen's best; left: the golden section of warm-started search fits on `σ_a`
+    /// ([`DiffractionSearch::aberration_at`]), or without the spectra's stop those on the radius
+    /// and `σ_a` ([`DiffractionSearch::radius`], [`DiffractionSearch::aberration`]).
     Diffraction { radius_px: f64 },
     /// `misregistration` from a registered start ([`super::registered`]) at the similarity
     /// `A − I = [[p0, −p1], [p1, p0]]`, whose pre-fitted χ² is `chi2`; left: its scale `p0`,
@@ -766,10 +768,12 @@ const AIRY_RADII: [f64; 5] = [0.9, 1.3, 1.9, 2.8, 4.0];
 
 /// The `pinhole_diffraction` candidate: the evidence is the wide-open capture's power above
 /// what any non-negative kernel can pass from the reference (`|K̂| ≤ ΣK = s`), per radial
-/// frequency band, noise power subtracted; the radius is screened over [`AIRY_RADII`] with the
-/// kernels refitted briefly. The candidate is provisional ([`Deferred::Diffraction`]): the
-/// golden sections on `ln r` and `σ_a` run in [`complete`], only where the round's screening
-/// shows that the candidate could win.
+/// frequency band, noise power subtracted; the radius is the stop the reference's colour
+/// spectra give ([`DiffractionSearch::spectral_radius`]) or, without one, screened over
+/// [`AIRY_RADII`] with the kernels refitted briefly. The candidate is provisional
+/// ([`Deferred::Diffraction`]): its golden sections (`σ_a`; without the spectra's stop `ln r`
+/// and `σ_a`) run in [`complete`], only where the round's screening shows that the candidate
+/// could win.
 fn diffraction_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Candidate> {
     let worst = worst_excess_detail(data, current);
     if worst.1 <= 1.0 {
@@ -1037,11 +1041,11 @@ fn map_kernels(m: &mut Model, f: impl Fn(usize, &crate::image::Plane) -> crate::
 /// round-2 model fits of 2 × 300 reached a χ² 18 % lower at 0.7 of it
 /// (docs/notes/diagnosis-history.md, "Session 50").
 fn diffraction_refinement(data: &Data, current: &Fit, a: &Analysis, d: &super::model::DiffractionCorrection) -> Option<Candidate> {
-    let search = DiffractionSearch::new(data, current);
-    if search.spectral.is_some() {
-        // the radius is the spectra's stop, not a fitted value to re-search
+    if d.spectral_stop.is_some() {
+        // the adopted radius is the spectra's stop, not a fitted value to re-search
         return None;
     }
+    let search = DiffractionSearch::new(data, current);
     let r0 = search.green_radius(d)?;
     let (r, m) = search.neighbour(&current.model, r0, d.aberration_sigma_px);
     Some(Candidate {

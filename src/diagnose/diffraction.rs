@@ -370,8 +370,10 @@ pub fn excess_detail(open: &Plane, reference: &Plane, s: f64, var_open: f64, var
 pub struct SpectralStop {
     /// `N / p`, the f-number per micrometre of pixel pitch, fitted on the whole frame.
     pub f_number_per_um_pitch: f64,
-    /// Standard deviation of the four quadrants' own fits (the field's consistency and the
-    /// estimate's noise together).
+    /// Standard deviation of the quadrants' own fits (two to four: a quadrant whose bands do
+    /// not determine the stop is left out), the field's consistency and the estimate's noise
+    /// together; each quadrant holds a quarter of the frame, so this is about twice the whole
+    /// frame's own noise.
     pub spread: f64,
     /// Radial bands the whole frame's fit used, over every channel pair.
     pub bands: usize,
@@ -391,11 +393,26 @@ const STOP_SNR: f64 = 20.0;
 const STOP_MIN_SPAN: f64 = 0.3;
 /// Least number of bands per channel pair.
 const STOP_MIN_BANDS: usize = 6;
+/// Least side (px) of a quadrant [`spectral_stop`] fits.
+const STOP_MIN_SIDE: usize = 32;
+/// Largest spread of the quadrants' stops, relative to the whole frame's, that [`spectral_stop`]
+/// accepts: a field whose parts disagree more (a blur that is not the stop's, a target that is
+/// not neutral everywhere) gives no stop, and the radius is searched. The benchmark seeds spread
+/// by at most 3 % (seed 24, f/12).
+const STOP_MAX_SPREAD: f64 = 0.05;
 
 /// `N / p` from the ratio of the channels' power spectra (module docs, "The stop from the
 /// channels' spectra"): `planes` the registered linear reference, one per channel, `names`
 /// their channel names. `None` with fewer than two channels of known, distinct wavelengths
-/// ([`channel_wavelength_um`]: `R`, `G`, `B`), or where the ratio does not determine the stop.
+/// ([`channel_wavelength_um`]: `R`, `G`, `B`), planes under `2·`[`STOP_MIN_SIDE`] px or of
+/// unequal sizes, or where the ratio does not determine the stop: fewer than
+/// [`STOP_MIN_BANDS`] significant bands in every pair, a modelled ratio that spans less than
+/// [`STOP_MIN_SPAN`] over them, a best `N/p` at the edge of the searched range (f/1–f/30 per µm),
+/// fewer than two quadrants with a stop, or quadrants that spread by more than
+/// [`STOP_MAX_SPREAD`]. Known limits: the noise level is read beyond 0.6 cycles/px, which holds
+/// signal where a channel's cut-off lies beyond it (blue below `N/p` ≈ 3.8), and a blur that
+/// scales with wavelength without being diffraction (chromatic defocus at the stop) is read as
+/// a stop.
 pub fn spectral_stop(planes: &[Plane], names: &[&str]) -> Option<SpectralStop> {
     let known: Vec<usize> = (0..planes.len().min(names.len())).filter(|&c| matches!(names[c], "R" | "G" | "B")).collect();
     let reference = known.iter().copied().find(|&c| names[c] == "G").or(known.first().copied())?;
@@ -404,6 +421,9 @@ pub fn spectral_stop(planes: &[Plane], names: &[&str]) -> Option<SpectralStop> {
         return None;
     }
     let (w, h) = (planes[reference].width, planes[reference].height);
+    if w.min(h) < 2 * STOP_MIN_SIDE || planes.iter().any(|p| (p.width, p.height) != (w, h)) {
+        return None;
+    }
     let fit = |x0: usize, y0: usize, ww: usize, hh: usize| -> Option<(f64, usize)> {
         let spectra: Vec<(Vec<f64>, f64, Vec<usize>)> = planes.iter().map(|p| windowed_radial_power(p, x0, y0, ww, hh)).collect();
         let pairs: Vec<(usize, Vec<(f64, f64)>)> = others
@@ -462,7 +482,7 @@ pub fn spectral_stop(planes: &[Plane], names: &[&str]) -> Option<SpectralStop> {
     }
     let mean = quadrants.iter().sum::<f64>() / quadrants.len() as f64;
     let spread = (quadrants.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (quadrants.len() - 1) as f64).sqrt();
-    Some(SpectralStop { f_number_per_um_pitch: np, spread, bands })
+    (spread <= STOP_MAX_SPREAD * np).then_some(SpectralStop { f_number_per_um_pitch: np, spread, bands })
 }
 
 /// The Hann-windowed periodogram of the `ww × hh` window at `(x0, y0)` of `p` (mean removed)
@@ -799,6 +819,15 @@ mod tests {
         assert_eq!(spectral_stop(&render(&mut rng, None), &names), None, "a grey blur is not a stop");
         assert_eq!(spectral_stop(&planes[1..2], &["G"]), None, "one channel");
         assert_eq!(spectral_stop(&planes, &["Y", "Y", "Y"]), None, "no known wavelengths");
+        // any order, and two channels suffice
+        let bgr = [planes[2].clone(), planes[1].clone(), planes[0].clone()];
+        let reordered = spectral_stop(&bgr, &["B", "G", "R"]).expect("a stop in B, G, R order");
+        assert!((reordered.f_number_per_um_pitch / stop.f_number_per_um_pitch - 1.0).abs() < 1e-9, "{reordered:?}");
+        let two = spectral_stop(&planes[..2], &["R", "G"]).expect("a stop from R and G");
+        assert!((two.f_number_per_um_pitch / 3.2 - 1.0).abs() < 0.02, "{two:?}");
+        // too small to fit quadrants: no stop, no panic
+        let tiny: Vec<Plane> = planes.iter().map(|p| Plane::from_fn(40, 1, |x, _| p.get(x, 0))).collect();
+        assert_eq!(spectral_stop(&tiny, &names), None);
     }
 
     /// A white target of variance `σ²_S`, blurred by `D̂` with white noise `σ²_P` added: the

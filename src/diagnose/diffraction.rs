@@ -338,16 +338,7 @@ pub fn excess_detail(open: &Plane, reference: &Plane, s: f64, var_open: f64, var
         return Vec::new();
     }
     let (x0, y0) = ((open.width - n) / 2, (open.height - n) / 2);
-    let fft = Fft2::plan(n, n);
-    let hann: Vec<f64> = (0..n).map(|i| 0.5 - 0.5 * (2.0 * std::f64::consts::PI * (i as f64 + 0.5) / n as f64).cos()).collect();
-    let w2: f64 = hann.iter().map(|v| v * v).sum::<f64>().powi(2);
-    let spectrum = |p: &Plane| {
-        let win = Plane::from_fn(n, n, |x, y| p.get(x0 + x, y0 + y));
-        let mean = win.mean();
-        let buf: Vec<f32> = (0..n * n).map(|i| ((win.data[i] as f64 - mean) * hann[i % n] * hann[i / n]) as f32).collect();
-        fft.forward(&buf)
-    };
-    let (so, sp) = (spectrum(open), spectrum(reference));
+    let ((fft, so, w2), (_, sp, _)) = (hann_spectrum(open, x0, y0, n, n), hann_spectrum(reference, x0, y0, n, n));
     let bands = 8;
     let (sums, cnt) = radial_power_sums(&fft, &[&so, &sp], bands, 0.5, Range::ClosedOpen(0.02, 0.5));
     let (po, pp) = (&sums[0], &sums[1]);
@@ -490,19 +481,27 @@ pub fn spectral_stop(planes: &[Plane], names: &[&str]) -> Option<SpectralStop> {
 /// variance `σ²` gives `σ²` in every band; the noise level (the mean beyond
 /// [`STOP_NOISE_FROM`]); and each band's bin count.
 fn windowed_radial_power(p: &Plane, x0: usize, y0: usize, ww: usize, hh: usize) -> (Vec<f64>, f64, Vec<usize>) {
-    let hann = |i: usize, n: usize| 0.5 - 0.5 * (2.0 * std::f64::consts::PI * (i as f64 + 0.5) / n as f64).cos();
-    let (hx, hy): (Vec<f64>, Vec<f64>) = ((0..ww).map(|i| hann(i, ww)).collect(), (0..hh).map(|j| hann(j, hh)).collect());
+    let (fft, spec, w2) = hann_spectrum(p, x0, y0, ww, hh);
+    let (sums, counts) = radial_power_sums(&fft, &[&spec], STOP_BANDS, STOP_TOP, Range::All);
+    let power: Vec<f64> = sums[0].iter().zip(&counts).map(|(s, &n)| s / n.max(1) as f64 / w2).collect();
+    let beyond: Vec<usize> = (0..STOP_BANDS).filter(|&b| band_centre(b, STOP_BANDS, STOP_TOP) > STOP_NOISE_FROM && counts[b] > 0).collect();
+    let noise = beyond.iter().map(|&b| power[b] * counts[b] as f64).sum::<f64>() / beyond.iter().map(|&b| counts[b]).sum::<usize>().max(1) as f64;
+    (power, noise, counts)
+}
+
+/// The spectrum of the `ww × hh` window at `(x0, y0)` of `p`, mean removed, under a separable
+/// Hann window; with its plan and `Σ_xy w²` (white noise of variance `σ²` has the expected
+/// power `σ²·Σ_xy w²` per bin: the forward transform is unnormalised).
+fn hann_spectrum(p: &Plane, x0: usize, y0: usize, ww: usize, hh: usize) -> (std::sync::Arc<Fft2>, Vec<rustfft::num_complex::Complex32>, f64) {
+    let hann = |n: usize| -> Vec<f64> { (0..n).map(|i| 0.5 - 0.5 * (2.0 * std::f64::consts::PI * (i as f64 + 0.5) / n as f64).cos()).collect() };
+    let (hx, hy) = (hann(ww), hann(hh));
     let win = Plane::from_fn(ww, hh, |x, y| p.get(x0 + x, y0 + y));
     let mean = win.mean();
     let buf: Vec<f32> = (0..ww * hh).map(|i| ((win.data[i] as f64 - mean) * hx[i % ww] * hy[i / ww]) as f32).collect();
     let w2 = hx.iter().map(|v| v * v).sum::<f64>() * hy.iter().map(|v| v * v).sum::<f64>();
     let fft = Fft2::plan(ww, hh);
     let spec = fft.forward(&buf);
-    let (sums, counts) = radial_power_sums(&fft, &[&spec], STOP_BANDS, STOP_TOP, Range::All);
-    let power: Vec<f64> = sums[0].iter().zip(&counts).map(|(s, &n)| s / n.max(1) as f64 / w2).collect();
-    let beyond: Vec<usize> = (0..STOP_BANDS).filter(|&b| band_centre(b, STOP_BANDS, STOP_TOP) > STOP_NOISE_FROM && counts[b] > 0).collect();
-    let noise = beyond.iter().map(|&b| power[b] * counts[b] as f64).sum::<f64>() / beyond.iter().map(|&b| counts[b]).sum::<usize>().max(1) as f64;
-    (power, noise, counts)
+    (fft, spec, w2)
 }
 
 /// `K * D` cropped to the kernel's support, clamped non-negative and rescaled to `K`'s sum: the

@@ -41,8 +41,8 @@ pub struct Candidate {
 pub enum Deferred {
     /// `pinhole_diffraction` at a green Airy radius (px) with `σ_a = 0`: the stop the
     /// reference's colour spectra give ([`DiffractionSearch::spectral_radius`]), else the radius
-    /// screen's best; left: the golden section of warm-started search fits on `σ_a`
-    /// ([`DiffractionSearch::aberration_at`]), or without the spectra's stop those on the radius
+    /// screen's best; left: the golden section of warm-started search fits on `σ_a` and its
+    /// proposal raced against `σ_a = 0` ([`DiffractionSearch::aberration_at`]), or without the spectra's stop those on the radius
     /// and `σ_a` ([`DiffractionSearch::radius`], [`DiffractionSearch::aberration`]).
     Diffraction { radius_px: f64 },
     /// `misregistration` from a registered start ([`super::registered`]) at the similarity
@@ -91,6 +91,9 @@ pub fn complete(data: &Data, current: &Fit, cand: Candidate, progress: bool) -> 
             let ((best_r, best_sa), evidence) = match search.spectral {
                 Some(stop) => {
                     let (sa, decided, m) = search.aberration_at(radius_px);
+                    if progress {
+                        eprintln!("pinhole_diffraction: {}", decided.text());
+                    }
                     let evidence = format!("{}; {}; {}", cand.evidence, stop_text(&stop, sa), decided.text());
                     return Candidate { corrections: m.corrections.clone(), init: Some(m), deferred: None, evidence, ..cand };
                 }
@@ -105,7 +108,8 @@ pub fn complete(data: &Data, current: &Fit, cand: Candidate, progress: bool) -> 
 }
 
 /// The stop the reference's colour spectra give ([`super::diffraction::spectral_stop`]) and the
-/// fitted `σ_a`, in words.
+/// fitted `σ_a`, in words (the race that decided `σ_a` follows it in the evidence,
+/// [`AberrationDecision::text`]).
 fn stop_text(stop: &super::diffraction::SpectralStop, sa: f64) -> String {
     format!(
         "the Airy radii follow the stop the reference's colour spectra give, N/p {:.2} ± {:.2} (f-number per µm of pixel pitch; the kernels cannot bias it); residual aberrations σ_a {sa:.2} px fitted",

@@ -162,6 +162,9 @@ pub struct Fit {
     /// Plain squared residual and variance sums per channel (stored axis).
     pub sq_channel: Vec<f64>,
     pub var_channel: Vec<f64>,
+    /// The plain squared residual per channel over the pixels χ² scores as residuals: without
+    /// those clipped in either capture where saturation is modelled ([`score_channel`]).
+    pub sq_unclipped_channel: Vec<f64>,
     /// Nominal parameter count (kernel values, sums, corrections); BIC's penalty counts these.
     pub params: usize,
     /// Effective degrees of freedom of the kernels (Monte-Carlo divergence of the kernel fit,
@@ -627,11 +630,13 @@ struct ChannelScore {
     n: usize,
     sq: f64,
     var_sum: f64,
+    sq_unclipped: f64,
 }
 
 /// Encodes the linear prediction `mlin` (clipped at `clip`) and its variance `vl` onto the
 /// stored axis and scores it against `open` on the `interior` pixels: the normalised residual,
-/// `χ²`, the pixel count, `Σ d²` and `Σ variance`. With `saturation = (clipped_open,
+/// `χ²`, the pixel count, `Σ d²`, `Σ variance` and `Σ d²` over the pixels scored as residuals
+/// (not clipped in either capture). With `saturation = (clipped_open,
 /// pin_clipped)`, a pixel clipped in the reference counts 1, one clipped in the open capture
 /// counts only when the prediction is below the clip level.
 #[allow(clippy::too_many_arguments)]
@@ -639,7 +644,7 @@ fn score_channel(mlin: &Plane, vl: &Plane, transfer: Transfer, clip: Option<f32>
     let (w, h) = (mlin.width, mlin.height);
     let mut pred = Plane::new(w, h);
     let mut norm = Plane::new(w, h);
-    let (mut chi2, mut n, mut sq, mut vs) = (0.0f64, 0usize, 0.0f64, 0.0f64);
+    let (mut chi2, mut n, mut sq, mut vs, mut squ) = (0.0f64, 0usize, 0.0f64, 0.0f64, 0.0f64);
     for i in 0..w * h {
         if need.is_some_and(|nd| !nd[i]) {
             continue;
@@ -668,7 +673,10 @@ fn score_channel(mlin: &Plane, vl: &Plane, transfer: Transfer, clip: Option<f32>
                     ((CLIP - e) as f64).powi(2) / v as f64
                 }
             }
-            _ => (d as f64).powi(2) / v as f64,
+            _ => {
+                squ += (d as f64).powi(2);
+                (d as f64).powi(2) / v as f64
+            }
         };
         norm.data[i] = if contrib == 0.0 { 0.0 } else { (contrib.sqrt() as f32).copysign(d) };
         chi2 += contrib;
@@ -676,7 +684,7 @@ fn score_channel(mlin: &Plane, vl: &Plane, transfer: Transfer, clip: Option<f32>
         vs += v as f64;
         n += 1;
     }
-    ChannelScore { predicted: pred, normalized: norm, chi2, n, sq, var_sum: vs }
+    ChannelScore { predicted: pred, normalized: norm, chi2, n, sq, var_sum: vs, sq_unclipped: squ }
 }
 
 /// Fits `corrections` (their parameter values are starting points) to `data`, starting from
@@ -820,6 +828,7 @@ fn finish_scored(data: &Data, setup: Setup, mut corr: Corrections, mut p: Params
         n_channel: f.n_channel,
         sq_channel: f.sq_channel,
         var_channel: f.var_channel,
+        sq_unclipped_channel: f.sq_unclipped_channel,
         params,
         kernel_dof: None,
         highpass_absorbed: None,
@@ -1033,6 +1042,7 @@ struct Figures {
     n_channel: Vec<usize>,
     sq_channel: Vec<f64>,
     var_channel: Vec<f64>,
+    sq_unclipped_channel: Vec<f64>,
     reference_highpass: Vec<Plane>,
     lost_detail: Vec<f64>,
     /// The scored pixels over the evaluation set's ([`Fit::share`]).
@@ -1344,6 +1354,7 @@ impl<'a> Setup<'a> {
             f.n_channel.push(sc.n);
             f.sq_channel.push(sc.sq);
             f.var_channel.push(sc.var_sum);
+            f.sq_unclipped_channel.push(sc.sq_unclipped);
         }
         f
     }

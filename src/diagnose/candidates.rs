@@ -42,8 +42,9 @@ pub enum Deferred {
     /// `pinhole_diffraction` at a green Airy radius (px) with `σ_a = 0`: the stop the
     /// reference's colour spectra give ([`DiffractionSearch::spectral_radius`]), else the radius
     /// screen's best; left: the golden section of warm-started search fits on `σ_a` and its
-    /// proposal raced against `σ_a = 0` ([`DiffractionSearch::aberration_at`]), or without the spectra's stop those on the radius
-    /// and `σ_a` ([`DiffractionSearch::radius`], [`DiffractionSearch::aberration`]).
+    /// proposal raced against `σ_a = 0` ([`DiffractionSearch::aberration_at`]), or without the
+    /// spectra's stop those on the radius and `σ_a` ([`DiffractionSearch::radius`],
+    /// [`DiffractionSearch::aberration`]).
     Diffraction { radius_px: f64 },
     /// `misregistration` from a registered start ([`super::registered`]) at the similarity
     /// `A − I = [[p0, −p1], [p1, p0]]`, whose pre-fitted χ² is `chi2`; left: its scale `p0`,

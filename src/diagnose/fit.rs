@@ -1463,6 +1463,25 @@ impl<'a> Setup<'a> {
 pub(crate) mod tests {
     use super::*;
 
+    /// [`score_channel`]'s squared residuals: `sq` over every interior pixel, `sq_unclipped`
+    /// only over those χ² scores as residuals (none clipped in the reference, and none clipped
+    /// in the open capture); without saturation masks the two agree.
+    #[test]
+    fn the_unclipped_squared_residual_leaves_out_the_clipped_pixels() {
+        let (w, h) = (4, 1);
+        let mlin = Plane::from_fn(w, h, |x, _| [0.2, 0.4, 0.6, 0.8][x]);
+        let vl = Plane::filled(w, h, 1e-4);
+        let open = Plane::from_fn(w, h, |x, _| [0.25, 0.3, 0.7, 1.0][x]);
+        let interior = vec![true; w * h];
+        let (clipped_open, pin_clipped) = (vec![false, false, false, true], vec![false, true, false, false]);
+        let s = score_channel(&mlin, &vl, Transfer::Linear, None, &interior, &open, Some((&clipped_open, &pin_clipped)), None);
+        let d2 = |i: usize| ((open.data[i] - mlin.data[i]) as f64).powi(2);
+        assert!((s.sq - (0..4).map(d2).sum::<f64>()).abs() < 1e-9, "{}", s.sq);
+        assert!((s.sq_unclipped - (d2(0) + d2(2))).abs() < 1e-9, "{}", s.sq_unclipped);
+        let plain = score_channel(&mlin, &vl, Transfer::Linear, None, &interior, &open, None, None);
+        assert_eq!(plain.sq_unclipped.to_bits(), plain.sq.to_bits());
+    }
+
     /// The law is not tested where a residual's curve holds the reference's lost detail: the
     /// shares of the 512×384 RGB `pinhole_diffraction` case (seed 71: red 22×, green 0.81×,
     /// blue 0.02× the wide-open noise) leave blue; curves from repeated frames test every

@@ -88,7 +88,11 @@ pub fn complete(data: &Data, current: &Fit, cand: Candidate, progress: bool) -> 
             Candidate { corrections: m.corrections.clone(), init: Some(m), deferred: None, evidence: format!("{}; a start re-estimated at {how}, pre-fitted to χ² {chi2:.0} against the moved start's {moved:.0}: {scale:+.5}", cand.evidence), ..cand }
         }
         Some(Deferred::Diffraction { radius_px }) => {
-            let search = DiffractionSearch::new(data, current);
+            // the proposal read the stop from the same planes; its correction states it
+            let search = match &cand.corrections.pinhole_diffraction {
+                Some(d) => DiffractionSearch::with_stop(data, current, d.spectral_stop),
+                None => DiffractionSearch::new(data, current),
+            };
             let ((best_r, best_sa), evidence) = match search.spectral {
                 Some(stop) => {
                     let (sa, decided) = search.aberration_at(radius_px);
@@ -880,6 +884,15 @@ const SEARCH_FIT: FitSettings = FitSettings { rounds: 1, kernel_iterations: 100 
 
 impl<'a> DiffractionSearch<'a> {
     fn new(data: &'a Data<'a>, current: &'a Fit) -> Self {
+        let mut search = Self::with_stop(data, current, None);
+        let names: Vec<&str> = (0..data.open.channel_count()).map(|c| search.channel_name(c)).collect();
+        search.spectral = super::diffraction::spectral_stop(&search.unrestored, &names);
+        search
+    }
+
+    /// The search with the stop `spectral` already read ([`Self::new`] reads it from the
+    /// unrestored planes): the deferred search of a candidate whose correction states it.
+    fn with_stop(data: &'a Data<'a>, current: &'a Fit, spectral: Option<super::diffraction::SpectralStop>) -> Self {
         let c = &current.model.corrections;
         let unrestored = if c.pinhole_diffraction.is_some() {
             let registration = c.misregistration.clone().unwrap_or_else(|| data.base_registration.clone());
@@ -887,8 +900,6 @@ impl<'a> DiffractionSearch<'a> {
         } else {
             current.reference.clone()
         };
-        let names: Vec<&str> = (0..data.open.channel_count()).map(|c| data.open.channels.get(c).map_or("Y", |s| s.as_str())).collect();
-        let spectral = super::diffraction::spectral_stop(&unrestored, &names);
         Self { data, current, unrestored, best: Default::default(), spectral }
     }
 
@@ -898,7 +909,7 @@ impl<'a> DiffractionSearch<'a> {
         Some(d.airy_radius_px.first().copied()? * 0.55 / super::diffraction::channel_wavelength_um(self.channel_name(0)))
     }
 
-    fn channel_name(&self, c: usize) -> &str {
+    fn channel_name(&self, c: usize) -> &'a str {
         self.data.open.channels.get(c).map_or("Y", |s| s.as_str())
     }
 

@@ -674,8 +674,9 @@ fn score_channel(mlin: &Plane, vl: &Plane, transfer: Transfer, clip: Option<f32>
                 }
             }
             _ => {
-                squ += (d as f64).powi(2);
-                (d as f64).powi(2) / v as f64
+                let d2 = (d as f64).powi(2);
+                squ += d2;
+                d2 / v as f64
             }
         };
         norm.data[i] = if contrib == 0.0 { 0.0 } else { (contrib.sqrt() as f32).copysign(d) };

@@ -46,7 +46,9 @@
 //!
 //! (`σ²_P` the reference's noise variance, `σ²_S` the target's variance, both measured: the
 //! noise-to-signal ratio of a white target). Parameters: `airy_radius_px` per channel (one
-//! fitted scale; channels follow their nominal wavelengths), and `epsilon` (derived, not fitted).
+//! fitted scale; channels follow their nominal wavelengths), and `epsilon`: the flat ratio
+//! ([`epsilon`]) times a factor `9^k` per channel, chosen by the held-out squared residual of short fits
+//! (`candidates::DiffractionSearch::decide_epsilon`; the printed target's spectrum is not white).
 //! The restored reference carries more noise: the pinhole's noise reaches the prediction
 //! through `K * W` (`Ŵ = D̂/(D̂² + ε)`), whose energy [`noise_gain`] gives.
 //!

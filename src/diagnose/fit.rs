@@ -734,6 +734,28 @@ pub fn screen(data: &Data, corrections: &Corrections, init: &Model, settings: Fi
     fit_on(data, corrections, init, settings, &|_, _| true, data.screen_pixels, true, None)
 }
 
+/// The colour (0 or 1) of pixel `(x, y)` on the 16-px checkerboard that splits fitted from
+/// held-out pixels ([`held_out_sq`], the diagnosis's cross-validation).
+pub fn checker(x: usize, y: usize) -> usize {
+    ((x / 16) + (y / 16)) % 2
+}
+
+/// The prediction's held-out error: `corrections` fitted from `init` with budget `settings` on
+/// [`screen`]'s subset, its data term on the checkerboard's colour 0 ([`checker`]), and per
+/// channel `Σ (stored − predicted)²` over the subset's scored pixels of colour 1 that are not
+/// clipped in the wide-open capture. Unlike the fitted pixels' squared residual, it does not
+/// reward a more flexible model for fitting the wide-open capture's noise.
+pub fn held_out_sq(data: &Data, corrections: &Corrections, init: &Model, settings: FitSettings) -> Vec<f64> {
+    let f = fit_on(data, corrections, init, settings, &|x, y| checker(x, y) == 0, data.screen_pixels, true, None);
+    (0..f.predicted.len())
+        .map(|c| {
+            let (pred, open, eval) = (&f.predicted[c], &data.open.planes[c], &f.eval[c]);
+            let w = pred.width;
+            (0..pred.data.len()).filter(|&i| eval[i] && checker(i % w, i / w) == 1 && open.data[i] < CLIP).map(|i| ((open.data[i] - pred.data[i]) as f64).powi(2)).sum()
+        })
+        .collect()
+}
+
 /// A whole-pixel fit whose round count is set by a convergence rule instead of a count
 /// ([`fit_converging`]): at most `max_rounds` rounds of `kernel_iterations` each (the
 /// momentum carried between them), stopped after the first round that lowers χ² by no more
@@ -1463,6 +1485,41 @@ impl<'a> Setup<'a> {
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
+
+    /// [`held_out_sq`] scores only pixels its fit did not see: moving the wide-open capture's
+    /// checkerboard colour 1 by ±δ (the noise curves and registration held) leaves the fit as
+    /// it is, so the mean of the two held-out sums exceeds the unmoved one by exactly δ² per
+    /// scored pixel of colour 1 (a fit that saw them would follow part of the move, and fall
+    /// short of it).
+    #[test]
+    fn the_held_out_error_scores_only_pixels_the_fit_did_not_see() {
+        let spec = super::super::proof::CaseSpec::default();
+        let case = super::super::proof::render_case(None, 21, &spec).expect("renders");
+        let eo = crate::estimate::EstimateOptions { saturation: f32::INFINITY, ..super::super::bench::proof_options(&spec).estimate };
+        let est = crate::estimate::estimate(&case.open.image, &case.pinhole.image, &eo).expect("estimates");
+        let init = Model { corrections: Corrections::default(), grid: est.profile.grid, exposure: est.profile.meta.exposure_ratio };
+        let base = Data::new(&case.open.image, &case.pinhole.image, 1.0 / case.pinhole_frames as f64);
+        let settings = FitSettings { rounds: 2, kernel_iterations: 30 };
+        let held = |delta: f32| {
+            let mut open = case.open.image.clone();
+            for p in open.planes.iter_mut() {
+                let w = p.width;
+                p.data.iter_mut().enumerate().filter(|(i, _)| checker(i % w, i / w) == 1).for_each(|(_, v)| *v += delta);
+            }
+            let mut data = Data::new(&open, &case.pinhole.image, base.pinhole_variance_scale);
+            (data.curves, data.base_registration) = (base.curves.clone(), base.base_registration.clone());
+            held_out_sq(&data, &init.corrections, &init, settings)[0]
+        };
+        let (w, h, r) = (spec.width, spec.height, init.grid.kernel_size / 2);
+        let open = &case.open.image.planes[0];
+        let n1 = (r..h - r).flat_map(|y| (r..w - r).map(move |x| (x, y))).filter(|&(x, y)| checker(x, y) == 1 && open.get(x, y) + 0.01 < CLIP).count();
+        let delta = 0.01f32;
+        let (s0, up, down) = (held(0.0), held(delta), held(-delta));
+        let excess = 0.5 * (up + down) - s0;
+        let expected = n1 as f64 * (delta as f64).powi(2);
+        assert!((excess / expected - 1.0).abs() < 1e-3, "excess {excess} against n₁δ² {expected} (n₁ {n1})");
+        assert!(s0 > 0.0 && up != down);
+    }
 
     /// [`score_channel`]'s squared residuals: `sq` over every interior pixel, `sq_unclipped`
     /// only over those χ² scores as residuals (none clipped in the reference, and none clipped

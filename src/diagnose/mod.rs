@@ -1414,11 +1414,11 @@ fn corrected_profile(base_profile: &Profile, current: &Fit, open: &Image, verdic
 fn cross_validate(data: &Data, current: &Fit, settings: FitSettings, data_pixels: usize) -> [f64; 2] {
     let mut held = (0.0f64, 0usize);
     for parity in 0..2 {
-        let f = fit::fit_masked(data, &current.model.corrections, &current.model, settings, &|x, y| ((x / 16) + (y / 16)) % 2 == parity, data_pixels);
+        let f = fit::fit_masked(data, &current.model.corrections, &current.model, settings, &|x, y| fit::checker(x, y) == parity, data_pixels);
         for c in 0..f.normalized.len() {
             for (i, z) in f.normalized[c].data.iter().enumerate() {
                 let (x, y) = (i % f.normalized[c].width, i / f.normalized[c].width);
-                if f.eval[c][i] && ((x / 16) + (y / 16)) % 2 != parity {
+                if f.eval[c][i] && fit::checker(x, y) != parity {
                     held.0 += (*z as f64).powi(2);
                     held.1 += 1;
                 }

@@ -918,7 +918,8 @@ impl EpsilonDecision {
 /// `score(k)` a cost per channel: `k` = 0, then −1, −2, … while some channel's lowest cost is
 /// at the lowest `k` tried, then 1, 2, … while some channel's is at the highest (1 only if
 /// some channel's is at 0), within ±[`EPSILON_STEPS`]. Returns each channel's `k` of lowest
-/// cost (the nearer to 0 on a tie) and every `k` tried, ascending, with its costs.
+/// cost (on a tie the one tried first: 0, −1, −2, …, 1, 2, …) and every `k` tried, ascending,
+/// with its costs.
 fn ladder(mut score: impl FnMut(i32) -> Vec<f64>) -> (Vec<i32>, Vec<(i32, Vec<f64>)>) {
     let mut tried: Vec<(i32, Vec<f64>)> = vec![(0, score(0))];
     let nch = tried[0].1.len();
@@ -1099,7 +1100,9 @@ impl<'a> DiffractionSearch<'a> {
     /// each factor fitted with the race's budget ([`ABERRATION_DECISION_FIT`]) from its own warm
     /// start on one colour of a checkerboard and scored on the other
     /// ([`super::fit::held_out_sq`]); each channel takes the factor of its lowest held-out
-    /// squared residual (the channels' kernels are fitted independently). Held out, because a
+    /// squared residual (the channels' kernels are fitted independently; only a shared
+    /// vignetting or gradient couples them, and then the mixed choice is not itself fitted
+    /// before the round's screening). Held out, because a
     /// smaller ε makes the model more flexible: the restored reference's amplified noise gives
     /// the kernels more to fit the wide-open noise with, so the fitted pixels' residual falls
     /// further than the prediction's error (through the sf11 design, seed 73, every channel went
@@ -1108,7 +1111,8 @@ impl<'a> DiffractionSearch<'a> {
     /// the printed noise target's falls with frequency, so the ε that predicts best is not the
     /// flat one: on seed 72 of the 1024×768 RGB bench, kernels converged on every pixel under a
     /// fifth of it predict at 1.085× the floor against 1.120× (docs/notes/diagnosis-history.md,
-    /// "Session 62"). Returns the correction and the decision's figures.
+    /// "Session 61"), and the ladder took the case from 1.119× to 1.091× ("Session 62").
+    /// Returns the correction and the decision's figures.
     fn decide_epsilon(&self, r: f64, sa: f64) -> (super::model::DiffractionCorrection, EpsilonDecision) {
         let base = self.correction(r, sa);
         let scaled = |k: i32| {
@@ -1175,11 +1179,17 @@ impl<'a> DiffractionSearch<'a> {
 const REFINE_STEP: f64 = 0.85;
 
 impl DiffractionSearch<'_> {
-    /// A fit at `(r, σ_a)` continued from `m`'s kernels ([`SEARCH_FIT`]), each kernel first
-    /// carried from `m`'s restoration to the new one so that the prediction starts where `m`'s
-    /// was ([`super::diffraction::rerestored_kernel`]): its χ² and model.
+    /// A fit at `(r, σ_a)` under `m`'s restoration's ε, continued from `m`'s kernels
+    /// ([`SEARCH_FIT`]), each kernel first carried from `m`'s restoration to the new one so that
+    /// the prediction starts where `m`'s was ([`super::diffraction::rerestored_kernel`]): its χ²
+    /// and model.
     fn continued(&self, m: &Model, r: f64, sa: f64) -> (f64, Model) {
-        let corr = self.corrections(r, sa);
+        let mut d = self.correction(r, sa);
+        if let Some(from) = &m.corrections.pinhole_diffraction {
+            // the ε the ladder chose for the adopted restoration ([`Self::decide_epsilon`]) stays
+            d.epsilon.clone_from(&from.epsilon);
+        }
+        let corr = self.with_correction(d);
         let mut start = Model { corrections: corr.clone(), ..m.clone() };
         if let (Some(from), Some(to)) = (&m.corrections.pinhole_diffraction, &corr.pinhole_diffraction) {
             // at the same PSF the carry would only filter the kernels (`D̂²/(D̂² + ε)`)

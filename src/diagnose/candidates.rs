@@ -110,7 +110,8 @@ pub fn complete(data: &Data, current: &Fit, cand: Candidate, progress: bool) -> 
             if progress {
                 eprintln!("pinhole_diffraction: {}", eps.text());
             }
-            Candidate { corrections: search.with_correction(d.clone()), init: Some(search.init_with(d)), deferred: None, evidence: format!("{evidence}; {}", eps.text()), ..cand }
+            let init = search.init_with(d);
+            Candidate { corrections: init.corrections.clone(), init: Some(init), deferred: None, evidence: format!("{evidence}; {}", eps.text()), ..cand }
         }
     }
 }
@@ -1124,10 +1125,7 @@ impl<'a> DiffractionSearch<'a> {
             super::fit::held_out_sq(self.data, &start.corrections, &start, ABERRATION_DECISION_FIT)
         };
         let (chosen, tried) = ladder(sq);
-        let mut d = base.clone();
-        for (c, e) in d.epsilon.iter_mut().enumerate() {
-            *e *= EPSILON_STEP.powi(chosen[c]);
-        }
+        let d = super::model::DiffractionCorrection { epsilon: base.epsilon.iter().zip(&chosen).map(|(e, &k)| e * EPSILON_STEP.powi(k)).collect(), ..base.clone() };
         let names = (0..chosen.len()).map(|c| self.channel_name(c).to_string()).collect();
         (d, EpsilonDecision { flat: base.epsilon, chosen, tried, names })
     }

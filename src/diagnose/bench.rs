@@ -76,7 +76,10 @@ pub fn bench_case(effect: Option<&str>, seed: u64, spec: &CaseSpec, opts: &Diagn
     }
     let render_seconds = t.elapsed().as_secs_f64();
     let t = std::time::Instant::now();
-    let opts = DiagnoseOptions { pinhole_variance_scale: 1.0 / case.pinhole_frames as f64, ..opts.clone() };
+    let mut opts = DiagnoseOptions { pinhole_variance_scale: 1.0 / case.pinhole_frames as f64, ..opts.clone() };
+    if let Some(tile) = field_case_tile(effect, spec, &opts) {
+        opts.estimate.tile = Some(tile);
+    }
     let d = diagnose(&case.open.image, &case.pinhole.image, None, &opts)?;
     let set = effect.map(super::proof::effect_set).transpose()?.unwrap_or_default();
     let names: Vec<&str> = d.effects.iter().map(|e| e.name.as_str()).collect();
@@ -100,6 +103,26 @@ pub fn bench_case(effect: Option<&str>, seed: u64, spec: &CaseSpec, opts: &Diagn
     };
     Ok((row, d, case))
 }
+
+/// The grid the base profile of a case concealing `psf_field_variation` (alone or in a pair) is
+/// estimated on ([`FIELD_CASE_GRID`]) where the estimator would choose its own tiling
+/// (`opts.estimate.tile` unset, as at every size but the proof suite's). The estimator's grid
+/// follows the field it probes (`estimate::lens_tile`: 13 × 9 tiles on the simulator's lens at
+/// 1024 × 768 with 45-px kernels), finer than the case's 9 × 7 lens or a real design's 7 × 5
+/// grid, so the case would conceal nothing. A profile on a coarser grid than the lens varies on
+/// (one estimated at another size, or with `--tile`) is the mismatch the effect names. `None`
+/// for every other case, and where the proof suite's tile is given (96 px on 256 × 192: the
+/// same 3 × 2 grid).
+fn field_case_tile(effect: Option<&str>, spec: &CaseSpec, opts: &DiagnoseOptions) -> Option<usize> {
+    let field = effect.and_then(|e| super::proof::effect_set(e).ok()).is_some_and(|set| set.contains(&"psf_field_variation"));
+    if !field || opts.estimate.tile.is_some() {
+        return None;
+    }
+    crate::estimate::tile_for_grid(spec.width, spec.height, FIELD_CASE_GRID.0, FIELD_CASE_GRID.1)
+}
+
+/// The profile's grid in the `psf_field_variation` case (columns, rows): the proof suite's 3 × 2.
+pub const FIELD_CASE_GRID: (usize, usize) = (3, 2);
 
 /// The "named" column and whether it is correct: one concealed effect must be named first; a
 /// set of `n` must be the first `n` effects named, in any order (the column shows every name,
@@ -128,7 +151,7 @@ pub fn proof_options(spec: &CaseSpec) -> DiagnoseOptions {
 
 #[cfg(test)]
 mod tests {
-    use super::{recovered_text, score_names};
+    use super::{field_case_tile, proof_options, recovered_text, score_names, CaseSpec, DiagnoseOptions, FIELD_CASE_GRID};
     use serde_json::json;
 
     /// The "named" column ([`score_names`]): where nothing is named it shows the verdict's
@@ -144,6 +167,23 @@ mod tests {
         assert_eq!(score_names(&["vignetting"], &["vignetting", "black_level"], "explained: …"), ("vignetting".to_string(), true));
         assert_eq!(score_names(&["vignetting", "black_level"], &["black_level", "vignetting"], "explained: …"), ("black_level+vignetting".to_string(), true));
         assert_eq!(score_names(&["vignetting", "black_level"], &[], unexplained), ("unexplained".to_string(), false));
+    }
+
+    /// The field case's base profile is on a 3 × 2 grid wherever the estimator would tile by
+    /// itself; the proof suite's given tile and every other effect are left alone.
+    #[test]
+    fn the_field_case_estimates_its_profile_on_a_coarse_grid() {
+        let spec = CaseSpec { width: 1024, height: 768, ..CaseSpec::default() };
+        let mut opts = DiagnoseOptions::default();
+        opts.estimate.tile = None;
+        let tile = field_case_tile(Some("psf_field_variation"), &spec, &opts).expect("a tile");
+        assert_eq!(crate::estimate::tile_grid(1024, 768, tile), FIELD_CASE_GRID);
+        assert_eq!(field_case_tile(Some("vignetting"), &spec, &opts), None);
+        assert_eq!(field_case_tile(None, &spec, &opts), None);
+        assert_eq!(field_case_tile(Some("vignetting+psf_field_variation"), &spec, &opts), Some(tile));
+        let proof = proof_options(&CaseSpec::default());
+        assert_eq!(field_case_tile(Some("psf_field_variation"), &CaseSpec::default(), &proof), None);
+        assert_eq!(crate::estimate::tile_grid(256, 192, proof.estimate.tile.expect("the proof tile")), FIELD_CASE_GRID);
     }
 
     #[test]

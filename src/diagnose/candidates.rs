@@ -716,26 +716,6 @@ fn field_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Candidate
     })
 }
 
-/// `psf_field_variation`'s growth step in place of its layout step `cand` (the grid at its size,
-/// the outer centres moved to the frame's edges) when that step *raised* χ²: moved to the edges,
-/// the centres spread further apart than the field allows, so the grid is too coarse for the
-/// lens and its layout alone cannot help; the next step (twice the tiles per axis,
-/// [`field_step`]) is tried in the same round. `None` when `cand` is not a layout step or the
-/// grid cannot grow. On a 3 × 2 profile of the real-design achromat at 1024 × 768 the layout
-/// step raised χ² by 9 % and the search ended with nothing named (docs/diagnosis.md, "The
-/// field case at camera size").
-pub fn field_growth_after_layout(data: &Data, current: &Fit, cand: &Candidate) -> Option<Candidate> {
-    let g = &current.model.grid;
-    let layout = cand.corrections.psf_field_variation.filter(|f| cand.name == "psf_field_variation" && (f.columns, f.rows) == (g.columns, g.rows) && current.model.corrections.psf_field_variation.is_none())?;
-    let (cols, rows) = field_step(g, data.open.width(), data.open.height(), true)?;
-    Some(Candidate {
-        corrections: Corrections { psf_field_variation: Some(FieldCorrection { columns: cols, rows }), ..cand.corrections.clone() },
-        evidence: format!("{}; the outer centres moved to the frame's edges at {}x{} tiles raised χ², so refit on {cols}x{rows}", cand.evidence, layout.columns, layout.rows),
-        location: format!("{}; then {cols}x{rows} tiles", cand.location),
-        ..cand.clone()
-    })
-}
-
 /// The grid `psf_field_variation` proposes for a current grid `g` on a `w × h` image: `g`'s own
 /// size while its centres are the estimate's (`edge` false; the layout changes, unless the
 /// edge-anchored centres are `g`'s already: a single tile), then twice the tiles per axis, at
@@ -1345,36 +1325,6 @@ mod tests {
     use super::*;
     use crate::image::Plane;
     use crate::optics::psf_grid::PsfGrid;
-
-    /// The field layout step, where it raised χ², is followed by the grid's growth
-    /// ([`field_growth_after_layout`]): on the proof's field case (256×192, 15-px kernels, a 3 × 2
-    /// profile) the step after 3 × 2 is 6 × 4 (at most one tile per two kernel widths: 8 × 6).
-    /// A growth step, another effect, or a model whose grid was refitted already get none.
-    #[test]
-    fn a_field_layout_step_that_raised_chi2_is_followed_by_growth() {
-        let spec = super::super::proof::CaseSpec::default();
-        let case = super::super::proof::render_case(Some("psf_field_variation"), 21, &spec).expect("renders");
-        let data = Data::new(&case.open.image, &case.pinhole.image, 1.0);
-        let est = crate::estimate::estimate(&case.open.image, &case.pinhole.image, &super::super::bench::proof_options(&spec).estimate).expect("estimates");
-        let init = Model { corrections: Corrections::default(), grid: est.profile.grid, exposure: est.profile.meta.exposure_ratio };
-        assert_eq!((init.grid.columns, init.grid.rows), (3, 2));
-        let mut current = fit(&data, &init.corrections, &init, FitSettings { rounds: 0, kernel_iterations: 0 });
-        let step = |name: &'static str, columns: usize, rows: usize| Candidate {
-            name,
-            corrections: Corrections { psf_field_variation: Some(FieldCorrection { columns, rows }), ..Corrections::default() },
-            evidence: "residual against position inside the tile".into(),
-            location: "beyond the outer tile centres".into(),
-            init: None,
-            deferred: None,
-        };
-        let grown = field_growth_after_layout(&data, &current, &step("psf_field_variation", 3, 2)).expect("the grid can grow");
-        assert_eq!(grown.corrections.psf_field_variation, Some(FieldCorrection { columns: 6, rows: 4 }));
-        assert!(grown.evidence.contains("raised χ², so refit on 6x4"), "{}", grown.evidence);
-        assert!(field_growth_after_layout(&data, &current, &step("psf_field_variation", 6, 4)).is_none(), "a growth step");
-        assert!(field_growth_after_layout(&data, &current, &step("vignetting", 3, 2)).is_none(), "another effect");
-        current.model.corrections.psf_field_variation = Some(FieldCorrection { columns: 3, rows: 2 });
-        assert!(field_growth_after_layout(&data, &current, &step("psf_field_variation", 3, 2)).is_none(), "the layout was adopted before");
-    }
 
     /// A diffraction correction that carries the spectra's stop states it in its parameters
     /// (what the bench compares with the rendered stop) and keeps it through its JSON; the

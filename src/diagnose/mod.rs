@@ -1036,10 +1036,7 @@ fn search_round(data: &Data, current: &Fit, analysis: &Analysis, round: Round, o
         Screened::NearMiss => near.push(cand),
         _ => {}
     };
-    // a field layout step that raises χ² is followed by the grid's growth in the same round
-    // ([`candidates::field_growth_after_layout`])
-    let mut proposed: std::collections::VecDeque<candidates::Candidate> = proposed.into();
-    while let Some(cand) = proposed.pop_front() {
+    for cand in proposed {
         // a new kernel grid (`psf_field_variation`) cuts the image into other blocks, so a
         // subset would hold other pixels than the null refit's: it is not screened but decided
         // on every pixel, where no candidate wins on the subset (a screening fit would only
@@ -1055,9 +1052,6 @@ fn search_round(data: &Data, current: &Fit, analysis: &Analysis, round: Round, o
         let dbic = f.bic() - null.bic();
         let gain = chi2_gain(&null, &f);
         scores.push(score(cand.name, &f, dbic, gain));
-        if let Some(grown) = (gain < 0.0).then(|| candidates::field_growth_after_layout(data, current, &cand)).flatten() {
-            proposed.push_front(grown);
-        }
         let verdict = screened(dbic, gain, opts.min_gain, subset);
         if cand.deferred.is_some() {
             // decided below, against the round's best complete candidate
@@ -1224,7 +1218,7 @@ fn screened(dbic: f64, gain: f64, min_gain: f64, subset: bool) -> Screened {
 /// convergence: [`needs_rotation_convergence`]) decides. Each near miss's note in `scores` gets
 /// its whole-pixel gain; a row without figures (a new grid, not screened) gets the whole-pixel
 /// fit's.
-fn rescore_near_misses(data: &Data, current: &Fit, near: Vec<candidates::Candidate>, scores: &mut Vec<CandidateScore>, round: Round, opts: &DiagnoseOptions) -> Option<(candidates::Candidate, Fit, f64)> {
+fn rescore_near_misses(data: &Data, current: &Fit, near: Vec<candidates::Candidate>, scores: &mut [CandidateScore], round: Round, opts: &DiagnoseOptions) -> Option<(candidates::Candidate, Fit, f64)> {
     let whole = |corr: &model::Corrections, init: &Model| {
         let mut f = fit::fit(data, corr, init, opts.candidate_fit);
         f.inherit_dof(current);
@@ -1232,12 +1226,9 @@ fn rescore_near_misses(data: &Data, current: &Fit, near: Vec<candidates::Candida
     };
     let null = whole(&current.model.corrections, &current.model);
     let mut best: Option<(candidates::Candidate, Fit, f64)> = None;
-    let mut near: std::collections::VecDeque<candidates::Candidate> = near.into();
-    while let Some(cand) = near.pop_front() {
+    for cand in near {
         let f = whole(&cand.corrections, cand.init.as_ref().unwrap_or(&current.model));
         let (dbic, gain) = (f.bic() - null.bic(), chi2_gain(&null, &f));
-        // a field layout step that raises χ² is followed by the grid's growth, in its own row
-        let grown = (round == Round::Full && gain < 0.0).then(|| candidates::field_growth_after_layout(data, current, &cand)).flatten();
         // a rotation round's candidate is judged by its adoption rule, after its polish
         let pass = round == Round::Rotation || screened(dbic, gain, opts.min_gain, false) == Screened::Winner;
         let outcome = match (round, pass) {
@@ -1246,7 +1237,7 @@ fn rescore_near_misses(data: &Data, current: &Fit, near: Vec<candidates::Candida
             (Round::Full, false) => "rejected",
         };
         let sep = if outcome.is_empty() { "" } else { ", " };
-        if let Some(s) = scores.iter_mut().rev().find(|s| s.name == cand.name) {
+        if let Some(s) = scores.iter_mut().find(|s| s.name == cand.name) {
             if s.reduced_chi2.is_none() {
                 (s.reduced_chi2, s.delta_bic, s.parameters) = (Some(f.reduced_chi2()), Some(dbic), candidates::parameters_json(cand.name, &f.model.corrections));
                 s.note += "; its figures are on every pixel, against the null refit on every pixel";
@@ -1256,11 +1247,6 @@ fn rescore_near_misses(data: &Data, current: &Fit, near: Vec<candidates::Candida
         if opts.progress {
             let sep = if outcome.is_empty() { "" } else { ": " };
             eprintln!("{} on every pixel: removes {:.2}% of χ² (ΔBIC {dbic:.0}){sep}{outcome}", cand.name, 100.0 * gain);
-        }
-        if let Some(g) = grown {
-            let parameters = candidates::parameters_json(g.name, &g.corrections);
-            scores.push(CandidateScore { name: g.name.to_string(), parameters, reduced_chi2: None, delta_bic: None, note: "the grid grown after its layout step raised χ²".into() });
-            near.push_front(g);
         }
         if pass && best.as_ref().map_or(true, |b| dbic < b.2) {
             best = Some((cand, f, dbic));

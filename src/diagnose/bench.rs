@@ -76,12 +76,12 @@ pub fn bench_case(effect: Option<&str>, seed: u64, spec: &CaseSpec, opts: &Diagn
     }
     let render_seconds = t.elapsed().as_secs_f64();
     let t = std::time::Instant::now();
+    let set = effect.map(super::proof::effect_set).transpose()?.unwrap_or_default();
     let mut opts = DiagnoseOptions { pinhole_variance_scale: 1.0 / case.pinhole_frames as f64, ..opts.clone() };
-    if let Some(tile) = field_case_tile(effect, spec, &opts) {
+    if let Some(tile) = field_case_tile(&set, spec, &opts) {
         opts.estimate.tile = Some(tile);
     }
     let d = diagnose(&case.open.image, &case.pinhole.image, None, &opts)?;
-    let set = effect.map(super::proof::effect_set).transpose()?.unwrap_or_default();
     let names: Vec<&str> = d.effects.iter().map(|e| e.name.as_str()).collect();
     let (named, correct) = score_names(&set, &names, &d.verdict);
     let ratio = floor_ratio(&case, &d.final_fit.predicted, &d.final_fit.eval);
@@ -104,18 +104,17 @@ pub fn bench_case(effect: Option<&str>, seed: u64, spec: &CaseSpec, opts: &Diagn
     Ok((row, d, case))
 }
 
-/// The grid the base profile of a case concealing `psf_field_variation` (alone or in a pair) is
-/// estimated on ([`FIELD_CASE_GRID`]) where the estimator would choose its own tiling
-/// (`opts.estimate.tile` unset, as at every size but the proof suite's). The estimator's grid
-/// follows the field it probes (`estimate::lens_tile`: 13 × 9 tiles on the simulator's lens at
-/// 1024 × 768 with 45-px kernels), finer than the case's 9 × 7 lens or a real design's 7 × 5
+/// The grid the base profile of a case whose effect `set` holds `psf_field_variation` (alone or
+/// in a pair) is estimated on ([`FIELD_CASE_GRID`]) where the estimator would choose its own
+/// tiling (`opts.estimate.tile` unset, as at every size but the proof suite's). The estimator's
+/// grid follows the field it probes (`estimate::lens_tile`: 13 × 9 tiles on the simulator's lens
+/// at 1024 × 768 with 45-px kernels), finer than the case's 9 × 7 lens or a real design's 7 × 5
 /// grid, so the case would conceal nothing. A profile on a coarser grid than the lens varies on
 /// (one estimated at another size, or with `--tile`) is the mismatch the effect names. `None`
 /// for every other case, and where the proof suite's tile is given (96 px on 256 × 192: the
 /// same 3 × 2 grid).
-fn field_case_tile(effect: Option<&str>, spec: &CaseSpec, opts: &DiagnoseOptions) -> Option<usize> {
-    let field = effect.and_then(|e| super::proof::effect_set(e).ok()).is_some_and(|set| set.contains(&"psf_field_variation"));
-    if !field || opts.estimate.tile.is_some() {
+fn field_case_tile(set: &[&str], spec: &CaseSpec, opts: &DiagnoseOptions) -> Option<usize> {
+    if !set.contains(&"psf_field_variation") || opts.estimate.tile.is_some() {
         return None;
     }
     crate::estimate::tile_for_grid(spec.width, spec.height, FIELD_CASE_GRID.0, FIELD_CASE_GRID.1)
@@ -176,13 +175,13 @@ mod tests {
         let spec = CaseSpec { width: 1024, height: 768, ..CaseSpec::default() };
         let mut opts = DiagnoseOptions::default();
         opts.estimate.tile = None;
-        let tile = field_case_tile(Some("psf_field_variation"), &spec, &opts).expect("a tile");
+        let tile = field_case_tile(&["psf_field_variation"], &spec, &opts).expect("a tile");
         assert_eq!(crate::estimate::tile_grid(1024, 768, tile), FIELD_CASE_GRID);
-        assert_eq!(field_case_tile(Some("vignetting"), &spec, &opts), None);
-        assert_eq!(field_case_tile(None, &spec, &opts), None);
-        assert_eq!(field_case_tile(Some("vignetting+psf_field_variation"), &spec, &opts), Some(tile));
+        assert_eq!(field_case_tile(&["vignetting"], &spec, &opts), None);
+        assert_eq!(field_case_tile(&[], &spec, &opts), None);
+        assert_eq!(field_case_tile(&["vignetting", "psf_field_variation"], &spec, &opts), Some(tile));
         let proof = proof_options(&CaseSpec::default());
-        assert_eq!(field_case_tile(Some("psf_field_variation"), &CaseSpec::default(), &proof), None);
+        assert_eq!(field_case_tile(&["psf_field_variation"], &CaseSpec::default(), &proof), None);
         assert_eq!(crate::estimate::tile_grid(256, 192, proof.estimate.tile.expect("the proof tile")), FIELD_CASE_GRID);
     }
 

@@ -184,10 +184,9 @@ pub struct Figures {
     pub reduced_chi2: f64,
     pub chi2: f64,
     pub pixels: usize,
-    /// Nominal parameter count.
+    /// Nominal parameter count (BIC's penalty).
     pub parameters: usize,
-    /// Effective parameter count the reduced χ² subtracts and BIC's penalty counts
-    /// (docs/diagnosis.md).
+    /// Effective parameter count the reduced χ² subtracts (docs/diagnosis.md).
     pub effective_parameters: f64,
     pub bic: f64,
     /// Residual RMS, stored axis.

@@ -567,6 +567,23 @@ mod tests {
         assert_eq!(kernel_mtf50(&[delta]), 0.5);
     }
 
+    /// The field case keeps a real design's own grid (`CaseSpec::truth_psfs`) as its truth
+    /// (the bench diagnoses it against a coarser profile); on the simulator's lens it renders
+    /// the 9 × 7 grid.
+    #[test]
+    fn the_field_case_keeps_a_given_truth_grid() {
+        let spec = CaseSpec { width: 128, height: 96, kernel_size: 9, ..CaseSpec::default() };
+        let sim = render_case(Some("psf_field_variation"), 3, &spec).expect("renders");
+        assert_eq!(sim.truth["true_grid"], serde_json::json!([9, 7]));
+        let given = render_case(None, 3, &spec).expect("renders").open.psfs.expect("the wide-open PSFs");
+        assert_eq!((given.columns, given.rows), spec.grid);
+        let real = CaseSpec { truth_psfs: Some(given.clone()), ..spec };
+        let case = render_case(Some("psf_field_variation"), 3, &real).expect("renders");
+        assert_eq!(case.truth["true_grid"], serde_json::json!([given.columns, given.rows]));
+        let rendered = case.open.psfs.expect("the wide-open PSFs");
+        assert_eq!((rendered.columns, rendered.rows), (given.columns, given.rows));
+    }
+
     #[test]
     fn wiener_error_gain_is_the_propagated_noise_plus_the_lost_detail() {
         let mut rng = Rng::new(5);

@@ -908,7 +908,7 @@ impl EpsilonDecision {
         let per: Vec<String> = (0..self.chosen.len())
             .map(|c| {
                 let sq: Vec<String> = self.tried.iter().map(|t| format!("{:.4}", t.1[c])).collect();
-                format!("{} ε {:.2e} ({} the flat {:.2e}; held-out squared residual {})", self.names[c], self.flat[c] * EPSILON_STEP.powi(self.chosen[c]), fraction(self.chosen[c]), self.flat[c], sq.join(" / "))
+                format!("{} ε {:.2e} ({} the flat {:.2e}; held-out squared residual {})", self.names[c], ladder_epsilon(&self.flat, |c| self.chosen[c])[c], fraction(self.chosen[c]), self.flat[c], sq.join(" / "))
             })
             .collect();
         format!("each channel's Wiener ε chosen by the held-out squared residual of equal-budget fits at {} the flat noise-to-signal ratio: {}", factors.join(", "), per.join("; "))
@@ -939,6 +939,11 @@ fn ladder(mut score: impl FnMut(i32) -> Vec<f64>) -> (Vec<i32>, Vec<(i32, Vec<f6
     let chosen = (0..nch).map(|c| best(&tried, c)).collect();
     tried.sort_by_key(|t| t.0);
     (chosen, tried)
+}
+
+/// The flat ratios `flat` times `EPSILON_STEP^k(c)`, channel by channel: the ε of a ladder step.
+fn ladder_epsilon(flat: &[f64], k: impl Fn(usize) -> i32) -> Vec<f64> {
+    flat.iter().enumerate().map(|(c, e)| e * EPSILON_STEP.powi(k(c))).collect()
 }
 
 /// `EPSILON_STEP^k` as a factor in words: "×1", "×9", "×1/81".
@@ -1116,16 +1121,13 @@ impl<'a> DiffractionSearch<'a> {
     /// Returns the correction and the decision's figures.
     fn decide_epsilon(&self, r: f64, sa: f64) -> (super::model::DiffractionCorrection, EpsilonDecision) {
         let base = self.correction(r, sa);
-        let scaled = |k: i32| {
-            let f = EPSILON_STEP.powi(k);
-            super::model::DiffractionCorrection { epsilon: base.epsilon.iter().map(|e| e * f).collect(), ..base.clone() }
-        };
+        let scaled = |k: &dyn Fn(usize) -> i32| super::model::DiffractionCorrection { epsilon: ladder_epsilon(&base.epsilon, k), ..base.clone() };
         let sq = |k: i32| {
-            let start = self.init_with(scaled(k));
+            let start = self.init_with(scaled(&|_| k));
             super::fit::held_out_sq(self.data, &start.corrections, &start, ABERRATION_DECISION_FIT)
         };
         let (chosen, tried) = ladder(sq);
-        let d = super::model::DiffractionCorrection { epsilon: base.epsilon.iter().zip(&chosen).map(|(e, &k)| e * EPSILON_STEP.powi(k)).collect(), ..base.clone() };
+        let d = scaled(&|c| chosen[c]);
         let names = (0..chosen.len()).map(|c| self.channel_name(c).to_string()).collect();
         (d, EpsilonDecision { flat: base.epsilon, chosen, tried, names })
     }

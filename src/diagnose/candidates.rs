@@ -448,7 +448,8 @@ fn propose_all(data: &Data, current: &Fit, a: &Analysis, wanted: &dyn Fn(&str) -
         }
     }
     if wanted("psf_field_variation") {
-        add("psf_field_variation", field_candidate(data, current, a), &mut out);
+        add("psf_field_variation", field_layout(data, current, a), &mut out);
+        add("psf_field_variation (finer grid)", field_growth(data, current, a), &mut out);
     }
     (out, times)
 }
@@ -695,25 +696,51 @@ fn saturation_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Cand
     })
 }
 
-/// `psf_field_variation`: first the kernel grid refitted at its size with its outer centres on
-/// the frame's edges ([`crate::optics::psf_grid::PsfGrid::edge_centers`]; the estimate's
-/// tile-centred grid holds the kernels constant in the outer half tile, where a lens's PSF
-/// changes fastest), which costs no parameters; then, proposed again, twice the tiles per axis,
-/// at most one tile per two kernel widths, while the grid can still grow.
-fn field_candidate(data: &Data, current: &Fit, a: &Analysis) -> Option<Candidate> {
+/// `psf_field_variation`'s layout step: the kernel grid refitted at its size with its outer
+/// centres on the frame's edges ([`crate::optics::psf_grid::PsfGrid::edge_centers`]; the
+/// estimate's tile-centred grid holds the kernels constant in the outer half tile, where a
+/// lens's PSF changes fastest), which costs no parameters; `None` once the centres are there
+/// (adopted, or a single tile). The grid's growth is [`field_growth`].
+fn field_layout(data: &Data, current: &Fit, a: &Analysis) -> Option<Candidate> {
     let g = &current.model.grid;
-    let (cols, rows) = field_step(g, data.open.width(), data.open.height(), current.model.corrections.psf_field_variation.is_some())?;
-    let grows = cols > g.columns || rows > g.rows;
-    let how = if grows { format!("refit on {cols}x{rows} tiles instead of {}x{}", g.columns, g.rows) } else { format!("{cols}x{rows} tiles as before") };
+    let (cols, rows) = field_step(g, data.open.width(), data.open.height(), current.model.corrections.psf_field_variation.is_some()).filter(|&s| s == (g.columns, g.rows))?;
+    Some(field_at(data, current, a, cols, rows, format!("beyond the outer tile centres, where the kernels were held constant; {cols}x{rows} tiles as before, the outer centres moved to the frame's edges")))
+}
+
+/// `psf_field_variation`'s growth: twice the tiles per axis ([`field_step`]), the outer centres
+/// on the frame's edges, proposed beside the layout step and after it while the grid can grow.
+/// The most flexible model the catalogue has, so the round decides it last, on held-out pixels
+/// (`diagnose::decide_growth`). Not proposed where the kernels' centroids follow a keystone
+/// ([`super::tilt::keystone_shows`]): a finer grid would take up a geometric map (a tilted
+/// target) tile by tile, which is `target_tilt`'s to name or, outside the catalogue, the
+/// verdict's to leave unexplained.
+fn field_growth(data: &Data, current: &Fit, a: &Analysis) -> Option<Candidate> {
+    let g = &current.model.grid;
+    let (w, h) = (data.open.width(), data.open.height());
+    let (cols, rows) = field_step(g, w, h, true)?;
+    if super::tilt::keystone_shows(g, w, h) {
+        return None;
+    }
+    Some(field_at(data, current, a, cols, rows, format!("between tile centres; refit on {cols}x{rows} tiles instead of {}x{}, the outer centres on the frame's edges", g.columns, g.rows)))
+}
+
+/// The `psf_field_variation` candidate on a `cols × rows` edge-anchored grid, `how` its location.
+fn field_at(data: &Data, current: &Fit, a: &Analysis, cols: usize, rows: usize, how: String) -> Candidate {
     let spread = a.tiles.iter().map(|t| t.reduced_chi2).fold(0.0f64, f64::max) - a.tiles.iter().map(|t| t.reduced_chi2).fold(f64::INFINITY, f64::min);
-    Some(Candidate {
+    Candidate {
         name: "psf_field_variation",
         corrections: Corrections { psf_field_variation: Some(FieldCorrection { columns: cols, rows }), ..current.model.corrections.clone() },
         evidence: format!("residual against position inside the tile: {}; per-tile reduced χ² spans {:.2}", curve_text(a, "position_in_tile"), spread),
         init: None,
         deferred: None,
-        location: location(data, a, &if grows { format!("between tile centres; {how}, the outer centres on the frame's edges") } else { format!("beyond the outer tile centres, where the kernels were held constant; {how}, the outer centres moved to the frame's edges") }),
-    })
+        location: location(data, a, &how),
+    }
+}
+
+/// Whether `cand` grows the current kernel grid (more tiles than `current`'s): the step
+/// [`field_growth`] proposes.
+pub fn grows_grid(cand: &Candidate, current: &Fit) -> bool {
+    cand.corrections.psf_field_variation.is_some_and(|f| f.columns * f.rows > current.model.grid.tile_count())
 }
 
 /// The grid `psf_field_variation` proposes for a current grid `g` on a `w × h` image: `g`'s own

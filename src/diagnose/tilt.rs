@@ -64,6 +64,16 @@ impl KeystoneFit {
     }
 }
 
+/// Whether the centroids of grid `g`'s kernels follow a keystone ([`keystone_fit_of_grid`])
+/// that moves a corner of the `w × h` image by at least [`MIN_CORNER_PX`] at
+/// [`super::registered::MIN_CORNER_T`] standard errors or more. Where they do, the kernel grid
+/// does not grow ([`super::candidates`]' `field_growth`). A lens's own centroid pattern,
+/// radial about the centre (distortion, lateral colour: odd in `d`), is orthogonal to the
+/// keystone's even one on a grid symmetric about the centre and does not show.
+pub fn keystone_shows(g: &crate::optics::psf_grid::PsfGrid, w: usize, h: usize) -> bool {
+    keystone_fit_of_grid(g, w, h).is_some_and(|kf| corner_displacement(kf.k, w, h) >= MIN_CORNER_PX && kf.corner_t(w, h) >= super::registered::MIN_CORNER_T)
+}
+
 /// [`keystone_of_grid`] with the covariance of the keystone ([`KeystoneFit`]).
 pub fn keystone_fit_of_grid(g: &crate::optics::psf_grid::PsfGrid, w: usize, h: usize) -> Option<KeystoneFit> {
     if g.tile_count() < 6 {
@@ -219,6 +229,18 @@ mod tests {
         let corner = corner_displacement(got, w, h);
         assert!(corner > MIN_CORNER_PX, "{corner}");
         assert_eq!(corner_displacement([0.0, 0.0], w, h), 0.0);
+        assert!(keystone_shows(&grid, w, h), "the field growth's gate");
+        // a lens's radial pattern (distortion 2 px at the corners, a scale) on the same grid:
+        // no keystone, so the gate lets the grid grow
+        let r2 = cx * cx + cy * cy;
+        let radial = PsfGrid { kernels: vec![grid.centers.iter().map(|c| {
+            let (dx, dy) = (c[0] - cx, c[1] - cy);
+            let s = 2.0 / r2.sqrt() * (dx * dx + dy * dy) / r2 + 0.003;
+            let m = (k as f64 - 1.0) / 2.0;
+            crate::image::Plane::from_fn(k, k, |x, y| (-((x as f64 - m - dx * s).powi(2) + (y as f64 - m - dy * s).powi(2)) / (2.0 * 1.5 * 1.5)).exp() as f32)
+        }).collect()], ..grid.clone() };
+        let kr = keystone_of_grid(&radial, w, h).expect("determined");
+        assert!(corner_displacement(kr, w, h) < 0.05 && !keystone_shows(&radial, w, h), "{kr:?}");
     }
 
     /// The keystone's standard error ([`KeystoneFit::corner_t`]): a keystone buried in centroid
@@ -250,6 +272,8 @@ mod tests {
         let quiet = keystone_fit_of_grid(&grid_with(0.1 * corner, 3), w, h).expect("determined");
         let (tn, tq) = (noisy.corner_t(w, h), quiet.corner_t(w, h));
         assert!(tn < 3.0 && tq > 10.0 && tq > 5.0 * tn, "t {tn:.2} with scatter at the keystone's size, {tq:.2} at a tenth");
+        // the field growth's gate: the quiet keystone shows, the buried one does not
+        assert!(keystone_shows(&grid_with(0.1 * corner, 3), w, h) && !keystone_shows(&grid_with(corner, 3), w, h));
         // the predicted standard error of g against the spread over draws
         let gs: Vec<f64> = (0..200).map(|seed| keystone_fit_of_grid(&grid_with(0.1 * corner, 100 + seed), w, h).expect("determined").k[0]).collect();
         let mean = gs.iter().sum::<f64>() / gs.len() as f64;

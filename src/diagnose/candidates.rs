@@ -11,7 +11,7 @@
 //! | `misregistration` | similarity (rotation, scale) between the captures | 2 beyond the base translation |
 //! | `target_tilt` | homography `ψ(d) = L·d / (1 + g·dx + h·dy)`: a keystone, the target tilted between the captures ([`super::tilt`]) | 2 |
 //! | `saturation` | clipped pixels censored, reference-clipped pixels out of the data term | 1 |
-//! | `psf_field_variation` | the kernel grid refitted with its outer centres on the frame's edges (`PsfGrid::edge_centers`) at its size; proposed again, twice the tiles per axis while at most one tile per two kernel widths allows | the extra kernels (none for the layout alone) |
+//! | `psf_field_variation` | the kernel grid refitted with its outer centres on the frame's edges (`PsfGrid::edge_centers`) at its size ([`field_layout`]); beside and after it, twice the tiles per axis while at most one tile per two kernel widths allows ([`field_growth`]: decided last, on held-out pixels, and not where the kernels' centroids follow a keystone) | the extra kernels (none for the layout alone) |
 //! | `pinhole_diffraction` | the reference restored by the Wiener filter of its band-averaged Airy ⊛ Gaussian PSF ([`super::diffraction`]) | 2 (the Airy radius, channels scaling by wavelength; the Gaussian `σ_a` of the residual aberrations); reported with the MTF50 they imply |
 
 use super::analysis::{curve, where_text, Analysis};

@@ -743,6 +743,26 @@ pub fn checker(x: usize, y: usize) -> usize {
     ((x / 16) + (y / 16)) % 2
 }
 
+/// χ² (`Σ z²`, [`Fit::normalized`]) of each of `fits` on the checkerboard's colour `colour`
+/// ([`checker`]) where every one of them evaluates, and that pixel count: the held-out χ² of
+/// fits whose data term was the other colour ([`fit_masked`]; the diagnosis's
+/// cross-validation and the decision on a finer kernel grid).
+pub fn held_out_chi2<const M: usize>(fits: [&Fit; M], colour: usize) -> ([f64; M], f64) {
+    let (mut chi2, mut n) = ([0.0; M], 0.0);
+    let nch = fits.iter().map(|f| f.normalized.len()).min().unwrap_or(0);
+    for c in 0..nch {
+        let w = fits[0].normalized[c].width;
+        let len = fits.iter().map(|f| f.normalized[c].data.len()).min().unwrap_or(0);
+        for i in (0..len).filter(|&i| checker(i % w, i / w) == colour && fits.iter().all(|f| f.eval[c][i])) {
+            for (s, f) in chi2.iter_mut().zip(&fits) {
+                *s += (f.normalized[c].data[i] as f64).powi(2);
+            }
+            n += 1.0;
+        }
+    }
+    (chi2, n)
+}
+
 /// The prediction's held-out error: `corrections` fitted from `init` with budget `settings` on
 /// [`screen`]'s subset, its data term on the checkerboard's colour 0 ([`checker`]), and per
 /// channel `Σ (stored − predicted)²` over the subset's scored pixels of colour 1 that are not

@@ -1161,7 +1161,7 @@ fn decide_growth(data: &Data, current: &Fit, cand: candidates::Candidate, scores
     let init = cand.init.clone().unwrap_or_else(|| current.model.clone());
     let half = |corr: &model::Corrections, init: &Model| fit::fit_masked(data, corr, init, opts.candidate_fit, &|x, y| fit::checker(x, y) == 0, data.fit_pixels);
     let (coarse, fine) = (half(&current.model.corrections, &current.model), half(&cand.corrections, &init));
-    let [h0, h1, n] = held_out_pair(&coarse, &fine);
+    let ([h0, h1], n) = fit::held_out_chi2([&coarse, &fine], 1);
     let (gain, tolerance) = ((h0 - h1) / h0.max(1e-300), STOP_SIGMAS * (2.0 * n).sqrt());
     // written so that a NaN rejects
     let pass = gain >= opts.min_gain && h0 - h1 > tolerance && gain <= 1.0;
@@ -1183,23 +1183,6 @@ fn decide_growth(data: &Data, current: &Fit, cand: candidates::Candidate, scores
     let dbic = f.bic() - current.bic();
     let cand = candidates::Candidate { evidence: format!("{}; {text}", cand.evidence), ..cand };
     Some((cand, f, dbic))
-}
-
-/// `[χ² of a, χ² of b, pixels]` on the held-out colour (1) of the checkerboard where both
-/// fits evaluate ([`decide_growth`]).
-fn held_out_pair(a: &Fit, b: &Fit) -> [f64; 3] {
-    let mut out = [0.0; 3];
-    for c in 0..a.normalized.len().min(b.normalized.len()) {
-        let (za, zb, w) = (&a.normalized[c].data, &b.normalized[c].data, a.normalized[c].width);
-        for i in 0..za.len().min(zb.len()) {
-            if a.eval[c][i] && b.eval[c][i] && fit::checker(i % w, i / w) == 1 {
-                out[0] += (za[i] as f64).powi(2);
-                out[1] += (zb[i] as f64).powi(2);
-                out[2] += 1.0;
-            }
-        }
-    }
-    out
 }
 
 /// Whether a provisional candidate ([`candidates::Deferred`]) could decide its round, so that
@@ -1492,20 +1475,13 @@ fn corrected_profile(base_profile: &Profile, current: &Fit, open: &Image, verdic
 /// Held-out χ²: the model is refitted on one colour of a 16-px checkerboard and evaluated on
 /// the other, both ways; returns `[held-out reduced χ², in-sample reduced χ²]`.
 fn cross_validate(data: &Data, current: &Fit, settings: FitSettings, data_pixels: usize) -> [f64; 2] {
-    let mut held = (0.0f64, 0usize);
+    let mut held = (0.0f64, 0.0f64);
     for parity in 0..2 {
         let f = fit::fit_masked(data, &current.model.corrections, &current.model, settings, &|x, y| fit::checker(x, y) == parity, data_pixels);
-        for c in 0..f.normalized.len() {
-            for (i, z) in f.normalized[c].data.iter().enumerate() {
-                let (x, y) = (i % f.normalized[c].width, i / f.normalized[c].width);
-                if f.eval[c][i] && fit::checker(x, y) != parity {
-                    held.0 += (*z as f64).powi(2);
-                    held.1 += 1;
-                }
-            }
-        }
+        let ([chi2], n) = fit::held_out_chi2([&f], 1 - parity);
+        (held.0, held.1) = (held.0 + chi2, held.1 + n);
     }
-    [held.0 / held.1.max(1) as f64, current.reduced_chi2()]
+    [held.0 / held.1.max(1.0), current.reduced_chi2()]
 }
 
 #[cfg(test)]

@@ -383,8 +383,9 @@ fn channel_list(data: &Data) -> String {
 
 /// The candidates for extending `current`, in catalogue order (each effect while the current
 /// model lacks it; once adopted, `pinhole_diffraction`'s radius and `veiling_glare`'s width
-/// re-searched, `psf_field_variation` first on the edge-anchored layout, then while the grid
-/// can still grow; `target_tilt` whenever its keystone shows), without the
+/// re-searched, `psf_field_variation` on the edge-anchored layout until adopted and, beside it
+/// and after it, on a finer grid while the grid can still grow and its centroids show no
+/// keystone; `target_tilt` whenever its keystone shows), without the
 /// effects named in `excluded` (e.g. to show what the diagnosis says of an effect before the
 /// catalogue models it). No progress on stderr ([`propose_timed`] has the switch).
 pub fn propose(data: &Data, current: &Fit, a: &Analysis, excluded: &[String]) -> Vec<Candidate> {
@@ -1521,6 +1522,27 @@ mod tests {
         assert_eq!(field_step(&g(4, 3, 9), 384, 288, true), Some((8, 6)));
         // one tile: the layout step would change nothing, so the grid grows at once
         assert_eq!(field_step(&g(1, 1, 33), 384, 288, false), Some((2, 2)));
+    }
+
+    /// `psf_field_variation`'s two steps as [`propose`] gives them: on the 256×192 field case's
+    /// model on the estimate's 3 × 2 grid (tile-centred), the layout step, then the finer grid
+    /// (6 × 4), which [`grows_grid`] tells apart; on the tilted target (seed 13, the tilt case
+    /// of `target_tilt_is_unexplained_without_its_model`), whose kernels' centroids follow its
+    /// keystone, the layout step alone.
+    #[test]
+    fn the_finer_grid_is_proposed_beside_the_layout_but_not_on_a_keystone() {
+        let others: Vec<String> = super::super::proof::CONCEALED.iter().chain(&["target_tilt"]).filter(|n| **n != "psf_field_variation").map(|n| n.to_string()).collect();
+        for (effect, seed, grows) in [("psf_field_variation", 21, true), ("target_tilt", 13, false)] {
+            let (data, current) = super::super::registered::tests::small_case(Some(effect), seed);
+            let got = propose(&data, &current, &super::super::analysis::analyse(&current), &others);
+            let grids: Vec<_> = got.iter().map(|c| (c.name, c.corrections.psf_field_variation.map(|f| (f.columns, f.rows)))).collect();
+            let mut want = vec![("psf_field_variation", Some((3, 2)))];
+            if grows {
+                want.push(("psf_field_variation", Some((6, 4))));
+            }
+            assert_eq!(grids, want, "{effect}");
+            assert_eq!(got.iter().map(|c| grows_grid(c, &current)).collect::<Vec<_>>(), [&[false][..], if grows { &[true] } else { &[] }].concat());
+        }
     }
 
     /// A `cols × rows` grid of Gaussian kernels (σ 2 px, side 21) on a `w × h` image, each

@@ -738,7 +738,8 @@ pub fn screen(data: &Data, corrections: &Corrections, init: &Model, settings: Fi
 }
 
 /// The colour (0 or 1) of pixel `(x, y)` on the 16-px checkerboard that splits fitted from
-/// held-out pixels ([`held_out_sq`], the diagnosis's cross-validation).
+/// held-out pixels ([`held_out_sq`], [`held_out_chi2`]: the ε ladder, the diagnosis's
+/// cross-validation, the decision on a finer kernel grid).
 pub fn checker(x: usize, y: usize) -> usize {
     ((x / 16) + (y / 16)) % 2
 }

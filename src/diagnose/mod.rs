@@ -253,10 +253,11 @@ pub struct FoundEffect {
     /// one ran).
     pub before: Figures,
     pub after: Figures,
-    /// BIC of the model with the effect minus the null refit's; for an effect found again in a
-    /// later round (`pinhole_diffraction`'s radius or `veiling_glare`'s width re-searched,
-    /// `psf_field_variation` grown from its edge-anchored layout to a finer grid), summed over
-    /// its adoptions.
+    /// BIC of the model with the effect minus the null refit's (a finer kernel grid's: minus
+    /// the current model's, for information, since held-out pixels decide it,
+    /// [`decide_growth`]); for an effect found again in a later round (`pinhole_diffraction`'s
+    /// radius or `veiling_glare`'s width re-searched, `psf_field_variation` grown from its
+    /// edge-anchored layout to a finer grid), summed over its adoptions.
     pub delta_bic: f64,
 }
 
@@ -266,8 +267,9 @@ pub struct CandidateScore {
     pub name: String,
     /// The candidate's fitted parameters.
     pub parameters: serde_json::Value,
-    /// `None` where the candidate was not fitted: a new kernel grid, which is fitted on every
-    /// pixel only, in a round another candidate won on the screening subset ([`search_round`]).
+    /// `None` where the candidate was not fitted: a new kernel layout, fitted on every pixel
+    /// only, in a round another candidate won on the screening subset, or a finer grid, fitted
+    /// only where it wins on held-out pixels ([`search_round`]).
     pub reduced_chi2: Option<f64>,
     /// ΔBIC against the null refit, on the pixels the candidate was scored on (`None` as
     /// `reduced_chi2`).
@@ -998,8 +1000,9 @@ pub fn low_band_of(power: f64, floor: f64, [w, h, nch]: [usize; 3], evaluated: f
 /// [`Round::start_rule`]) refitted from the current model;
 /// returns every score (the null refit first) and the best effect that beats the null refit's
 /// BIC and removes at least `min_gain` of its χ² (the acceptance rule, [`screened`]): on the
-/// screening subset, or, for a near miss there and for a new kernel grid (whose blocks hold
-/// other pixels), on every pixel ([`rescore_near_misses`]) when no candidate won on the subset.
+/// screening subset, or, for a near miss there and for a new kernel layout (whose blocks hold
+/// other pixels), on every pixel ([`rescore_near_misses`]) when no candidate won on the subset;
+/// a finer kernel grid last, on held-out pixels ([`decide_growth`]), when nothing else won.
 fn search_round(data: &Data, current: &Fit, analysis: &Analysis, round: Round, opts: &DiagnoseOptions) -> (Vec<CandidateScore>, Option<(candidates::Candidate, Fit, f64)>) {
     let (proposed, times) = candidates::propose_timed(data, current, analysis, &round.excluded(opts), round.start_rule(), opts.progress);
     for t in times {
@@ -1036,13 +1039,14 @@ fn search_round(data: &Data, current: &Fit, analysis: &Analysis, round: Round, o
         Screened::NearMiss => near.push(cand),
         _ => {}
     };
-    // a finer kernel grid is decided last, on held-out pixels ([`decide_growth`])
-    let mut growth: Option<candidates::Candidate> = None;
+    // a finer kernel grid is decided last, on held-out pixels ([`decide_growth`]), with its
+    // entry in `scores` (a row of its own name: the layout step's row is `cand.name`'s)
+    let mut growth: Option<(candidates::Candidate, usize)> = None;
     for cand in proposed {
         if candidates::grows_grid(&cand, current) {
             let parameters = candidates::parameters_json(cand.name, &cand.corrections);
-            scores.push(CandidateScore { name: cand.name.to_string(), parameters, reduced_chi2: None, delta_bic: None, note: "a finer kernel grid: decided on held-out pixels, where no other candidate wins the round".into() });
-            growth = Some(cand);
+            scores.push(CandidateScore { name: format!("{} (finer grid)", cand.name), parameters, reduced_chi2: None, delta_bic: None, note: "a finer kernel grid: decided on held-out pixels, where no other candidate wins the round".into() });
+            growth = Some((cand, scores.len() - 1));
             bar.inc(1);
             continue;
         }
@@ -1128,18 +1132,14 @@ fn search_round(data: &Data, current: &Fit, analysis: &Analysis, round: Round, o
         }
         None => {}
     }
-    if let Some(cand) = growth {
+    if let Some((cand, entry)) = growth {
         match &best {
             None => {
                 let mut lap = crate::estimate::stage_clock();
-                best = decide_growth(data, current, cand, &mut scores, opts);
+                best = decide_growth(data, current, cand, &mut scores[entry], opts);
                 progress_lap(opts, lap("finer grid decided on held-out pixels"));
             }
-            Some((winner, _, _)) => {
-                if let Some(s) = scores.iter_mut().rfind(|s| s.name == cand.name) {
-                    s.note += &format!("; not decided: {} won the round", winner.name);
-                }
-            }
+            Some((winner, _, _)) => scores[entry].note += &format!("; not decided: {} won the round", winner.name),
         }
     }
     (scores, best)
@@ -1147,17 +1147,20 @@ fn search_round(data: &Data, current: &Fit, analysis: &Analysis, round: Round, o
 
 /// A finer kernel grid ([`candidates::grows_grid`]) decided on held-out pixels: the current
 /// model and the grown one each fitted from their own starts with the candidates' budget on
-/// the 16-px checkerboard's colour 0 ([`fit::checker`]) of every pixel, then χ² summed on
-/// colour 1 where both evaluate. The grid wins where it lowers that held-out χ² by at least
+/// the 16-px checkerboard's colour 0 ([`fit::checker`]) of the fitted pixels (every pixel up to
+/// [`DiagnoseOptions::fit_pixels`]; above it the kept blocks, which differ between the grids),
+/// then χ² summed on colour 1 where both evaluate. The grid wins where it lowers that held-out χ² by at least
 /// `min_gain` of it and by more than χ²'s own noise, [`STOP_SIGMAS`]` · √(2N)`. BIC's
 /// nominal penalty (every kernel value times `ln N`) cannot decide it: a TV-regularised
 /// kernel's values are far from free, so at 1024 × 768 the penalty rejects a 6 × 4 grid that
 /// removes a fifth of χ² (docs/diagnosis.md, "The field case at camera size"); held-out
 /// pixels charge a grid for what it fits of the noise, and only that. Both fits start from
 /// kernels fitted on every pixel, which favours the current model: the rule errs towards
-/// the coarser grid. The winner is fitted on every pixel; its ΔBIC is stated against the
-/// current model.
-fn decide_growth(data: &Data, current: &Fit, cand: candidates::Candidate, scores: &mut [CandidateScore], opts: &DiagnoseOptions) -> Option<(candidates::Candidate, Fit, f64)> {
+/// the coarser grid. The winner is fitted on every pixel; its ΔBIC, against the current model
+/// (not a null refit of the same budget), is stated for information: the held-out pixels
+/// decided the step, and its nominal penalty makes it positive where the grid wins. `row` is
+/// the candidate's entry in the round's scores, its note the held-out figures.
+fn decide_growth(data: &Data, current: &Fit, cand: candidates::Candidate, row: &mut CandidateScore, opts: &DiagnoseOptions) -> Option<(candidates::Candidate, Fit, f64)> {
     let init = cand.init.clone().unwrap_or_else(|| current.model.clone());
     let half = |corr: &model::Corrections, init: &Model| fit::fit_masked(data, corr, init, opts.candidate_fit, &|x, y| fit::checker(x, y) == 0, data.fit_pixels);
     let (coarse, fine) = (half(&current.model.corrections, &current.model), half(&cand.corrections, &init));
@@ -1171,9 +1174,7 @@ fn decide_growth(data: &Data, current: &Fit, cand: candidates::Candidate, scores
     if opts.progress {
         eprintln!("psf_field_variation (finer grid): {text}");
     }
-    if let Some(s) = scores.iter_mut().rfind(|s| s.name == cand.name) {
-        s.note = format!("a finer kernel grid, decided on held-out pixels: {text}");
-    }
+    row.note = format!("a finer kernel grid, decided on held-out pixels: {text}");
     if !pass {
         return None;
     }
@@ -1181,6 +1182,8 @@ fn decide_growth(data: &Data, current: &Fit, cand: candidates::Candidate, scores
     let mut f = fit::fit(data, &cand.corrections, &init, opts.candidate_fit);
     f.inherit_dof(current);
     let dbic = f.bic() - current.bic();
+    (row.reduced_chi2, row.delta_bic) = (Some(f.reduced_chi2()), Some(dbic));
+    row.note += "; its figures on every pixel, ΔBIC against the current model (for information)";
     let cand = candidates::Candidate { evidence: format!("{}; {text}", cand.evidence), ..cand };
     Some((cand, f, dbic))
 }
@@ -1771,16 +1774,18 @@ mod tests {
             assert_eq!((current.model.grid.columns, current.model.grid.rows), (3, 2));
             let at = |columns: usize, rows: usize| model::Corrections { psf_field_variation: Some(model::FieldCorrection { columns, rows }), ..model::Corrections::default() };
             let cand = candidates::Candidate { name: "psf_field_variation", corrections: at(6, 4), evidence: String::new(), location: String::new(), init: None, deferred: None };
-            assert!(candidates::grows_grid(&cand, &current));
-            let mut scores = vec![CandidateScore { name: cand.name.into(), reduced_chi2: None, parameters: serde_json::Value::Null, delta_bic: None, note: String::new() }];
-            let got = decide_growth(&data, &current, cand, &mut scores, &opts);
-            let note = &scores[0].note;
+            let mut row = CandidateScore { name: "psf_field_variation (finer grid)".into(), reduced_chi2: None, parameters: serde_json::Value::Null, delta_bic: None, note: String::new() };
+            let got = decide_growth(&data, &current, cand, &mut row, &opts);
+            let note = &row.note;
             eprintln!("{effect:?}: {note}");
             assert_eq!(got.is_some(), wins, "{effect:?}: {note}");
             assert!(note.contains("3x2 tiles χ²") && note.contains("6x4") && note.contains("rejected") != wins, "{note}");
-            if let Some((c, f, _)) = got {
+            // the row holds the winner's whole-pixel figures, a loser's none
+            assert_eq!(row.reduced_chi2.is_some(), wins);
+            if let Some((c, f, dbic)) = got {
                 assert_eq!((f.model.grid.columns, f.model.grid.rows), (6, 4));
                 assert!(c.evidence.contains("held out") && f.chi2() < current.chi2(), "{}", c.evidence);
+                assert_eq!((row.reduced_chi2, row.delta_bic), (Some(f.reduced_chi2()), Some(dbic)));
             }
         }
     }

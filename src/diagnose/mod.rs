@@ -1149,8 +1149,8 @@ fn search_round(data: &Data, current: &Fit, analysis: &Analysis, round: Round, o
 /// model and the grown one each fitted from their own starts with the candidates' budget on
 /// the 16-px checkerboard's colour 0 ([`fit::checker`]) of the fitted pixels (every pixel up to
 /// [`DiagnoseOptions::fit_pixels`]; above it the kept blocks, which differ between the grids),
-/// then χ² summed on colour 1 where both evaluate. The grid wins where it lowers that held-out χ² by at least
-/// `min_gain` of it and by more than χ²'s own noise, [`STOP_SIGMAS`]` · √(2N)`. BIC's
+/// then χ² summed on colour 1 where both evaluate. The grid wins where it lowers that held-out
+/// χ² by at least `min_gain` of it and by more than χ²'s own noise, [`STOP_SIGMAS`]` · √(2N)`. BIC's
 /// nominal penalty (every kernel value times `ln N`) cannot decide it: a TV-regularised
 /// kernel's values are far from free, so at 1024 × 768 the penalty rejects a 6 × 4 grid that
 /// removes a fifth of χ² (docs/diagnosis.md, "The field case at camera size"); held-out
@@ -1158,7 +1158,7 @@ fn search_round(data: &Data, current: &Fit, analysis: &Analysis, round: Round, o
 /// kernels fitted on every pixel, which favours the current model: the rule errs towards
 /// the coarser grid. The winner is fitted on every pixel; its ΔBIC, against the current model
 /// (not a null refit of the same budget), is stated for information: the held-out pixels
-/// decided the step, and its nominal penalty makes it positive where the grid wins. `row` is
+/// decided the step, and its nominal penalty may make it positive where the grid wins. `row` is
 /// the candidate's entry in the round's scores, its note the held-out figures.
 fn decide_growth(data: &Data, current: &Fit, cand: candidates::Candidate, row: &mut CandidateScore, opts: &DiagnoseOptions) -> Option<(candidates::Candidate, Fit, f64)> {
     let init = cand.init.clone().unwrap_or_else(|| current.model.clone());
@@ -1759,8 +1759,8 @@ mod tests {
     }
 
     /// A finer grid is decided on held-out pixels ([`decide_growth`]), from the base model on
-    /// the proof's 3 × 2 profile (as where its layout step lost the round): on the field case (seed 21: the lens varies on a 9 × 7 grid) the
-    /// 6 × 4 grid lowers the held-out χ² by more than `min_gain` and wins, fitted on every pixel
+    /// the proof's 3 × 2 profile (as where its layout step lost the round): on the field case
+    /// (seed 21: the lens varies on a 9 × 7 grid) the 6 × 4 grid lowers the held-out χ² by more than `min_gain` and wins, fitted on every pixel
     /// (98 774 → 20 007 on 21 538 held-out pixels); on clean data (the same seed) it raises it
     /// (22 365 → 24 489): the finer grid fits noise. The score's note states both χ².
     #[test]
@@ -1772,8 +1772,8 @@ mod tests {
             let est = estimate(&case.open.image, &case.pinhole.image, &EstimateOptions { saturation: f32::INFINITY, ..opts.estimate.clone() }).expect("estimates");
             let (data, current, _) = base_model(&case.open.image, &case.pinhole.image, &est.profile, &opts);
             assert_eq!((current.model.grid.columns, current.model.grid.rows), (3, 2));
-            let at = |columns: usize, rows: usize| model::Corrections { psf_field_variation: Some(model::FieldCorrection { columns, rows }), ..model::Corrections::default() };
-            let cand = candidates::Candidate { name: "psf_field_variation", corrections: at(6, 4), evidence: String::new(), location: String::new(), init: None, deferred: None };
+            let grown = model::Corrections { psf_field_variation: Some(model::FieldCorrection { columns: 6, rows: 4 }), ..model::Corrections::default() };
+            let cand = candidates::Candidate { name: "psf_field_variation", corrections: grown, evidence: String::new(), location: String::new(), init: None, deferred: None };
             let mut row = CandidateScore { name: "psf_field_variation (finer grid)".into(), reduced_chi2: None, parameters: serde_json::Value::Null, delta_bic: None, note: String::new() };
             let got = decide_growth(&data, &current, cand, &mut row, &opts);
             let note = &row.note;

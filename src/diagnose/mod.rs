@@ -1139,7 +1139,10 @@ fn search_round(data: &Data, current: &Fit, analysis: &Analysis, round: Round, o
                 best = decide_growth(data, current, cand, &mut scores[entry], opts);
                 progress_lap(opts, lap("finer grid decided on held-out pixels"));
             }
-            Some((winner, _, _)) => scores[entry].note += &format!("; not decided: {} won the round", winner.name),
+            Some((winner, _, _)) => {
+                let which = if winner.name == cand.name { " (its layout step)" } else { "" };
+                scores[entry].note += &format!("; not decided: {}{which} won the round", winner.name);
+            }
         }
     }
     (scores, best)

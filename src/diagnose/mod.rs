@@ -632,7 +632,7 @@ fn adopt(data: &mut Data, s: &mut Search, (cand, f, dbic): (candidates::Candidat
     // the refit below needs only the winner's model and solver state: its planes go now
     let fit::Fit { model, warm, .. } = f;
     let previous = rescore(data, &s.current);
-    let noise = STOP_SIGMAS * (2.0 * current.n() as f64).sqrt();
+    let noise = chi2_noise(current.n() as f64);
     let mut lowered = previous.chi2() - current.chi2();
     // what the rest needs of the current model rescored; its planes go before any convergence
     let (before, previous_chi2, previous_bic) = (Figures::of(&previous), previous.chi2(), previous.bic());
@@ -810,7 +810,7 @@ const FINAL_POLISH_MAX_ROUNDS: usize = 6;
 /// while a round lowers χ² by more than [`STOP_SIGMAS`]` · √(2N)` (χ²'s own noise for `N`
 /// pixels), at most [`FINAL_POLISH_MAX_ROUNDS`].
 fn final_polish_rule(n: usize, opts: &DiagnoseOptions) -> fit::Convergence {
-    fit::Convergence { kernel_iterations: opts.base_fit.kernel_iterations, max_rounds: FINAL_POLISH_MAX_ROUNDS, tolerance: STOP_SIGMAS * (2.0 * n as f64).sqrt() }
+    fit::Convergence { kernel_iterations: opts.base_fit.kernel_iterations, max_rounds: FINAL_POLISH_MAX_ROUNDS, tolerance: chi2_noise(n as f64) }
 }
 
 /// `f`'s model scored with `data`'s current noise curves, unchanged (no fitting round), with
@@ -1044,8 +1044,7 @@ fn search_round(data: &Data, current: &Fit, analysis: &Analysis, round: Round, o
     let mut growth: Option<(candidates::Candidate, usize)> = None;
     for cand in proposed {
         if candidates::grows_grid(&cand, current) {
-            let parameters = candidates::parameters_json(cand.name, &cand.corrections);
-            scores.push(CandidateScore { name: format!("{} (finer grid)", cand.name), parameters, reduced_chi2: None, delta_bic: None, note: "a finer kernel grid: decided on held-out pixels, where no other candidate wins the round".into() });
+            scores.push(unscreened(&cand, " (finer grid)", "a finer kernel grid: decided on held-out pixels, where no other candidate wins the round"));
             growth = Some((cand, scores.len() - 1));
             bar.inc(1);
             continue;
@@ -1055,8 +1054,7 @@ fn search_round(data: &Data, current: &Fit, analysis: &Analysis, round: Round, o
         // on every pixel, where no candidate wins on the subset (a screening fit would only
         // fill its row: 4.4 s a round at 1024×768)
         if subset && cand.corrections.psf_field_variation != current.model.corrections.psf_field_variation {
-            let parameters = candidates::parameters_json(cand.name, &cand.corrections);
-            scores.push(CandidateScore { name: cand.name.to_string(), parameters, reduced_chi2: None, delta_bic: None, note: "a new kernel grid, whose blocks hold other pixels than the null refit's: not screened, for a decision on every pixel".into() });
+            scores.push(unscreened(&cand, "", "a new kernel grid, whose blocks hold other pixels than the null refit's: not screened, for a decision on every pixel"));
             near.push(cand);
             bar.inc(1);
             continue;
@@ -1148,6 +1146,18 @@ fn search_round(data: &Data, current: &Fit, analysis: &Analysis, round: Round, o
     (scores, best)
 }
 
+/// The score row of a candidate `search_round` does not screen (a new kernel layout, a finer
+/// grid): its parameters, no figures until it is fitted, `note`; `suffix` follows its name.
+fn unscreened(cand: &candidates::Candidate, suffix: &str, note: &str) -> CandidateScore {
+    CandidateScore { name: format!("{}{suffix}", cand.name), parameters: candidates::parameters_json(cand.name, &cand.corrections), reduced_chi2: None, delta_bic: None, note: note.into() }
+}
+
+/// χ²'s own noise on `n` pixels, [`STOP_SIGMAS`]` · √(2n)`: what a change of χ² must exceed to
+/// count (the stop rule, the final polish's convergence, the finer grid's held-out decision).
+fn chi2_noise(n: f64) -> f64 {
+    STOP_SIGMAS * (2.0 * n).sqrt()
+}
+
 /// A finer kernel grid ([`candidates::grows_grid`]) decided on held-out pixels: the current
 /// model and the grown one each fitted from their own starts with the candidates' budget on
 /// the 16-px checkerboard's colour 0 ([`fit::checker`]) of the fitted pixels (every pixel up to
@@ -1168,7 +1178,7 @@ fn decide_growth(data: &Data, current: &Fit, cand: candidates::Candidate, row: &
     let half = |corr: &model::Corrections, init: &Model| fit::fit_masked(data, corr, init, opts.candidate_fit, &|x, y| fit::checker(x, y) == 0, data.fit_pixels);
     let (coarse, fine) = (half(&current.model.corrections, &current.model), half(&cand.corrections, &init));
     let ([h0, h1], n) = fit::held_out_chi2([&coarse, &fine], 1);
-    let (gain, tolerance) = ((h0 - h1) / h0.max(1e-300), STOP_SIGMAS * (2.0 * n).sqrt());
+    let (gain, tolerance) = ((h0 - h1) / h0.max(1e-300), chi2_noise(n));
     // written so that a NaN rejects
     let pass = gain >= opts.min_gain && h0 - h1 > tolerance && gain <= 1.0;
     let g = &current.model.grid;
@@ -1574,7 +1584,7 @@ mod tests {
         let winner = fit::fit(&data, &corr, &point, FitSettings { rounds: 0, kernel_iterations: 0 });
         // the rule on the polished winner alone refuses it
         let polished = rescore(&data, &polish_winner(&data, &current, winner.clone(), &thinned));
-        let noise = STOP_SIGMAS * (2.0 * current.n() as f64).sqrt();
+        let noise = chi2_noise(current.n() as f64);
         let tolerance = rotation_tolerance(noise, current.chi2(), thinned.min_gain);
         let lowered = current.chi2() - polished.chi2();
         assert!(!rotation_round_adopts(lowered, tolerance, candidates::centroid_similarity_fit(&polished).as_ref()), "polished {} current {} tolerance {tolerance}", polished.chi2(), current.chi2());
@@ -1763,8 +1773,9 @@ mod tests {
 
     /// A finer grid is decided on held-out pixels ([`decide_growth`]), from the base model on
     /// the proof's 3 × 2 profile (as where its layout step lost the round): on the field case
-    /// (seed 21: the lens varies on a 9 × 7 grid) the 6 × 4 grid lowers the held-out χ² by more than `min_gain` and wins, fitted on every pixel
-    /// (98 774 → 20 007 on 21 538 held-out pixels); on clean data (the same seed) it raises it
+    /// (seed 21: the lens varies on a 9 × 7 grid) the 6 × 4 grid lowers the held-out χ² by more
+    /// than `min_gain` and wins, fitted on every pixel (98 774 → 20 007 on 21 538 held-out
+    /// pixels); on clean data (the same seed) it raises it
     /// (22 365 → 24 489): the finer grid fits noise. The score's note states both χ².
     #[test]
     fn a_finer_grid_is_decided_on_held_out_pixels() {

@@ -186,6 +186,10 @@ fn run_session(a: &DiagnoseArgs, session: &Path, out: &Path) -> Result<()> {
 fn print_details(truth: &serde_json::Value, d: &Diagnosis) {
     eprintln!("truth {truth}");
     eprintln!("verdict: {}", d.verdict);
+    for e in &d.effects {
+        eprintln!("found {}: {} (evidence: {})", e.name, e.parameters, e.evidence);
+    }
+    eprintln!("final corrections: {}", serde_json::to_string(&d.final_fit.model.corrections).unwrap_or_default());
     for (name, f) in [("base", &d.base), ("final", &d.final_fit)] {
         eprintln!("{name}: {} pixels, {} parameters, {:.0} effective; χ²/N {:.3}, χ²/(N − p) {:.3}, χ²/(N − p_eff) {:.3}", f.n(), f.params, f.effective_params(), f.chi2() / f.n().max(1) as f64, f.chi2() / (f.n() as f64 - f.params as f64).max(1.0), f.reduced_chi2());
     }

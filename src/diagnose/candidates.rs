@@ -497,22 +497,12 @@ fn black_level_candidate(data: &Data, c0: &Corrections, a: &Analysis) -> Candida
 /// ([`linearised_estimate`]). Not gated ([`StartGate`]): at 1024×768 with 45-px kernels the
 /// start (sRGB decoding with the linear fit's kernels) scores worse than the current model even
 /// on the tone-curve case, so only the re-estimate shows its gain. An adopted `veiling_glare`
-/// keeps its fraction, its width searched again ([`glare_sigma_of`]) from the re-estimate: a
-/// width searched on the encoded axis is not the halo's (sf11, 1024×768, seed 74: 307 px, then
-/// 227, against 76 rendered).
+/// keeps its width and fraction: searched again from the re-estimate (whose kernels were
+/// estimated with that halo taken out) the width stays where it was (sf11, 1024×768, seed 74:
+/// 307.2 → 302.7 px, 76.4 rendered); backward elimination searches it again ([`super::prune`]).
 fn tone_candidate(data: &Data, current: &Fit, a: &Analysis) -> Candidate {
     let c0 = &current.model.corrections;
-    let mut corrections = Corrections { tone_curve: Some(ToneCorrection { transfer: Transfer::Srgb }), ..c0.clone() };
-    let init = linearised_estimate(data, current, Transfer::Srgb);
-    // an adopted glare's width was searched on the encoded axis: searched again on the
-    // decoded one, from the re-estimated start
-    let mut how = String::new();
-    if let (Some(g), Some(m)) = (c0.veiling_glare, &init) {
-        if let Some(sigma) = glare_sigma_of(data, &corrections, m) {
-            how = format!("; the glare's width searched again on the decoded axis: {:.1} → {sigma:.1} px", g.sigma_px);
-            corrections.veiling_glare = Some(GlareCorrection { sigma_px: sigma, ..g });
-        }
-    }
+    let corrections = Corrections { tone_curve: Some(ToneCorrection { transfer: Transfer::Srgb }), ..c0.clone() };
     let lin: Vec<f64> = data.curves.iter().map(|c| super::noise::PoissonGaussian::fit(c, Transfer::Linear).misfit).collect();
     let srgb: Vec<f64> = data.curves.iter().map(|c| super::noise::PoissonGaussian::fit(c, Transfer::Srgb).misfit).collect();
     Candidate {
@@ -523,8 +513,8 @@ fn tone_candidate(data: &Data, current: &Fit, a: &Analysis) -> Candidate {
             curve_text(a, "intensity"),
             100.0 * lin.iter().sum::<f64>() / lin.len().max(1) as f64,
             100.0 * srgb.iter().sum::<f64>() / srgb.len().max(1) as f64
-        ) + &how,
-        init,
+        ),
+        init: linearised_estimate(data, current, Transfer::Srgb),
         deferred: None,
         location: location(data, a, "all intensities, nonlinear"),
     }
@@ -1352,6 +1342,9 @@ fn linearised_estimate(data: &Data, current: &Fit, transfer: Transfer) -> Option
 /// `L_p`, unregistered (a halo of `σ` ≥ tens of pixels moves little with a shift of a few).
 fn without_halo(open: &crate::image::Image, pinhole: &crate::image::Image, g: GlareCorrection) -> crate::image::Image {
     let mut out = open.clone();
+    if !(g.fraction.is_finite() && g.sigma_px.is_finite()) {
+        return out;
+    }
     let f = g.fraction.clamp(0.0, 0.95) as f32;
     for (o, p) in out.planes.iter_mut().zip(&pinhole.planes) {
         let (so, sp) = (o.data.iter().map(|&v| v as f64).sum::<f64>(), p.data.iter().map(|&v| v as f64).sum::<f64>());

@@ -14,9 +14,9 @@
 //! `pinhole_diffraction`, `tone_curve`, `saturation`) stay: a short refit without them would
 //! start from kernels fitted to them and score them unfairly.
 //!
-//! The glare's width is searched, not fitted (`candidates::glare_sigma`): where an effect
-//! is removed from a model that keeps a `veiling_glare`, the width is searched again for the
-//! model without it before the refit, so that the smaller model is scored at its best. A wide
+//! The glare's width is searched, not fitted (`candidates::glare_sigma`): where the model
+//! holds a `veiling_glare`, the width is searched again for the null refit and for each model
+//! without an effect before its refit, so that each is scored at its best width. A wide
 //! halo and a vignetting can stand in for a narrower halo: veiling glare + tone curve through
 //! the sf11 design (1024×768, seed 74) ended at the floor with a halo of 303 px and a
 //! vignetting against 76 px and none rendered.
@@ -41,6 +41,17 @@ pub fn without(c: &Corrections, name: &str) -> Corrections {
     out
 }
 
+/// `c` with its glare's width (if it has a glare) searched again on `current`'s kernels
+/// ([`super::candidates::glare_sigma_of`]), its fraction kept (the refit fits it).
+fn with_searched_glare(data: &Data, mut c: Corrections, current: &Fit) -> Corrections {
+    if let Some(g) = c.veiling_glare {
+        if let Some(sigma) = super::candidates::glare_sigma_of(data, &c, &current.model) {
+            c.veiling_glare = Some(super::model::GlareCorrection { sigma_px: sigma, ..g });
+        }
+    }
+    c
+}
+
 /// The removable effect of `current` that the search would no longer accept (module docs),
 /// the one whose removal costs least, with the refit without it; `None` when every effect
 /// still earns its place or the model has fewer than two effects.
@@ -49,17 +60,12 @@ pub fn weakest_redundant(data: &Data, current: &Fit, opts: &DiagnoseOptions) -> 
     if names.len() < 2 {
         return None;
     }
-    let mut null = fit(data, &current.model.corrections, &current.model, opts.candidate_fit);
+    let mut null = fit(data, &with_searched_glare(data, current.model.corrections.clone(), current), &current.model, opts.candidate_fit);
     null.inherit_dof(current);
     let total = |f: &Fit| f.chi2() + f.noise_chi2;
     let mut best: Option<(&'static str, Fit, f64)> = None;
     for name in names.into_iter().filter(|n| REMOVABLE.contains(n)) {
-        let mut c = without(&current.model.corrections, name);
-        if let Some(g) = c.veiling_glare {
-            if let Some(sigma) = super::candidates::glare_sigma_of(data, &c, &current.model) {
-                c.veiling_glare = Some(super::model::GlareCorrection { sigma_px: sigma, ..g });
-            }
-        }
+        let c = with_searched_glare(data, without(&current.model.corrections, name), current);
         let mut f = fit(data, &c, &current.model, opts.candidate_fit);
         f.inherit_dof(current);
         // what the effect still removes, given the others

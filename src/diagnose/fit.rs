@@ -297,7 +297,8 @@ impl Fit {
     }
     /// `χ² + χ²_noise-law + p·ln N`, with the nominal count `p`. The effective count was tried
     /// (session 63): the probe that measures it runs on the screening subset and counts about
-    /// half the whole image's `df_K`, harmless for the reduced χ² but not for a grown grid's
+    /// half the whole image's `df_K` (a third with the one-round probe since session 66),
+    /// harmless for the reduced χ² but not for a grown grid's
     /// penalty (docs/diagnosis.md, "Effective degrees of freedom").
     pub fn bic(&self) -> f64 {
         self.chi2() + self.noise_chi2 + self.params as f64 * (self.n().max(2) as f64).ln()

@@ -405,11 +405,8 @@ fn base_model<'a>(open: &'a Image, pinhole: &'a Image, base_profile: &Profile, o
 /// (d20)"). Elsewhere the base budget for the fit and the probe, then one round.
 fn base_budget(screens: bool, base_fit: FitSettings) -> (FitSettings, FitSettings, FitSettings) {
     let refit = FitSettings { rounds: 1, kernel_iterations: base_fit.kernel_iterations };
-    if !screens {
-        return (base_fit, base_fit, refit);
-    }
-    let provisional = FitSettings { rounds: base_fit.rounds.saturating_sub(1).max(1), ..base_fit };
-    (provisional, probe_budget(true, base_fit), refit)
+    let provisional = if screens { FitSettings { rounds: base_fit.rounds.saturating_sub(1).max(1), ..base_fit } } else { base_fit };
+    (provisional, probe_budget(screens, base_fit), refit)
 }
 
 /// The degrees-of-freedom probe's budget ([`fit::measure_kernel_dof`]): where the screening

@@ -6,7 +6,9 @@
 //! `cargo run --release --example noisebias -- EFFECT|clean SEED W H K CHANNELS ITERS`
 //! (`K` the kernel size; `ITERS` kernel iterations per round of the 3-round provisional fit;
 //! `PROBE_SUBSET=PIXELS` also runs the probe on the screening subset of that size and prints
-//! its count and scaled `α_hp` next to the whole-image probe's).
+//! its count and scaled `α_hp` next to the whole-image probe's; `LENS=DIR` renders through a
+//! truth profile, e.g. a real design in `../shared/data/lenses/`, whose size, grid and kernel
+//! size replace `W H K`, as `diagnose --bench-lens` does).
 use lensrig::diagnose::bench::proof_options;
 use lensrig::diagnose::fit::{fit, measure_kernel_dof, Data, FitSettings, Model, KERNEL_STEP};
 use lensrig::diagnose::proof::{render_case, CaseSpec};
@@ -24,6 +26,13 @@ fn main() {
     if w != 256 {
         spec.grid = (7, 5);
     }
+    if let Some(dir) = std::env::var_os("LENS") {
+        let p = lensrig::profile::Profile::load(std::path::Path::new(&dir)).unwrap();
+        (spec.width, spec.height, spec.kernel_size) = (p.meta.source.width, p.meta.source.height, p.grid.kernel_size);
+        spec.grid = (p.grid.columns, p.grid.rows);
+        spec.truth_psfs = Some(p.grid);
+    }
+    let (w, h, k) = (spec.width, spec.height, spec.kernel_size);
     let case = render_case(effect, seed, &spec).unwrap();
     let mut opts = proof_options(&spec);
     if w != 256 {
@@ -82,5 +91,8 @@ fn main() {
             law(&corrected[c], 0.15),
             law(&corrected[c], 0.35)
         );
+        for b in &corrected[c].bins {
+            println!("    corrected bin {:.4}: {:.4} ({} windows)", b.0, b.1 / sensor.variance(b.0 as f32) as f64, b.2);
+        }
     }
 }

@@ -50,7 +50,7 @@ pub fn report_json(d: &Diagnosis, src: &Sources) -> serde_json::Value {
         "final": d.final_figures(),
         "effects": d.effects,
         "rounds": d.rounds,
-        "cross_validation": { "held_out_reduced_chi2": d.cross_validation[0], "in_sample_reduced_chi2": d.cross_validation[1] },
+        "cross_validation": { "held_out_reduced_chi2": d.cross_validation.0, "in_sample_reduced_chi2": d.cross_validation.1 },
         "low_band": { "base": d.low_band[0], "final": d.low_band[1] },
         "analysis": { "base": d.base_analysis, "final": d.final_analysis },
         "files": {
@@ -227,7 +227,8 @@ fn html(d: &Diagnosis, src: &Sources) -> String {
         h.push_str(&figures_row(&format!("+ {}", e.name), &e.after));
     }
     h.push_str(&figures_row("final", &d.final_figures()));
-    let _ = write!(h, "</table><p>Cross-validation (fit on one half of a 16-px checkerboard, evaluated on the other): held-out reduced χ² {:.4}, in-sample {:.4}.</p>", d.cross_validation[0], d.cross_validation[1]);
+    let held_out = d.cross_validation.0.map_or("not measured (no evaluated pixel on either half)".to_string(), |v| format!("{v:.4}"));
+    let _ = write!(h, "</table><p>Cross-validation (fit on one half of a 16-px checkerboard, evaluated on the other): held-out reduced χ² {held_out}, in-sample {:.4}.</p>", d.cross_validation.1);
     h.push_str("<h2 id=\"effects\">Effects found</h2>");
     if d.effects.is_empty() {
         h.push_str("<p>None.</p>");

@@ -8,7 +8,7 @@
 //! `PROBE_SUBSET=PIXELS` also runs the probe on the screening subset of that size and prints
 //! its count and scaled `α_hp` next to the whole-image probe's; `LENS=DIR` renders through a
 //! truth profile, e.g. a real design in `../shared/data/lenses/`, whose size, grid and kernel
-//! size replace `W H K`, as `diagnose --bench-lens` does).
+//! size replace `W H K` and the case is RGB, as `diagnose --bench-lens` does).
 use lensrig::diagnose::bench::proof_options;
 use lensrig::diagnose::fit::{fit, measure_kernel_dof, Data, FitSettings, Model, KERNEL_STEP};
 use lensrig::diagnose::proof::{render_case, CaseSpec};
@@ -28,11 +28,9 @@ fn main() {
     }
     if let Some(dir) = std::env::var_os("LENS") {
         let p = lensrig::profile::Profile::load(std::path::Path::new(&dir)).unwrap();
-        (spec.width, spec.height, spec.kernel_size) = (p.meta.source.width, p.meta.source.height, p.grid.kernel_size);
-        spec.grid = (p.grid.columns, p.grid.rows);
-        spec.truth_psfs = Some(p.grid);
+        spec = spec.through_truth(&p).expect("an RGB truth profile");
     }
-    let (w, h, k) = (spec.width, spec.height, spec.kernel_size);
+    let (w, h, k, ch) = (spec.width, spec.height, spec.kernel_size, spec.channels);
     let case = render_case(effect, seed, &spec).unwrap();
     let mut opts = proof_options(&spec);
     if w != 256 {

@@ -271,13 +271,10 @@ fn bench_spec(a: &DiagnoseArgs) -> Result<CaseSpec> {
     }
     if let Some(dir) = &a.bench_lens {
         let p = Profile::load(dir).with_context(|| format!("reading the truth profile {}", dir.display()))?;
-        let src = &p.meta.source;
-        if p.grid.channels.len() != 3 {
-            bail!("{}: the truth profile has {} channel(s); the benchmark renders RGB", dir.display(), p.grid.channels.len());
-        }
-        (spec.width, spec.height, spec.channels, spec.kernel_size) = (src.width, src.height, 3, p.grid.kernel_size);
-        spec.grid = (p.grid.columns, p.grid.rows);
-        spec.truth_psfs = Some(p.grid);
+        spec = match spec.through_truth(&p) {
+            Ok(s) => s,
+            Err(n) => bail!("{}: the truth profile has {n} channel(s); the benchmark renders RGB", dir.display()),
+        };
     }
     if spec.width < 4 * spec.kernel_size || spec.height < 4 * spec.kernel_size {
         bail!("the benchmark image {}x{} is too small for {}-px kernels", spec.width, spec.height, spec.kernel_size);

@@ -86,6 +86,19 @@ pub struct CaseSpec {
     pub truth_psfs: Option<PsfGrid>,
 }
 
+impl CaseSpec {
+    /// This case rendered through a truth profile's PSFs (`diagnose --bench-lens`, e.g. a real
+    /// design in `../shared/data/lenses/`): the profile's source size, grid and kernel size, RGB.
+    /// Fails (with the channel count) unless the profile has three channels.
+    pub fn through_truth(self, truth: &crate::profile::Profile) -> Result<CaseSpec, usize> {
+        let (src, grid) = (&truth.meta.source, &truth.grid);
+        if grid.channels.len() != 3 {
+            return Err(grid.channels.len());
+        }
+        Ok(CaseSpec { width: src.width, height: src.height, channels: 3, kernel_size: grid.kernel_size, grid: (grid.columns, grid.rows), truth_psfs: Some(grid.clone()), ..self })
+    }
+}
+
 impl Default for CaseSpec {
     fn default() -> Self {
         Self { width: 256, height: 192, channels: 1, f_number: 5.6, kernel_size: 15, grid: (3, 2), truth_psfs: None }
@@ -549,6 +562,29 @@ pub fn floor_ratio(case: &Case, predicted: &[Plane], mask: &[Vec<bool>]) -> f64 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A truth profile sets the case's size, grid, kernel size and PSFs and makes it RGB; a
+    /// profile of another channel count is refused with its count.
+    #[test]
+    fn a_truth_profile_sets_the_case() {
+        use crate::image::SampleFormat;
+        use crate::profile::{PsfTable, SourceInfo};
+        let (w, h) = (200, 150);
+        let lens = LensModel::demo(w, h);
+        let grid = lens.psf_grid(5.6, 4, 3, 11);
+        let psf = PsfTable { kernel_size: 11, columns: 4, rows: 3, centers: grid.centers.clone(), tile_size: None, files: Default::default() };
+        let channels: Vec<String> = grid.channels.clone();
+        let source = SourceInfo { width: w, height: h, channels, sample_format: SampleFormat::U16, transfer: Transfer::Linear, open: None, pinhole: None, black_level: vec![] };
+        let truth = crate::profile::Profile { meta: crate::profile::Profile::new_meta(source, vec![1.0; grid.channels.len()], psf), grid: grid.clone() };
+        assert_eq!(grid.channels.len(), 3, "the demo lens is RGB");
+        let spec = CaseSpec { f_number: 4.0, ..CaseSpec::default() }.through_truth(&truth).expect("an RGB profile");
+        assert_eq!((spec.width, spec.height, spec.channels, spec.kernel_size, spec.grid, spec.f_number), (w, h, 3, 11, (4, 3), 4.0));
+        assert_eq!(spec.truth_psfs.as_ref().map(|g| g.kernels.clone()), Some(grid.kernels.clone()));
+        let mut mono = truth.clone();
+        mono.grid.channels.truncate(1);
+        mono.grid.kernels.truncate(1);
+        assert_eq!(CaseSpec::default().through_truth(&mono).err(), Some(1));
+    }
 
     /// The Wiener error gain: a sharp reference (`D = δ`) with a strong signal gives the plain
     /// `ΣK²`; a blurred reference gives more (the inverse of `D` amplifies its noise), and the

@@ -806,6 +806,17 @@ pub(crate) mod tests {
                 assert!(kept <= 2 * budget, "{kept}");
             }
         }
+        // 1024×768 on the diagnosis' grids (7×5 in the proof renders, 13×9 estimated): the
+        // cover stays within twice the budget, so the layout (and every figure) is as before
+        for (cols, rows) in [(7, 5), (13, 9)] {
+            let (w, h, budget) = (1024, 768, 150_000);
+            let g = grid(w, h, 45, cols, rows, 3);
+            let (xs, ys) = (g.column_xs(), g.row_ys());
+            let (cx, cy) = (axis_factors(&xs, w), axis_factors(&ys, h));
+            let large = BlockPlan::new(&cx, &cy, &xs, &ys, &g, budget, true, LARGEST_BLOCK_KERNELS).kept_pixels();
+            eprintln!("1024×768, {cols}×{rows}: large blocks keep {large} pixels");
+            assert!(large <= 2 * budget, "{cols}×{rows}: {large}");
+        }
     }
 
     /// A subset taken from a built operator is the operator built with the same cap: same

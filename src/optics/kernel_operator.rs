@@ -215,7 +215,8 @@ fn split_axis(cuts: &[usize], s_max: usize) -> Splits {
 /// (non-zero weight) on an interval. Candidates: every axis split evenly into blocks of at most
 /// `m` kernels, or cut at the PSF centres (where the set of active tiles changes, so a block
 /// sees at most four tiles per axis) and then split evenly, for `m = 2…max_m`; the cheapest wins.
-fn block_layout(cx: &[Vec<f32>], cy: &[Vec<f32>], xs: &[f64], ys: &[f64], k: usize, max_m: usize) -> (Splits, Splits, usize) {
+fn block_layout(axes: &GridAxes, k: usize, max_m: usize) -> (Splits, Splits, usize) {
+    let GridAxes { xs, ys, cx, cy } = axes;
     let r = k / 2;
     let active = |fs: &[Vec<f32>], sp: &Splits| -> usize { sp.iter().map(|&(a, l)| fs.iter().filter(|f| f[a..a + l].iter().any(|&v| v != 0.0)).count()).sum() };
     let centre_cuts = |cs: &[f64], n: usize| -> Vec<usize> {
@@ -227,7 +228,7 @@ fn block_layout(cx: &[Vec<f32>], cy: &[Vec<f32>], xs: &[f64], ys: &[f64], k: usi
         c.dedup();
         c
     };
-    let (w, h) = (cx.first().map_or(0, |f| f.len()), cy.first().map_or(0, |f| f.len()));
+    let (w, h) = (axes.width(), axes.height());
     let mut best: Option<(f64, Splits, Splits, usize)> = None;
     for m in 2..=max_m.max(2) {
         let s_max = m * k;
@@ -245,6 +246,31 @@ fn block_layout(cx: &[Vec<f32>], cy: &[Vec<f32>], xs: &[f64], ys: &[f64], k: usi
     match best {
         Some((_, sx, sy, f)) => (sx, sy, f),
         None => (vec![(0, w)], vec![(0, h)], fast_size(w.max(h) + 2 * r)),
+    }
+}
+
+/// A grid's PSF centres along each axis of a `w × h` image and its separable Catmull–Rom
+/// weight factors (`w_t(x, y) = cx[t % columns][x] · cy[t / columns][y]`).
+struct GridAxes {
+    xs: Vec<f64>,
+    ys: Vec<f64>,
+    cx: Vec<Vec<f32>>,
+    cy: Vec<Vec<f32>>,
+}
+
+impl GridAxes {
+    fn new(grid: &PsfGrid, w: usize, h: usize) -> Self {
+        let (xs, ys) = (grid.column_xs(), grid.row_ys());
+        let (cx, cy) = (axis_factors(&xs, w), axis_factors(&ys, h));
+        Self { xs, ys, cx, cy }
+    }
+
+    fn width(&self) -> usize {
+        self.cx.first().map_or(0, |f| f.len())
+    }
+
+    fn height(&self) -> usize {
+        self.cy.first().map_or(0, |f| f.len())
     }
 }
 
@@ -283,9 +309,9 @@ struct BlockPlan {
 }
 
 impl BlockPlan {
-    #[allow(clippy::too_many_arguments)]
-    fn new(cx: &[Vec<f32>], cy: &[Vec<f32>], xs: &[f64], ys: &[f64], grid: &PsfGrid, max_pixels: usize, cover: bool, max_m: usize) -> Self {
-        let (bx, by, f) = block_layout(cx, cy, xs, ys, grid.kernel_size, max_m);
+    fn new(axes: &GridAxes, grid: &PsfGrid, max_pixels: usize, cover: bool, max_m: usize) -> Self {
+        let (bx, by, f) = block_layout(axes, grid.kernel_size, max_m);
+        let (cx, cy) = (&axes.cx, &axes.cy);
         let mut specs: Vec<BlockSpec> = Vec::new();
         for &(y0, sh) in &by {
             for &(x0, sw) in &bx {
@@ -336,19 +362,19 @@ impl KernelOperator {
         let (w, h) = (sharp.width, sharp.height);
         let k = grid.kernel_size;
         let r = k / 2;
-        let (xs, ys) = (grid.column_xs(), grid.row_ys());
-        let (cx, cy) = (axis_factors(&xs, w), axis_factors(&ys, h));
-        let mut plan = BlockPlan::new(&cx, &cy, &xs, &ys, grid, max_pixels, cover, LARGEST_BLOCK_KERNELS);
+        let axes = GridAxes::new(grid, w, h);
+        let mut plan = BlockPlan::new(&axes, grid, max_pixels, cover, LARGEST_BLOCK_KERNELS);
         // a covering subset of large blocks may keep several times the pixels asked for (at
         // 4000×3000 on a 7×5 grid of 45-px kernels, 10 blocks of 290² px for 150 000): the
         // smallest blocks then spread the same cover over the budget
         if cover && plan.kept_pixels() > 2 * max_pixels {
-            let small = BlockPlan::new(&cx, &cy, &xs, &ys, grid, max_pixels, cover, 2);
+            let small = BlockPlan::new(&axes, grid, max_pixels, cover, 2);
             if small.kept_pixels() < plan.kept_pixels() {
                 plan = small;
             }
         }
         let BlockPlan { f, specs, nbx, keep_every, layout_pixels } = plan;
+        let GridAxes { cx, cy, .. } = axes;
         let fft = Fft2::plan(f, f);
         let blocks: Vec<Block> = specs
             .into_par_iter()
@@ -794,9 +820,7 @@ pub(crate) mod tests {
             let (w, h, budget) = (4000, 3000, 150_000);
             let sharp = Plane::from_fn(w, h, |x, y| ((x * 7 + y * 13) % 17) as f32);
             let g = grid(w, h, 45, cols, rows, 3);
-            let (xs, ys) = (g.column_xs(), g.row_ys());
-            let (cx, cy) = (axis_factors(&xs, w), axis_factors(&ys, h));
-            let large = BlockPlan::new(&cx, &cy, &xs, &ys, &g, budget, true, LARGEST_BLOCK_KERNELS).kept_pixels();
+            let large = BlockPlan::new(&GridAxes::new(&g, w, h), &g, budget, true, LARGEST_BLOCK_KERNELS).kept_pixels();
             let cover = KernelOperator::covering(&sharp, &g, budget);
             let kept = cover.covered().iter().filter(|&&c| c).count();
             eprintln!("{cols}×{rows}: large blocks keep {large} pixels, the operator {kept} in {} blocks", cover.block_count());
@@ -811,9 +835,7 @@ pub(crate) mod tests {
         for (cols, rows) in [(7, 5), (13, 9)] {
             let (w, h, budget) = (1024, 768, 150_000);
             let g = grid(w, h, 45, cols, rows, 3);
-            let (xs, ys) = (g.column_xs(), g.row_ys());
-            let (cx, cy) = (axis_factors(&xs, w), axis_factors(&ys, h));
-            let large = BlockPlan::new(&cx, &cy, &xs, &ys, &g, budget, true, LARGEST_BLOCK_KERNELS).kept_pixels();
+            let large = BlockPlan::new(&GridAxes::new(&g, w, h), &g, budget, true, LARGEST_BLOCK_KERNELS).kept_pixels();
             eprintln!("1024×768, {cols}×{rows}: large blocks keep {large} pixels");
             assert!(large <= 2 * budget, "{cols}×{rows}: {large}");
         }

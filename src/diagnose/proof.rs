@@ -35,6 +35,7 @@
 //! true kernels, mapped to the stored axis by the encoding's slope.
 
 use super::noise::srgb_slope;
+use crate::image::spectrum::RadialPsd;
 use crate::image::{Plane, Transfer};
 use crate::optics::capture::{render, Blur, Glare, Rendered, Sensor, Shot, Similarity};
 use crate::optics::lens::{mono_band, LensModel};
@@ -464,45 +465,6 @@ pub fn kernel_modulation(kernels: &[Plane], f: f64) -> f64 {
 /// above one half at Nyquist).
 pub fn kernel_mtf50(kernels: &[Plane]) -> f64 {
     super::diffraction::half_modulation(|f| kernel_modulation(kernels, f))
-}
-
-/// Radially averaged power spectral density of a plane (mean removed; per-pixel
-/// normalisation: the variance is the mean of the PSD over frequencies), in 64 bands of `|f|`
-/// up to `|f| = 0.71` cycles per pixel.
-pub struct RadialPsd {
-    bands: Vec<f64>,
-}
-
-impl RadialPsd {
-    const BANDS: usize = 64;
-    const FMAX: f64 = 0.7072;
-
-    pub fn of(p: &Plane) -> Self {
-        let (w, h) = (p.width, p.height);
-        let fft = crate::solve::fft::Fft2::plan(w, h);
-        let m = p.mean() as f32;
-        let spec = fft.forward(&p.data.iter().map(|v| v - m).collect::<Vec<_>>());
-        let (sum, cnt) = crate::image::spectrum::radial_power_sums(&fft, &[&spec], Self::BANDS, Self::FMAX, crate::image::spectrum::Range::All);
-        let sum: Vec<f64> = sum[0].iter().map(|s| s / (w * h) as f64).collect();
-        // empty bands take the nearest filled one below
-        let mut bands = vec![0.0; Self::BANDS];
-        let mut last = 0.0;
-        for b in 0..Self::BANDS {
-            if cnt[b] > 0 {
-                last = sum[b] / cnt[b] as f64;
-            }
-            bands[b] = last;
-        }
-        Self { bands }
-    }
-
-    fn band(f: f64) -> usize {
-        ((f / Self::FMAX * Self::BANDS as f64) as usize).min(Self::BANDS - 1)
-    }
-
-    pub fn at(&self, fx: f64, fy: f64) -> f64 {
-        self.bands[Self::band(fx.hypot(fy))]
-    }
 }
 
 /// The error gain of the best linear prediction of `K * S` from a reference `D * S + n`

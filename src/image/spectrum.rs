@@ -1,6 +1,7 @@
 //! Radial binning of power spectra: the one implementation behind the residual spectrum
-//! ([`crate::diagnose::analysis::radial_spectrum`]), the target's PSD in the proof suite
-//! ([`crate::diagnose::proof::RadialPsd`]) and the excess-detail test
+//! ([`crate::diagnose::analysis::radial_spectrum`]), a plane's PSD ([`RadialPsd`]: the
+//! target's in the proof suite, the wide-open capture's for the detail a restored reference
+//! gives up, [`crate::diagnose::diffraction::lost_signal_variance`]) and the excess-detail test
 //! ([`crate::diagnose::diffraction::excess_detail`]).
 //!
 //! # Conventions
@@ -10,6 +11,7 @@
 //! `[b, b + 1)·top/bands` (radii at or above `top` fall in the last band); bins outside
 //! `range` are skipped. Each caller applies its own window, mean removal and normalisation.
 
+use crate::image::Plane;
 use crate::solve::fft::Fft2;
 use rustfft::num_complex::Complex32;
 
@@ -60,6 +62,45 @@ pub fn radial_power_sums(fft: &Fft2, spectra: &[&[Complex32]], bands: usize, top
 /// The centre of band `b` of `bands` up to `top`.
 pub fn band_centre(b: usize, bands: usize, top: f64) -> f64 {
     (b as f64 + 0.5) * top / bands as f64
+}
+
+/// Radially averaged power spectral density of a plane (mean removed; per-pixel
+/// normalisation: the variance is the mean of the PSD over frequencies), in 64 bands of `|f|`
+/// up to `|f| = 0.71` cycles per pixel.
+pub struct RadialPsd {
+    bands: Vec<f64>,
+}
+
+impl RadialPsd {
+    const BANDS: usize = 64;
+    const FMAX: f64 = 0.7072;
+
+    pub fn of(p: &Plane) -> Self {
+        let (w, h) = (p.width, p.height);
+        let fft = Fft2::plan(w, h);
+        let m = p.mean() as f32;
+        let spec = fft.forward(&p.data.iter().map(|v| v - m).collect::<Vec<_>>());
+        let (sum, cnt) = radial_power_sums(&fft, &[&spec], Self::BANDS, Self::FMAX, Range::All);
+        let sum: Vec<f64> = sum[0].iter().map(|s| s / (w * h) as f64).collect();
+        // empty bands take the nearest filled one below
+        let mut bands = vec![0.0; Self::BANDS];
+        let mut last = 0.0;
+        for b in 0..Self::BANDS {
+            if cnt[b] > 0 {
+                last = sum[b] / cnt[b] as f64;
+            }
+            bands[b] = last;
+        }
+        Self { bands }
+    }
+
+    fn band(f: f64) -> usize {
+        ((f / Self::FMAX * Self::BANDS as f64) as usize).min(Self::BANDS - 1)
+    }
+
+    pub fn at(&self, fx: f64, fy: f64) -> f64 {
+        self.bands[Self::band(fx.hypot(fy))]
+    }
 }
 
 #[cfg(test)]

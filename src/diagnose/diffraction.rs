@@ -239,22 +239,24 @@ pub fn epsilon(p: &Plane, noise_var: f64, psf: &ReferencePsf) -> f64 {
 /// "Session 59").
 pub const EPSILON_MIN: f64 = 1e-4;
 
+/// The mean of `f(fx, fy)` over the Nyquist square, sampled at the centres of a `steps × steps`
+/// grid (rows of `fy` outer, `fx` inner).
+fn nyquist_mean(steps: usize, f: impl Fn(f64, f64) -> f64) -> f64 {
+    let mut acc = 0.0;
+    for j in 0..steps {
+        for i in 0..steps {
+            acc += f((i as f64 + 0.5) / steps as f64 - 0.5, (j as f64 + 0.5) / steps as f64 - 0.5);
+        }
+    }
+    acc / (steps * steps) as f64
+}
+
 /// The noise-to-signal ratio `σ²_P / σ²_S` of a reference plane with noise variance `noise_var`,
 /// the target's variance taken from the plane's spectrum (`σ²_S = (var P − σ²_P) / mean D̂²`),
 /// unbounded.
 pub fn noise_to_signal(p: &Plane, noise_var: f64, psf: &ReferencePsf) -> f64 {
     let var = p.variance();
-    // mean of D̂² over the Nyquist square
-    let steps = 64;
-    let mut acc = 0.0;
-    for j in 0..steps {
-        for i in 0..steps {
-            let fx = (i as f64 + 0.5) / steps as f64 - 0.5;
-            let fy = (j as f64 + 0.5) / steps as f64 - 0.5;
-            acc += psf.transfer(fx, fy).powi(2);
-        }
-    }
-    let md2 = (acc / (steps * steps) as f64).max(1e-9);
+    let md2 = nyquist_mean(64, |fx, fy| psf.transfer(fx, fy).powi(2)).max(1e-9);
     let signal = ((var - noise_var).max(1e-3 * var)) / md2;
     noise_var / signal.max(1e-30)
 }
@@ -279,18 +281,12 @@ pub fn noise_gain(kernel: &Plane, psf: &ReferencePsf, epsilon: f64) -> f32 {
 /// of [`propagated_energies`], this takes the target's spectrum from the capture itself: a
 /// printed target's falls at high frequencies, where the restoration loses most.
 pub fn lost_signal_variance(psd: &crate::image::spectrum::RadialPsd, noise_var: f64, psf: &ReferencePsf, epsilon: f64) -> f64 {
-    let steps = 128;
-    let mut acc = 0.0;
-    for j in 0..steps {
-        for i in 0..steps {
-            let fx = (i as f64 + 0.5) / steps as f64 - 0.5;
-            let fy = (j as f64 + 0.5) / steps as f64 - 0.5;
-            let d = psf.transfer(fx, fy);
-            let loss = epsilon / (d * d + epsilon);
-            acc += (psd.at(fx, fy) - noise_var) * loss * loss;
-        }
-    }
-    (acc / (steps * steps) as f64).max(0.0)
+    nyquist_mean(128, |fx, fy| {
+        let d = psf.transfer(fx, fy);
+        let loss = epsilon / (d * d + epsilon);
+        (psd.at(fx, fy) - noise_var) * loss * loss
+    })
+    .max(0.0)
 }
 
 /// The high-pass `d = (4·c − n − s − e − w)/√20` of the noise measurement
